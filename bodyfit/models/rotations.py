@@ -1,0 +1,78 @@
+"""Rotation helpers (pure functions, batch first).
+
+All matrices rotate column vectors: ``v_parent = R @ v_child``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+
+def axis_angle_matrix(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
+    """Rotation by ``angle`` about unit ``axis`` (Rodrigues).
+
+    Args:
+        axis: (..., 3) unit vectors; broadcast against ``angle``.
+        angle: (...) radians.
+    Returns:
+        (..., 3, 3) rotation matrices.
+    """
+    x, y, z = axis.unbind(-1)
+    c = torch.cos(angle)
+    s = torch.sin(angle)
+    C = 1.0 - c
+    row0 = torch.stack([c + x * x * C, x * y * C - z * s, x * z * C + y * s], dim=-1)
+    row1 = torch.stack([y * x * C + z * s, c + y * y * C, y * z * C - x * s], dim=-1)
+    row2 = torch.stack([z * x * C - y * s, z * y * C + x * s, c + z * z * C], dim=-1)
+    return torch.stack([row0, row1, row2], dim=-2)
+
+
+def euler_xyz_body_fixed(angles: np.ndarray) -> np.ndarray:
+    """OpenSim frame orientation: XYZ body-fixed Euler angles -> rotation matrix.
+
+    Args:
+        angles: (..., 3) radians ``(a, b, c)``.
+    Returns:
+        (..., 3, 3) ``Rx(a) @ Ry(b) @ Rz(c)`` in float64.
+    """
+    a = np.asarray(angles, dtype=np.float64)
+    ca, cb, cc = np.cos(a[..., 0]), np.cos(a[..., 1]), np.cos(a[..., 2])
+    sa, sb, sc = np.sin(a[..., 0]), np.sin(a[..., 1]), np.sin(a[..., 2])
+    one, zero = np.ones_like(ca), np.zeros_like(ca)
+    rx = np.stack([one, zero, zero, zero, ca, -sa, zero, sa, ca], -1).reshape(*ca.shape, 3, 3)
+    ry = np.stack([cb, zero, sb, zero, one, zero, -sb, zero, cb], -1).reshape(*ca.shape, 3, 3)
+    rz = np.stack([cc, -sc, zero, sc, cc, zero, zero, zero, one], -1).reshape(*ca.shape, 3, 3)
+    return rx @ ry @ rz
+
+
+def matrix_to_euler_xyz_body_fixed(R: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`euler_xyz_body_fixed` (away from gimbal lock, ``|b| < pi/2``).
+
+    Args:
+        R: (..., 3, 3) rotation matrices.
+    Returns:
+        (..., 3) angles ``(a, b, c)`` with ``R = Rx(a) Ry(b) Rz(c)``.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    b = np.arcsin(np.clip(R[..., 0, 2], -1.0, 1.0))
+    a = np.arctan2(-R[..., 1, 2], R[..., 2, 2])
+    c = np.arctan2(-R[..., 0, 1], R[..., 0, 0])
+    return np.stack([a, b, c], axis=-1)
+
+
+def rotation_angle_between(Ra: torch.Tensor, Rb: torch.Tensor) -> torch.Tensor:
+    """Geodesic angle between rotations.
+
+    Args:
+        Ra, Rb: (..., 3, 3).
+    Returns:
+        (...) radians in [0, pi].
+    """
+    rel = Ra.transpose(-1, -2) @ Rb
+    # Robust for tiny angles: use the skew part together with the trace.
+    skew = torch.stack(
+        [rel[..., 2, 1] - rel[..., 1, 2], rel[..., 0, 2] - rel[..., 2, 0], rel[..., 1, 0] - rel[..., 0, 1]], -1
+    )
+    trace = rel[..., 0, 0] + rel[..., 1, 1] + rel[..., 2, 2]
+    return torch.atan2(0.5 * torch.linalg.vector_norm(skew, dim=-1), 0.5 * (trace - 1.0))

@@ -1,0 +1,189 @@
+"""Read Rajagopal2015.osim (shipped inside the nimblephysics wheel) into a :class:`SkeletonSpec`.
+
+Build time only. The file is in OpenSim 3 format; OpenSim 4.6 (the ``build`` extra) upgrades it to the
+4.0 document layout, which is then read with ElementTree. nimblephysics itself is never imported.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import tempfile
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+from bodyfit.models.errors import AssetError
+from bodyfit.models.skeleton.spec import Body, Coordinate, Function, Joint, Offset, SkeletonSpec, TransformAxis
+
+RAJAGOPAL_RELPATH = Path("models/rajagopal_data/Rajagopal2015.osim")
+ROOT_TRANSLATIONS = ("pelvis_tx", "pelvis_ty", "pelvis_tz")
+
+
+def nimblephysics_data_dir() -> Path:
+    """Folder of Rajagopal2015 data inside the installed nimblephysics package (not imported)."""
+    spec = importlib.util.find_spec("nimblephysics")
+    if spec is None or not spec.submodule_search_locations:
+        raise AssetError(
+            "the nimblephysics package is not installed; it carries Rajagopal2015.osim. "
+            "Install the build extra: pip install 'bodyfit[build]'"
+        )
+    return Path(next(iter(spec.submodule_search_locations))) / RAJAGOPAL_RELPATH.parent
+
+
+def rajagopal_osim_path() -> Path:
+    path = nimblephysics_data_dir() / RAJAGOPAL_RELPATH.name
+    if not path.is_file():
+        raise AssetError(f"Rajagopal2015.osim not found at {path}; reinstall nimblephysics")
+    return path
+
+
+def upgraded_document(path: Path) -> ET.Element:
+    """The model as an OpenSim 4.0 XML document (upgraded by OpenSim itself)."""
+    try:
+        import opensim
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise AssetError("building the skeleton needs opensim 4.6: pip install 'bodyfit[build]'") from exc
+    model = opensim.Model(str(path))
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "model40.osim"
+        model.printToXML(str(out))
+        return ET.parse(out).getroot()
+
+
+def _vec(text: str | None) -> tuple[float, ...]:
+    return tuple(float(v) for v in (text or "").split())
+
+
+def _function(el: ET.Element) -> Function:
+    tag = el.tag
+    if tag == "Constant":
+        return Function("constant", {"value": float(el.findtext("value", "0"))})
+    if tag == "LinearFunction":
+        slope, intercept = _vec(el.findtext("coefficients"))
+        return Function("linear", {"slope": slope, "intercept": intercept})
+    if tag == "SimmSpline":
+        return Function("spline", {"x": list(_vec(el.findtext("x"))), "y": list(_vec(el.findtext("y")))})
+    raise AssetError(f"unsupported OpenSim function {tag}")
+
+
+def _axis(el: ET.Element, coupled: dict[str, str]) -> TransformAxis:
+    names = (el.findtext("coordinates") or "").split()
+    if len(names) > 1:
+        raise AssetError("transform axes driven by several coordinates are not supported")
+    coord = coupled.get(names[0], names[0]) if names else None
+    fn_el = next(c for c in el if c.tag not in ("coordinates", "axis"))
+    fn = _function(fn_el)
+    if coord is None and fn.kind != "constant":
+        fn = Function("constant", {"value": 0.0})
+    return TransformAxis(tuple(_vec(el.findtext("axis"))), coord, fn)  # type: ignore[arg-type]
+
+
+def _const(axis: tuple[float, float, float]) -> TransformAxis:
+    return TransformAxis(axis, None, Function("constant", {"value": 0.0}))
+
+
+def _coord_axis(axis: tuple[float, float, float], name: str) -> TransformAxis:
+    return TransformAxis(axis, name, Function("linear", {"slope": 1.0, "intercept": 0.0}))
+
+
+X, Y, Z = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
+
+
+def parse_model(doc: ET.Element) -> tuple[list[Body], list[Joint], list[Coordinate], dict[str, bool]]:
+    """Bodies, joints (topological order), coordinates and their locked flags of an OpenSim 4 document.
+
+    Coordinates made dependent by a CoordinateCouplerConstraint with the identity function (the
+    patellofemoral ``knee_angle_*_beta``) are replaced by their independent coordinate.
+    """
+    model = doc.find("Model")
+    assert model is not None
+    coupled: dict[str, str] = {}
+    for c in model.iter("CoordinateCouplerConstraint"):
+        fn = c.find("coupled_coordinates_function")
+        lin = fn.find("LinearFunction") if fn is not None else None
+        if lin is None or _vec(lin.findtext("coefficients")) != (1.0, 0.0):
+            raise AssetError("only identity coordinate couplers are supported")
+        coupled[c.findtext("dependent_coordinate_name", "")] = c.findtext("independent_coordinate_names", "")
+
+    bodies: dict[str, Body] = {}
+    for b in model.find("BodySet/objects") or []:
+        meshes = tuple(m.findtext("mesh_file", "") for m in b.iter("Mesh"))
+        bodies[b.get("name", "")] = Body(
+            name=b.get("name", ""),
+            segment=b.get("name", ""),
+            mass=float(b.findtext("mass", "0")),
+            mass_center=_vec(b.findtext("mass_center")),  # type: ignore[arg-type]
+            inertia=_vec(b.findtext("inertia")),  # type: ignore[arg-type]
+            geometry=meshes,
+        )
+
+    joints: list[Joint] = []
+    coords: list[Coordinate] = []
+    locked: dict[str, bool] = {}
+    for j in model.find("JointSet/objects") or []:
+        frames = {f.get("name"): f for f in j.iter("PhysicalOffsetFrame")}
+
+        def frame(socket: str) -> tuple[str, Offset]:
+            f = frames[j.findtext(socket)]
+            body = (f.findtext("socket_parent") or "").split("/")[-1]
+            return body, Offset(_vec(f.findtext("translation")), _vec(f.findtext("orientation")))  # type: ignore[arg-type]
+
+        parent, p_off = frame("socket_parent_frame")
+        child, c_off = frame("socket_child_frame")
+        names = [c.get("name", "") for c in j.iter("Coordinate")]
+        kind = j.tag
+        if kind == "CustomJoint":
+            axes = [_axis(a, coupled) for a in j.iter("TransformAxis")]
+            rot, trans = tuple(axes[:3]), tuple(axes[3:])
+            jkind = "walker_knee" if j.get("name", "").startswith("walker_knee") else "custom"
+        elif kind == "PinJoint":
+            rot, trans = (_coord_axis(Z, names[0]), _const(X), _const(Y)), (_const(X), _const(Y), _const(Z))
+            jkind = "pin"
+        elif kind == "UniversalJoint":
+            rot = (_coord_axis(X, names[0]), _coord_axis(Y, names[1]), _const(Z))
+            trans, jkind = (_const(X), _const(Y), _const(Z)), "universal"
+        elif kind == "WeldJoint":
+            rot, trans = (_const(X), _const(Y), _const(Z)), (_const(X), _const(Y), _const(Z))
+            jkind = "weld"
+        else:
+            raise AssetError(f"unsupported joint type {kind} ({j.get('name')})")
+        if j.get("name", "").startswith("patellofemoral"):
+            jkind = "patellofemoral"
+        joints.append(
+            Joint(j.get("name", ""), jkind, parent, child, p_off, c_off, rot, trans, parent)  # type: ignore[arg-type]
+        )
+        for c in j.iter("Coordinate"):
+            name = c.get("name", "")
+            locked[name] = c.findtext("locked", "false").strip() == "true"
+            if name in coupled:
+                continue
+            lo, hi = _vec(c.findtext("range"))
+            motion = "translational" if name in ROOT_TRANSLATIONS else "rotational"
+            coords.append(
+                Coordinate(name, j.get("name", ""), motion, (lo, hi), "Rajagopal2015.osim", True)  # type: ignore[arg-type]
+            )
+
+    # Topological order: parents before children (the ground first).
+    ordered: list[Joint] = []
+    placed = {"ground"}
+    pending = list(joints)
+    while pending:
+        ready = [j for j in pending if j.parent in placed]
+        if not ready:
+            raise AssetError("the joint graph is not a tree rooted at ground")
+        for j in ready:
+            ordered.append(j)
+            placed.add(j.child)
+            pending.remove(j)
+    body_list = [bodies[j.child] for j in ordered]
+    return body_list, ordered, coords, locked
+
+
+def rajagopal_spec(path: Path | None = None) -> SkeletonSpec:
+    """Rajagopal2015 exactly as OpenSim defines it (all coordinates free, original ranges)."""
+    path = path or rajagopal_osim_path()
+    bodies, joints, coords, _ = parse_model(upgraded_document(path))
+    named = tuple(c for c in coords if c.name not in ROOT_TRANSLATIONS)
+    roots = tuple(next(c for c in coords if c.name == n) for n in ROOT_TRANSLATIONS)
+    return SkeletonSpec(
+        tuple(bodies), tuple(joints), named, roots, tuple(b.name for b in bodies), {"source": str(path.name)}
+    )
