@@ -14,7 +14,7 @@ from torch import nn
 
 from bodyfit.models.rotations import axis_angle_matrix, euler_xyz_body_fixed
 from bodyfit.models.skeleton.functions import FunctionTable, evaluate_table
-from bodyfit.models.skeleton.spec import SkeletonSpec
+from bodyfit.models.skeleton.spec import Function, SkeletonSpec
 
 
 class Pose(NamedTuple):
@@ -26,6 +26,15 @@ class Pose(NamedTuple):
 
     frames: torch.Tensor
     joint_centres: torch.Tensor
+
+
+def _unit(v: tuple[float, float, float]) -> list[float]:
+    a = np.asarray(v, np.float64)
+    return list(a / np.linalg.norm(a))
+
+
+def _is_identity(fn: Function) -> bool:
+    return fn.kind == "linear" and fn.params["slope"] == 1.0 and fn.params["intercept"] == 0.0
 
 
 def _levels(parents: list[int]) -> list[list[int]]:
@@ -54,13 +63,15 @@ class SkeletonKinematics(nn.Module):
         body_seg = [seg_idx[b.segment] for b in spec.bodies]
 
         fns, cols = [], []
-        rot_axes, trans_axes = [], []
+        rot_axes, trans_axes, trans_scaled = [], [], []
         for j in spec.joints:
             for ax in (*j.rotations, *j.translations):
                 fns.append(ax.function)
                 cols.append(zero_col if ax.coordinate is None else col[ax.coordinate])
-            rot_axes.append([a.axis for a in j.rotations])
-            trans_axes.append([a.axis for a in j.translations])
+            rot_axes.append([_unit(a.axis) for a in j.rotations])
+            trans_axes.append([_unit(a.axis) for a in j.translations])
+            # OpenSim never scales a translation that *is* a coordinate (LinearFunction slope 1, intercept 0).
+            trans_scaled.append([not _is_identity(a.function) for a in j.translations])
         table = FunctionTable.compile(fns)
 
         parents = [(-1 if j.parent == "ground" else body_idx[j.parent]) for j in spec.joints]
@@ -82,6 +93,9 @@ class SkeletonKinematics(nn.Module):
             buf(f"fn_{k}", v)
         buf("rot_axes", np.array(rot_axes, np.float64))  # (J, 3, 3)
         buf("trans_axes", np.array(trans_axes, np.float64))  # (J, 3, 3)
+        # Scale of translation axis k: sum_j |b_kj| s_j (OpenSim SpatialTransform::scale), masked.
+        buf("trans_scale_w", np.abs(np.array(trans_axes)) * np.array(trans_scaled, np.float64)[..., None])
+        buf("trans_unscaled", 1.0 - np.array(trans_scaled, np.float64))
         po = [j.parent_offset for j in spec.joints]
         co = [j.child_offset for j in spec.joints]
         buf("p_rot", euler_xyz_body_fixed(np.array([o.orientation for o in po])))
@@ -125,9 +139,10 @@ class SkeletonKinematics(nn.Module):
         R = axis_angle_matrix(self.rot_axes[:, 0], theta[..., 0])
         R = R @ axis_angle_matrix(self.rot_axes[:, 1], theta[..., 1])
         R = R @ axis_angle_matrix(self.rot_axes[:, 2], theta[..., 2])
-        # OpenSim scales a translation function along axis b (expressed in F) by the parent segment's
-        # factors as seen along b: the translation vector is scaled component-wise in F.
-        p = torch.einsum("bjk,jkc->bjc", d, self.trans_axes) * s_f
+        # OpenSim scales each translation function by sum_j |b_j| s_j of its axis b (given in F, scale
+        # factors of the joint's scale segment); DOF translations are not scaled.
+        k = torch.einsum("jkc,bjc->bjk", self.trans_scale_w, s_f.expand(B, len(self.spec.joints), 3))
+        p = torch.einsum("bjk,jkc->bjc", d * (k + self.trans_unscaled), self.trans_axes)
 
         # Child-in-parent: X_pofs @ X_FM @ inv(X_cofs), offset translations scaled by their segments.
         tp = self.p_trans * s_p

@@ -1,0 +1,240 @@
+"""Export the skeleton to OpenSim: a scaled ``.osim`` model and ``.mot`` coordinate files.
+
+Serving-time code: plain XML, no opensim import. Every joint is written as an OpenSim ``CustomJoint``
+(Rajagopal's pin and universal joints are CustomJoints with one or two rotation axes), so the model uses
+only OpenSim-native components: spine arcs and scapula paths become sub-joints through light link bodies
+with SimmSpline / Sine functions, and the patella keeps Rajagopal's coupled ``knee_angle_*_beta``
+coordinate with a CoordinateCouplerConstraint. Scaling is baked in: offsets, translation functions, mass
+and inertia of the written model are those of the scaled skeleton, so OpenSim needs no ScaleTool step.
+"""
+
+from __future__ import annotations
+
+import math
+import xml.etree.ElementTree as ET
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from bodyfit.models.skeleton.spec import Body, Function, SkeletonSpec
+
+ARC_KNOTS = 61  # SimmSpline samples of an arc function over its coordinate range (error < 1e-8 m)
+LINK_MASS = 1e-4  # kg; OpenSim needs a little mass on the sub-segment links
+LINK_INERTIA = 1e-7
+AXIS_NAMES = ("rotation1", "rotation2", "rotation3", "translation1", "translation2", "translation3")
+
+
+def _fmt(values: Sequence[float] | np.ndarray) -> str:
+    return " ".join(repr(float(v)) for v in values)
+
+
+def _sub(parent: ET.Element, tag: str, text: str | None = None, **attrs: str) -> ET.Element:
+    el = ET.SubElement(parent, tag, attrs)
+    if text is not None:
+        el.text = text
+    return el
+
+
+def _is_identity(fn: Function) -> bool:
+    return fn.kind == "linear" and fn.params["slope"] == 1.0 and fn.params["intercept"] == 0.0
+
+
+def _function_xml(parent: ET.Element, fn: Function, k: float, coord_range: tuple[float, float]) -> None:
+    """Write ``fn`` multiplied by ``k`` (a translation scale; 1 for rotations)."""
+    p = fn.params
+    if fn.kind == "constant":
+        _sub(_sub(parent, "Constant", name="function"), "value", repr(k * p["value"]))
+    elif fn.kind == "linear":
+        el = _sub(parent, "LinearFunction", name="function")
+        _sub(el, "coefficients", _fmt([k * p["slope"], k * p["intercept"]]))
+    elif fn.kind == "spline":
+        el = _sub(parent, "SimmSpline", name="function")
+        _sub(el, "x", _fmt(p["x"]))
+        _sub(el, "y", _fmt(np.asarray(p["y"]) * k))
+    elif fn.kind == "sine":
+        el = _sub(parent, "Sine", name="function")
+        _sub(el, "amplitude", repr(k * p["amplitude"]))
+        _sub(el, "omega", repr(p["omega"]))
+        _sub(el, "phase", repr(p["phase"]))
+        _sub(el, "offset", repr(k * p["offset"]))
+    elif fn.kind == "arc":
+        from bodyfit.models.skeleton.functions import evaluate_function
+
+        lo, hi = coord_range
+        pad = 0.05 * (hi - lo)
+        x = np.linspace(lo - pad, hi + pad, ARC_KNOTS)
+        el = _sub(parent, "SimmSpline", name="function")
+        _sub(el, "x", _fmt(x))
+        _sub(el, "y", _fmt(k * evaluate_function(fn, x)))
+    else:  # pragma: no cover - the spec only holds the kinds above
+        raise ValueError(f"cannot export function kind {fn.kind}")
+
+
+def _offset_frame(parent: ET.Element, name: str, body_path: str, translation: np.ndarray, orientation: Sequence[float]) -> None:
+    f = _sub(parent, "PhysicalOffsetFrame", name=name)
+    _sub(f, "socket_parent", body_path)
+    _sub(f, "translation", _fmt(translation))
+    _sub(f, "orientation", _fmt(orientation))
+
+
+def _body_xml(parent: ET.Element, body: Body, s: np.ndarray) -> None:
+    el = _sub(parent, "Body", name=body.name)
+    volume = float(np.prod(s))
+    if body.is_link:
+        mass, inertia = LINK_MASS, (LINK_INERTIA,) * 3 + (0.0,) * 3
+    else:
+        # Mass scales with volume; inertia with mass times the squared mean length scale.
+        mass = body.mass * volume
+        inertia = tuple(v * volume * float(np.mean(s)) ** 2 for v in body.inertia)
+    _sub(el, "mass", repr(mass))
+    _sub(el, "mass_center", _fmt(np.asarray(body.mass_center) * s))
+    _sub(el, "inertia", _fmt(inertia))
+    if body.geometry:
+        comps = _sub(el, "components")
+        f = _sub(comps, "PhysicalOffsetFrame", name=f"{body.name}_geometry")
+        _sub(f, "socket_parent", "..")
+        _sub(f, "translation", _fmt(np.asarray(body.geometry_offset) * s))
+        _sub(f, "orientation", "0 0 0")
+        geoms = _sub(f, "attached_geometry")
+        for mesh in body.geometry:
+            m = _sub(geoms, "Mesh", name=mesh.replace(".vtp", ""))
+            _sub(m, "scale_factors", _fmt(s))
+            _sub(m, "mesh_file", mesh)
+
+
+def osim_document(spec: SkeletonSpec, scales: np.ndarray | None = None, name: str = "bodyfit") -> ET.ElementTree:
+    """The skeleton as an OpenSim 4 document.
+
+    Args:
+        spec: the skeleton.
+        scales: (n_seg, 3) per-segment scale factors (``spec.segments`` order), or None for ones.
+        name: the model name.
+    """
+    seg = {s: i for i, s in enumerate(spec.segments)}
+    S = np.ones((len(spec.segments), 3)) if scales is None else np.asarray(scales, np.float64)
+    body_by_name = {b.name: b for b in spec.bodies}
+
+    def scale_of(body: str) -> np.ndarray:
+        if body == "ground":
+            return np.ones(3)
+        return S[seg[body_by_name[body].segment]]
+
+    ranges = {c.name: c.range for c in (*spec.coordinates, *spec.root_coordinates)}
+
+    doc = ET.Element("OpenSimDocument", Version="40000")
+    model = _sub(doc, "Model", name=name)
+    _sub(model, "credits", "bodyfit skeleton: Rajagopal2015 (Rajagopal et al. 2016) with spine and scapula joints")
+    _sub(model, "publications", "Rajagopal A. et al. (2016) IEEE TBME 63(10):2068-79")
+    _sub(model, "length_units", "meters")
+    _sub(model, "force_units", "N")
+    _sub(model, "gravity", "0 -9.8066500000000005 0")
+    bodyset = _sub(_sub(model, "BodySet", name="bodyset"), "objects")
+    for b in spec.bodies:
+        _body_xml(bodyset, b, scale_of(b.name))
+
+    jointset = _sub(_sub(model, "JointSet", name="jointset"), "objects")
+    owned: set[str] = set()
+    couplers: list[tuple[str, str]] = []
+    for j in spec.joints:
+        jel = _sub(jointset, "CustomJoint", name=j.name)
+        _sub(jel, "socket_parent_frame", f"{j.parent}_offset")
+        _sub(jel, "socket_child_frame", f"{j.child}_offset")
+        # Coordinates of this joint, in order of first appearance; ones owned elsewhere get a coupled twin.
+        local: dict[str, str] = {}
+        for ax in (*j.rotations, *j.translations):
+            if ax.coordinate and ax.coordinate not in local:
+                if ax.coordinate in owned:
+                    local[ax.coordinate] = f"{ax.coordinate}_beta"
+                    couplers.append((ax.coordinate, local[ax.coordinate]))
+                else:
+                    local[ax.coordinate] = ax.coordinate
+                    owned.add(ax.coordinate)
+        coords = _sub(jel, "coordinates")
+        for src, cname in local.items():
+            c = _sub(coords, "Coordinate", name=cname)
+            _sub(c, "default_value", "0")
+            _sub(c, "range", _fmt(ranges[src]))
+            _sub(c, "clamped", "true")
+            _sub(c, "locked", "false")
+        frames = _sub(jel, "frames")
+        parent_path = "/ground" if j.parent == "ground" else f"/bodyset/{j.parent}"
+        _offset_frame(frames, f"{j.parent}_offset", parent_path, np.asarray(j.parent_offset.translation) * scale_of(j.parent), j.parent_offset.orientation)
+        _offset_frame(frames, f"{j.child}_offset", f"/bodyset/{j.child}", np.asarray(j.child_offset.translation) * scale_of(j.child), j.child_offset.orientation)
+        st = _sub(jel, "SpatialTransform")
+        s_f = scale_of(j.scale_segment) if j.scale_segment in seg else np.ones(3)
+        for k, (axname, ax) in enumerate(zip(AXIS_NAMES, (*j.rotations, *j.translations))):
+            ta = _sub(st, "TransformAxis", name=axname)
+            _sub(ta, "coordinates", local[ax.coordinate] if ax.coordinate else "")
+            _sub(ta, "axis", _fmt(ax.axis))
+            factor = 1.0
+            if k >= 3 and not _is_identity(ax.function):
+                factor = float(np.abs(np.asarray(ax.axis) / np.linalg.norm(ax.axis)) @ s_f)
+            rng = ranges.get(ax.coordinate, (-math.pi, math.pi)) if ax.coordinate else (-1.0, 1.0)
+            _function_xml(ta, ax.function, factor, rng)
+
+    if couplers:
+        cset = _sub(_sub(model, "ConstraintSet", name="constraintset"), "objects")
+        for indep, dep in couplers:
+            c = _sub(cset, "CoordinateCouplerConstraint", name=f"{dep}_coupler")
+            _sub(c, "isEnforced", "true")
+            fn = _sub(_sub(c, "coupled_coordinates_function"), "LinearFunction")
+            _sub(fn, "coefficients", "1 0")
+            _sub(c, "independent_coordinate_names", indep)
+            _sub(c, "dependent_coordinate_name", dep)
+            _sub(c, "scale_factor", "1")
+    tree = ET.ElementTree(doc)
+    ET.indent(tree, space="\t")
+    return tree
+
+
+def write_osim(path: str | Path, spec: SkeletonSpec, scales: np.ndarray | None = None, name: str = "bodyfit") -> Path:
+    """Write a scaled OpenSim model of ``spec``. See :func:`osim_document`."""
+    path = Path(path)
+    osim_document(spec, scales, name).write(path, encoding="UTF-8", xml_declaration=True)
+    return path
+
+
+def mot_columns(spec: SkeletonSpec) -> list[str]:
+    """Coordinate columns of our .mot files: the named DOFs, then pelvis_tx / ty / tz."""
+    return [*spec.dof_names, *(c.name for c in spec.root_coordinates)]
+
+
+def write_mot(
+    path: str | Path,
+    spec: SkeletonSpec,
+    q: np.ndarray,
+    root: np.ndarray | None = None,
+    times: np.ndarray | None = None,
+    fps: float = 60.0,
+    name: str = "bodyfit_coordinates",
+) -> Path:
+    """Write an OpenSim coordinates file (.mot): rotations in degrees, translations in metres.
+
+    Args:
+        q: (T, n_dof) coordinates in radians; root: (T, 3) metres or None; times: (T,) s or None (``fps``).
+    """
+    q = np.atleast_2d(np.asarray(q, np.float64))
+    T = q.shape[0]
+    root = np.zeros((T, 3)) if root is None else np.atleast_2d(np.asarray(root, np.float64))
+    times = np.arange(T) / fps if times is None else np.asarray(times, np.float64)
+    data = np.concatenate([times[:, None], np.degrees(q), root], axis=1)
+    cols = ["time", *mot_columns(spec)]
+    lines = [name, "version=1", f"nRows={T}", f"nColumns={len(cols)}", "inDegrees=yes", "endheader", "\t".join(cols)]
+    lines += ["\t".join(f"{v:.10g}" for v in row) for row in data]
+    path = Path(path)
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def read_mot(path: str | Path) -> tuple[list[str], np.ndarray, bool]:
+    """Read a .mot / .sto file: (column names including ``time``, (T, n_col) values, in_degrees)."""
+    lines = Path(path).read_text().splitlines()
+    end = next(i for i, line in enumerate(lines) if line.strip().lower() == "endheader")
+    header = {k.strip(): v.strip() for k, _, v in (line.partition("=") for line in lines[:end]) if "=" in line}
+    cols = lines[end + 1].split("\t")
+    data = np.array([[float(v) for v in line.split()] for line in lines[end + 2 :] if line.strip()])
+    return cols, data.reshape(-1, len(cols)), header.get("inDegrees", "yes").lower() == "yes"
+
+
+__all__ = ["mot_columns", "osim_document", "read_mot", "write_mot", "write_osim"]
