@@ -1,12 +1,12 @@
 """Coordinate functions compiled into dense tables and evaluated in one vectorised pass.
 
-Every :class:`~bodyfit.models.skeleton.spec.Function` is written as a linear combination of a fixed basis,
+Every :class:`~bodyfit.models.skeleton.spec.Function` is written in one form,
 
-    f(x) = c0 + c1 x + c2 x^2 + c3 x^3 + sum_k w_k relu(x - k_k)^3
-           + amp sin(omega x + phase) + a g1(x) + b g2(x),
+    f(x) = sum_k [lower_k <= x < upper_k] * cubic_k(x - anchor_k) + amp sin(omega x + phase) + a g1(x) + b g2(x),
 
 so all transform axes of a skeleton are evaluated with the same tensor operations (no data-dependent
-control flow; exports to ONNX). Splines use the truncated-power form of a cubic spline.
+control flow; exports to ONNX). Splines keep their pieces in local coordinates, which keeps float32 exact to
+~1e-7 (a global polynomial form loses digits to cancellation).
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ import torch
 from bodyfit.models.skeleton.spec import Function
 
 _SMALL = 1e-3  # below this |x| the arc basis uses its Taylor series
+_FAR = 1e4  # stands for infinity in piece bounds (coordinates are radians or metres)
 
 
 def fmm_spline_second_derivatives(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -61,32 +62,27 @@ def fmm_spline_second_derivatives(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return np.linalg.solve(A, r)
 
 
-def spline_to_truncated_power(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Cubic spline through (x, y) -> monomial coefficients of its first piece and truncated-power jumps.
+def spline_pieces(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Piecewise form of the SimmSpline through (x, y), as OpenSim evaluates it.
+
+    Pieces: linear below x[0] (end slope), one cubic per knot interval, linear above x[-1].
 
     Returns:
-        poly (4,) with f(x) = poly[0] + poly[1] x + poly[2] x^2 + poly[3] x^3 on the first piece,
-        knots (n-2,) interior knots, weights (n-2,) so that f(x) = poly(x) + sum w relu(x - knot)^3.
+        lower (P,), upper (P,) piece bounds (half-open [lower, upper)), coef (P, 4) local polynomial
+        coefficients in t = x - lower (t = x - x[0] for the first, linear piece).
     """
     x = np.asarray(x, np.float64)
     y = np.asarray(y, np.float64)
     M = fmm_spline_second_derivatives(x, y)
     h = np.diff(x)
-    cubic = (M[1:] - M[:-1]) / (6 * h)  # cubic coefficient of each piece
-    # First piece around x0: y0 + s1 (t) + M0/2 t^2 + cubic0 t^3 with t = x - x0.
-    s1 = (y[1] - y[0]) / h[0] - h[0] * (2 * M[0] + M[1]) / 6
-    x0 = x[0]
-    p = np.array([y[0], s1, M[0] / 2, cubic[0]])
-    # Expand sum_k p_k (x - x0)^k into monomials of x.
-    poly = np.array(
-        [
-            p[0] - p[1] * x0 + p[2] * x0**2 - p[3] * x0**3,
-            p[1] - 2 * p[2] * x0 + 3 * p[3] * x0**2,
-            p[2] - 3 * p[3] * x0,
-            p[3],
-        ]
-    )
-    return poly, x[1:-1].copy(), np.diff(cubic)
+    a1 = (y[1:] - y[:-1]) / h - h * (2 * M[:-1] + M[1:]) / 6
+    cubic = np.stack([y[:-1], a1, M[:-1] / 2, (M[1:] - M[:-1]) / (6 * h)], axis=1)
+    end_slope = a1[-1] + 2 * cubic[-1, 2] * h[-1] + 3 * cubic[-1, 3] * h[-1] ** 2
+    below = np.array([[y[0], a1[0], 0.0, 0.0]])
+    above = np.array([[y[-1], end_slope, 0.0, 0.0]])
+    lower = np.concatenate([[-_FAR], x])
+    upper = np.concatenate([x, [_FAR]])
+    return lower, upper, np.concatenate([below, cubic, above])
 
 
 def evaluate_function(fn: Function, x: np.ndarray) -> np.ndarray:
@@ -97,48 +93,52 @@ def evaluate_function(fn: Function, x: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class FunctionTable:
-    """Dense parameters of A functions (float64 numpy; turned into buffers by the kinematics)."""
+    """Dense parameters of A functions (float64 numpy; turned into buffers by the kinematics).
 
-    poly: np.ndarray  # (A, 4)
-    knots: np.ndarray  # (A, K)
-    weights: np.ndarray  # (A, K)
+    Piecewise cubic part: piece k of function a covers [lower[a, k], upper[a, k]) and evaluates
+    coef[a, k] at t = x - anchor[a, k]; unused pieces are empty ([FAR, FAR)).
+    """
+
+    lower: np.ndarray  # (A, P)
+    upper: np.ndarray  # (A, P)
+    anchor: np.ndarray  # (A, P)
+    coef: np.ndarray  # (A, P, 4)
     sine: np.ndarray  # (A, 3): amplitude, omega, phase
     arc: np.ndarray  # (A, 2): a, b
 
     @staticmethod
     def compile(functions: list[Function]) -> FunctionTable:
-        n = len(functions)
-        pieces = []
+        pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         for fn in functions:
-            if fn.kind == "spline":
-                pieces.append(spline_to_truncated_power(np.array(fn.params["x"]), np.array(fn.params["y"])))
-        K = max([len(k) for _, k, _ in pieces], default=0)
-        K = max(K, 1)
-        poly = np.zeros((n, 4))
-        knots = np.full((n, K), 1e3)  # padding knots lie far beyond every coordinate range
-        weights = np.zeros((n, K))
-        sine = np.zeros((n, 3))
-        arc = np.zeros((n, 2))
-        it = iter(pieces)
-        for i, fn in enumerate(functions):
             p = fn.params
+            one = (np.array([-_FAR]), np.array([_FAR]))
             if fn.kind == "constant":
-                poly[i, 0] = p["value"]
+                pieces.append((*one, np.array([[p["value"], 0.0, 0.0, 0.0]])))
             elif fn.kind == "linear":
-                poly[i, :2] = [p["intercept"], p["slope"]]
-            elif fn.kind == "spline":
-                pl, kn, w = next(it)
-                poly[i] = pl
-                knots[i, : len(kn)] = kn
-                weights[i, : len(w)] = w
+                pieces.append((*one, np.array([[p["intercept"], p["slope"], 0.0, 0.0]])))
             elif fn.kind == "sine":
-                poly[i, 0] = p["offset"]
-                sine[i] = [p["amplitude"], p["omega"], p["phase"]]
+                pieces.append((*one, np.array([[p["offset"], 0.0, 0.0, 0.0]])))
             elif fn.kind == "arc":
-                arc[i] = [p["a"], p["b"]]
+                pieces.append((*one, np.zeros((1, 4))))
+            elif fn.kind == "spline":
+                pieces.append(spline_pieces(np.array(p["x"]), np.array(p["y"])))
             else:
                 raise ValueError(f"unknown function kind {fn.kind!r}")
-        return FunctionTable(poly, knots, weights, sine, arc)
+        n, P = len(functions), max(len(lo) for lo, _, _ in pieces)
+        lower = np.full((n, P), _FAR)
+        upper = np.full((n, P), _FAR)
+        coef = np.zeros((n, P, 4))
+        sine = np.zeros((n, 3))
+        arc = np.zeros((n, 2))
+        for i, (fn, (lo, hi, c)) in enumerate(zip(functions, pieces)):
+            lower[i, : len(lo)], upper[i, : len(hi)], coef[i, : len(c)] = lo, hi, c
+            if fn.kind == "sine":
+                sine[i] = [fn.params["amplitude"], fn.params["omega"], fn.params["phase"]]
+            elif fn.kind == "arc":
+                arc[i] = [fn.params["a"], fn.params["b"]]
+        # Local polynomial origin: the piece start, except the unbounded first piece (its upper end, or 0).
+        anchor = np.where(lower <= -_FAR, np.where(upper >= _FAR, 0.0, upper), lower)
+        return FunctionTable(lower, upper, anchor, coef, sine, arc)
 
     def evaluate_numpy(self, x: np.ndarray) -> np.ndarray:
         """(B, A) coordinate values -> (B, A) function values, float64."""
@@ -156,17 +156,20 @@ def arc_basis(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """
     small = torch.abs(x) < _SMALL
     xs = torch.where(small, torch.ones_like(x), x)  # keeps the unused branch finite for autograd
-    s, c = torch.sin(xs), torch.cos(xs)
-    g1 = torch.where(small, x / 2 - x**3 / 8, s - (1 - c) / xs)
-    g2 = torch.where(small, x**2 / 3 - x**4 / 30, s / xs - c)
+    s = torch.sin(xs)
+    half = torch.sin(xs / 2)
+    versine = 2 * half * half  # 1 - cos x without cancellation (float32 stays accurate near 0)
+    g1 = torch.where(small, x / 2 - x**3 / 8, s - versine / xs)
+    g2 = torch.where(small, x**2 / 3 - x**4 / 30, (s / xs - 1) + versine)
     return g1, g2
 
 
 def evaluate_table(
     x: torch.Tensor,
-    poly: torch.Tensor,
-    knots: torch.Tensor,
-    weights: torch.Tensor,
+    lower: torch.Tensor,
+    upper: torch.Tensor,
+    anchor: torch.Tensor,
+    coef: torch.Tensor,
     sine: torch.Tensor,
     arc: torch.Tensor,
 ) -> torch.Tensor:
@@ -174,12 +177,15 @@ def evaluate_table(
 
     Args:
         x: (B, A) the coordinate value feeding each function.
-        poly (A, 4), knots (A, K), weights (A, K), sine (A, 3), arc (A, 2): see :class:`FunctionTable`.
+        lower, upper, anchor (A, P), coef (A, P, 4), sine (A, 3), arc (A, 2): see :class:`FunctionTable`.
     Returns:
         (B, A) function values.
     """
-    out = poly[:, 0] + x * (poly[:, 1] + x * (poly[:, 2] + x * poly[:, 3]))
-    out = out + (torch.relu(x.unsqueeze(-1) - knots) ** 3 * weights).sum(-1)
+    xe = x.unsqueeze(-1)  # (B, A, 1)
+    t = xe - anchor
+    poly = coef[..., 0] + t * (coef[..., 1] + t * (coef[..., 2] + t * coef[..., 3]))
+    inside = (xe >= lower) & (xe < upper)
+    out = torch.where(inside, poly, torch.zeros_like(poly)).sum(-1)
     out = out + sine[:, 0] * torch.sin(sine[:, 1] * x + sine[:, 2])
     g1, g2 = arc_basis(x)
     return out + arc[:, 0] * g1 + arc[:, 1] * g2

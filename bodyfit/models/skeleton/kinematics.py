@@ -124,7 +124,9 @@ class SkeletonKinematics(nn.Module):
             root = q.new_zeros(B, 3)
         q_ext = torch.cat([q, root, q.new_zeros(B, 1)], dim=-1)
         x = q_ext[:, self.cols]
-        f = evaluate_table(x, self.fn_poly, self.fn_knots, self.fn_weights, self.fn_sine, self.fn_arc)
+        f = evaluate_table(
+            x, self.fn_lower, self.fn_upper, self.fn_anchor, self.fn_coef, self.fn_sine, self.fn_arc
+        )
         f = f.reshape(B, -1, 6)
         theta, d = f[..., :3], f[..., 3:]  # (B, J, 3) each
 

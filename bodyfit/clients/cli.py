@@ -1,0 +1,86 @@
+"""The ``bodyfit`` command line. Heavy modules are imported inside the commands that need them."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+app = typer.Typer(no_args_is_help=True, add_completion=False, help="bodyfit: human bodies with a biomechanical skeleton.")
+
+
+@app.command("build-assets")
+def build_assets(
+    out: Annotated[Path | None, typer.Option(help="Asset folder (default: assets/ of the checkout, or $BODYFIT_ASSETS).")] = None,
+    docs: Annotated[Path, typer.Option(help="Where docs/skeleton.md is written.")] = Path("docs"),
+) -> None:
+    """Build every model asset from PyPI sources (needs the `build` extra: nimblephysics, opensim)."""
+    from bodyfit.models.build_assets import build_all
+
+    timings = build_all(out, docs)
+    typer.echo(json.dumps({"seconds": {k: round(v, 2) for k, v in timings.items()}}))
+
+
+@app.command()
+def demo(
+    out: Annotated[Path, typer.Option(help="Output folder.")] = Path("out/demo"),
+    frames: Annotated[int, typer.Option(min=1, max=100000, help="Frames of the demo motion.")] = 120,
+) -> None:
+    """Pose the built-in skeleton through a short motion and write it: JSON, .npz and OpenSim .osim + .mot."""
+    import numpy as np
+
+    from bodyfit.models.errors import BodyfitError
+    from bodyfit.models.skeleton import Skeleton
+    from bodyfit.models.skeleton.opensim_export import write_mot, write_osim
+
+    try:
+        skel = Skeleton.load()
+    except BodyfitError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    t = np.arange(frames) / 60.0
+    phase = 2 * np.pi * t  # one stride per second
+    values = {
+        "hip_flexion_r": 0.35 * np.sin(phase) + 0.15,
+        "hip_flexion_l": -0.35 * np.sin(phase) + 0.15,
+        "knee_angle_r": 0.6 * np.clip(np.sin(phase + 1.2), 0, None) + 0.05,
+        "knee_angle_l": 0.6 * np.clip(-np.sin(phase + 1.2), 0, None) + 0.05,
+        "arm_flex_r": -0.3 * np.sin(phase),
+        "arm_flex_l": 0.3 * np.sin(phase),
+        "elbow_flex_r": np.full(frames, 0.4),
+        "elbow_flex_l": np.full(frames, 0.4),
+        "thorax_rotation": 0.08 * np.sin(phase),
+        "scapula_abduction_r": 0.1 * np.sin(phase),
+        "scapula_abduction_l": -0.1 * np.sin(phase),
+    }
+    q = skel.coordinates(values, batch=frames)
+    root = np.stack([1.2 * t, np.full(frames, 0.94), np.zeros(frames)], axis=1)
+    pose = skel.forward(q, root)
+    out.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(
+        out / "pose.npz",
+        coordinates=q,
+        dof_names=np.array(skel.dof_names),
+        root=root,
+        body_names=np.array(skel.body_names),
+        frames=pose.frames.numpy(),
+        joint_centres=pose.joint_centres.numpy(),
+    )
+    first = {
+        name: [round(float(v), 5) for v in pose.frames[0, i, :3, 3]] for i, name in enumerate(skel.body_names)
+    }
+    (out / "pose.json").write_text(json.dumps({"frame": 0, "body_origins_m": first}, indent=1) + "\n")
+    write_osim(out / "skeleton.osim", skel.spec, name="bodyfit_demo")
+    write_mot(out / "demo.mot", skel.spec, q, root, fps=60.0)
+    typer.echo(f"wrote {frames} posed frames to {out}/ (pose.npz, pose.json, skeleton.osim, demo.mot)")
+
+
+def main() -> None:  # pragma: no cover - console entry point
+    app(sys.argv[1:])
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -1,0 +1,52 @@
+"""Export the skeleton's forward kinematics to ONNX (dynamic batch)."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import torch
+
+from bodyfit.models.skeleton.kinematics import SkeletonKinematics
+
+INPUTS = ("coordinates", "root", "scales")
+OUTPUTS = ("frames", "joint_centres")
+
+
+class _FullInputs(torch.nn.Module):
+    """Wraps the FK so that root and scales are required inputs (ONNX graphs have fixed signatures)."""
+
+    def __init__(self, fk: SkeletonKinematics) -> None:
+        super().__init__()
+        self.fk = fk
+
+    def forward(self, q: torch.Tensor, root: torch.Tensor, scales: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        pose = self.fk(q, root, scales)
+        return pose.frames, pose.joint_centres
+
+
+def export_fk_onnx(fk: SkeletonKinematics, path: str | Path | None = None, opset: int = 18) -> bytes:
+    """Export ``fk`` to ONNX: inputs coordinates (B, n_dof), root (B, 3), scales (B, n_seg, 3); outputs
+    frames (B, n_body, 4, 4) and joint_centres (B, n_joint, 3). Returns the model bytes (also written to
+    ``path`` when given)."""
+    dtype = fk.p_trans.dtype
+    B = 2
+    args = (torch.zeros(B, fk.n_dof, dtype=dtype), torch.zeros(B, 3, dtype=dtype), torch.ones(B, fk.n_seg, 3, dtype=dtype))
+    batch = torch.export.Dim("batch", min=1)
+    buf = io.BytesIO()
+    program = torch.onnx.export(
+        _FullInputs(fk).eval(),
+        args,
+        input_names=list(INPUTS),
+        output_names=list(OUTPUTS),
+        dynamic_shapes=({0: batch}, {0: batch}, {0: batch}),
+        opset_version=opset,
+        dynamo=True,
+        verbose=False,
+    )
+    assert program is not None
+    program.save(buf)
+    data = buf.getvalue()
+    if path is not None:
+        Path(path).write_bytes(data)
+    return data
