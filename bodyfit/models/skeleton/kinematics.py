@@ -14,7 +14,7 @@ from torch import nn
 
 from bodyfit.models.rotations import axis_angle_matrix, euler_xyz_body_fixed
 from bodyfit.models.skeleton.functions import FunctionTable, evaluate_table
-from bodyfit.models.skeleton.spec import Function, SkeletonSpec
+from bodyfit.models.skeleton.spec import SkeletonSpec, translation_scale_weights
 
 
 class Pose(NamedTuple):
@@ -31,10 +31,6 @@ class Pose(NamedTuple):
 def _unit(v: tuple[float, float, float]) -> list[float]:
     a = np.asarray(v, np.float64)
     return list(a / np.linalg.norm(a))
-
-
-def _is_identity(fn: Function) -> bool:
-    return fn.kind == "linear" and fn.params["slope"] == 1.0 and fn.params["intercept"] == 0.0
 
 
 def _levels(parents: list[int]) -> list[list[int]]:
@@ -63,15 +59,14 @@ class SkeletonKinematics(nn.Module):
         body_seg = [seg_idx[b.segment] for b in spec.bodies]
 
         fns, cols = [], []
-        rot_axes, trans_axes, trans_scaled = [], [], []
+        rot_axes, trans_axes, trans_w = [], [], []
         for j in spec.joints:
             for ax in (*j.rotations, *j.translations):
                 fns.append(ax.function)
                 cols.append(zero_col if ax.coordinate is None else col[ax.coordinate])
             rot_axes.append([_unit(a.axis) for a in j.rotations])
             trans_axes.append([_unit(a.axis) for a in j.translations])
-            # OpenSim never scales a translation that *is* a coordinate (LinearFunction slope 1, intercept 0).
-            trans_scaled.append([not _is_identity(a.function) for a in j.translations])
+            trans_w.append([translation_scale_weights(a.axis, a.function) for a in j.translations])
         table = FunctionTable.compile(fns)
 
         parents = [(-1 if j.parent == "ground" else body_idx[j.parent]) for j in spec.joints]
@@ -93,9 +88,10 @@ class SkeletonKinematics(nn.Module):
             buf(f"fn_{k}", v)
         buf("rot_axes", np.array(rot_axes, np.float64))  # (J, 3, 3)
         buf("trans_axes", np.array(trans_axes, np.float64))  # (J, 3, 3)
-        # Scale of translation axis k: sum_j |b_kj| s_j (OpenSim SpatialTransform::scale), masked.
-        buf("trans_scale_w", np.abs(np.array(trans_axes)) * np.array(trans_scaled, np.float64)[..., None])
-        buf("trans_unscaled", 1.0 - np.array(trans_scaled, np.float64))
+        # Translation function k is multiplied by w_k . s (see translation_scale_weights); 1 if unscaled.
+        w = np.array(trans_w, np.float64)  # (J, 3, 3)
+        buf("trans_scale_w", w)
+        buf("trans_unscaled", (w.sum(-1) == 0).astype(np.float64))
         po = [j.parent_offset for j in spec.joints]
         co = [j.child_offset for j in spec.joints]
         buf("p_rot", euler_xyz_body_fixed(np.array([o.orientation for o in po])))
@@ -127,7 +123,7 @@ class SkeletonKinematics(nn.Module):
         f = evaluate_table(
             x, self.fn_lower, self.fn_upper, self.fn_anchor, self.fn_coef, self.fn_sine, self.fn_arc
         )
-        f = f.reshape(B, -1, 6)
+        f = f.reshape(B, len(self.spec.joints), 6)
         theta, d = f[..., :3], f[..., 3:]  # (B, J, 3) each
 
         # Scale factors: ground (index -1) is never scaled.
@@ -141,8 +137,7 @@ class SkeletonKinematics(nn.Module):
         R = axis_angle_matrix(self.rot_axes[:, 0], theta[..., 0])
         R = R @ axis_angle_matrix(self.rot_axes[:, 1], theta[..., 1])
         R = R @ axis_angle_matrix(self.rot_axes[:, 2], theta[..., 2])
-        # OpenSim scales each translation function by sum_j |b_j| s_j of its axis b (given in F, scale
-        # factors of the joint's scale segment); DOF translations are not scaled.
+        # Translation functions scale with the joint's scale segment (OpenSim: the parent body).
         k = torch.einsum("jkc,bjc->bjk", self.trans_scale_w, s_f.expand(B, len(self.spec.joints), 3))
         p = torch.einsum("bjk,jkc->bjc", d * (k + self.trans_unscaled), self.trans_axes)
 

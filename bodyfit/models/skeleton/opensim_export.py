@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bodyfit.models.skeleton.spec import Body, Function, SkeletonSpec
+from bodyfit.models.skeleton.spec import Body, Function, SkeletonSpec, is_identity, translation_scale_weights
 
 ARC_KNOTS = 61  # SimmSpline samples of an arc function over its coordinate range (error < 1e-8 m)
 LINK_MASS = 1e-4  # kg; OpenSim needs a little mass on the sub-segment links
@@ -34,10 +34,6 @@ def _sub(parent: ET.Element, tag: str, text: str | None = None, **attrs: str) ->
     if text is not None:
         el.text = text
     return el
-
-
-def _is_identity(fn: Function) -> bool:
-    return fn.kind == "linear" and fn.params["slope"] == 1.0 and fn.params["intercept"] == 0.0
 
 
 def _function_xml(parent: ET.Element, fn: Function, k: float, coord_range: tuple[float, float]) -> None:
@@ -168,8 +164,8 @@ def osim_document(spec: SkeletonSpec, scales: np.ndarray | None = None, name: st
             _sub(ta, "coordinates", local[ax.coordinate] if ax.coordinate else "")
             _sub(ta, "axis", _fmt(ax.axis))
             factor = 1.0
-            if k >= 3 and not _is_identity(ax.function):
-                factor = float(np.abs(np.asarray(ax.axis) / np.linalg.norm(ax.axis)) @ s_f)
+            if k >= 3 and not is_identity(ax.function):
+                factor = float(np.asarray(translation_scale_weights(ax.axis, ax.function)) @ s_f)
             rng = ranges.get(ax.coordinate, (-math.pi, math.pi)) if ax.coordinate else (-1.0, 1.0)
             _function_xml(ta, ax.function, factor, rng)
 
@@ -231,7 +227,8 @@ def read_mot(path: str | Path) -> tuple[list[str], np.ndarray, bool]:
     """Read a .mot / .sto file: (column names including ``time``, (T, n_col) values, in_degrees)."""
     lines = Path(path).read_text().splitlines()
     end = next(i for i, line in enumerate(lines) if line.strip().lower() == "endheader")
-    header = {k.strip(): v.strip() for k, _, v in (line.partition("=") for line in lines[:end]) if "=" in line}
+    pairs = (line.partition("=") for line in lines[:end] if "=" in line)
+    header = {k.strip(): v.strip() for k, _, v in pairs}
     cols = lines[end + 1].split("\t")
     data = np.array([[float(v) for v in line.split()] for line in lines[end + 2 :] if line.strip()])
     return cols, data.reshape(-1, len(cols)), header.get("inDegrees", "yes").lower() == "yes"

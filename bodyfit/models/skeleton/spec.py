@@ -46,6 +46,26 @@ class Function:
         return Function(kind, d)
 
 
+def is_identity(fn: Function) -> bool:
+    """True for the function that *is* its coordinate (LinearFunction slope 1, intercept 0)."""
+    return fn.kind == "linear" and fn.params["slope"] == 1.0 and fn.params["intercept"] == 0.0
+
+
+def translation_scale_weights(axis: tuple[float, float, float], fn: Function) -> tuple[float, float, float]:
+    """How a translation function along ``axis`` scales with its segment's (x, y, z) scale factors s.
+
+    The function is multiplied by ``w . s`` with ``w = |axis| / sum |axis|``. For the axis-aligned
+    translation axes of Rajagopal2015 this is exactly OpenSim's rule (``sum_j |axis_j| s_j``); the
+    normalisation keeps unit scale factors a no-op for oblique axes too. A translation that is itself a
+    coordinate is never scaled (w = 0), as in OpenSim.
+    """
+    if is_identity(fn):
+        return (0.0, 0.0, 0.0)
+    a = [abs(v) for v in axis]
+    total = sum(a)
+    return (a[0] / total, a[1] / total, a[2] / total)
+
+
 @dataclass(frozen=True)
 class TransformAxis:
     """One of the six axes of a joint's spatial transform."""
