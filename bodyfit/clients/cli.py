@@ -9,12 +9,16 @@ from typing import Annotated
 
 import typer
 
-app = typer.Typer(no_args_is_help=True, add_completion=False, help="bodyfit: human bodies with a biomechanical skeleton.")
+app = typer.Typer(
+    no_args_is_help=True, add_completion=False, help="bodyfit: human bodies with a biomechanical skeleton."
+)
 
 
 @app.command("build-assets")
 def build_assets(
-    out: Annotated[Path | None, typer.Option(help="Asset folder (default: assets/ of the checkout, or $BODYFIT_ASSETS).")] = None,
+    out: Annotated[
+        Path | None, typer.Option(help="Asset folder (default: assets/ of the checkout, or $BODYFIT_ASSETS).")
+    ] = None,
     docs: Annotated[Path, typer.Option(help="Where docs/skeleton.md is written.")] = Path("docs"),
 ) -> None:
     """Build every model asset from PyPI sources (needs the `build` extra: nimblephysics, opensim)."""

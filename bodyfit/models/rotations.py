@@ -72,7 +72,8 @@ def rotation_angle_between(Ra: torch.Tensor, Rb: torch.Tensor) -> torch.Tensor:
     rel = Ra.transpose(-1, -2) @ Rb
     # Robust for tiny angles: use the skew part together with the trace.
     skew = torch.stack(
-        [rel[..., 2, 1] - rel[..., 1, 2], rel[..., 0, 2] - rel[..., 2, 0], rel[..., 1, 0] - rel[..., 0, 1]], -1
+        [rel[..., 2, 1] - rel[..., 1, 2], rel[..., 0, 2] - rel[..., 2, 0], rel[..., 1, 0] - rel[..., 0, 1]],
+        -1,
     )
     trace = rel[..., 0, 0] + rel[..., 1, 1] + rel[..., 2, 2]
     return torch.atan2(0.5 * torch.linalg.vector_norm(skew, dim=-1), 0.5 * (trace - 1.0))

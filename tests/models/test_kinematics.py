@@ -94,7 +94,9 @@ def test_spine_segment_keeps_its_arc_length(skeleton: Skeleton, dof: str) -> Non
     """Pure extension or bending: the segment's tip lies on a circular arc of length L from its base,
     so the chord is 2 L sin(theta / 2) / theta."""
     L = THORACIC_LENGTH if dof.startswith("thorax") else CERVICAL_LENGTH
-    base, tip = ("thorax_extension", "neck_extension") if dof.startswith("thorax") else ("neck_extension", None)
+    base, tip = (
+        ("thorax_extension", "neck_extension") if dof.startswith("thorax") else ("neck_extension", None)
+    )
     lo, hi = skeleton.ranges[skeleton.dof_index(dof)]
     theta = np.linspace(lo, hi, 9)
     q = skeleton.coordinates({dof: theta})
@@ -114,11 +116,11 @@ def test_spine_segment_keeps_its_arc_length(skeleton: Skeleton, dof: str) -> Non
 def test_scapula_slides_on_thoracic_ellipsoid(skeleton: Skeleton) -> None:
     rng = np.random.default_rng(9)
     n = 200
-    values = {
-        f"scapula_{k}_{s}": rng.uniform(*skeleton.ranges[skeleton.dof_index(f"scapula_{k}_{s}")], n)
-        for k in ("abduction", "elevation", "upward_rot")
-        for s in "rl"
-    }
+    values: dict[str, np.ndarray] = {}
+    for k in ("abduction", "elevation", "upward_rot"):
+        for side in "rl":
+            lo, hi = skeleton.ranges[skeleton.dof_index(f"scapula_{k}_{side}")]
+            values[f"scapula_{k}_{side}"] = rng.uniform(float(lo), float(hi), n)
     pose = skeleton.forward(torch.tensor(skeleton.coordinates(values)))
     torso = pose.frames[0, skeleton.body_names.index("torso")]  # the torso does not move here
     r_h = float(np.hypot(SCAPULA_CONTACT_R[0] - THORAX_AXIS[0], SCAPULA_CONTACT_R[2] - THORAX_AXIS[1]))

@@ -81,17 +81,21 @@ def test_exported_osim_and_mot_reproduce_our_kinematics(skeleton: Skeleton, tmp_
     assert table.getNumRows() == T
 
     ref = OpenSimReference(osim_path)
-    cols, data, in_degrees = read_mot(mot_path)
+    cols, _, in_degrees = read_mot(mot_path)
     assert in_degrees and cols[0] == "time"
     ours = skeleton.kinematics(torch.float64)(
-        torch.as_tensor(q), torch.as_tensor(root), torch.as_tensor(np.broadcast_to(scales, (T, *scales.shape)).copy())
+        torch.as_tensor(q),
+        torch.as_tensor(root),
+        torch.as_tensor(np.broadcast_to(scales, (T, *scales.shape)).copy()),
     )
     worst = 0.0
     for t in range(T):
         row = np.array([table.getRowAtIndex(t)[i] for i in range(len(cols) - 1)])
         ref.set_coordinates(dict(zip(cols[1:], map(float, row))), degrees=True)
         frames = ref.body_frames(skeleton.body_names)
-        worst = max(worst, float(np.linalg.norm(ours.frames[t, :, :3, 3].numpy() - frames[:, :3, 3], axis=-1).max()))
+        worst = max(
+            worst, float(np.linalg.norm(ours.frames[t, :, :3, 3].numpy() - frames[:, :3, 3], axis=-1).max())
+        )
     assert worst <= 1e-3, worst  # the bound: 1 mm
     assert worst <= 1e-6  # measured: ~5e-10 m (the .mot's 10 significant digits and arc splines)
 

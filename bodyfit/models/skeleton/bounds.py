@@ -21,7 +21,9 @@ def to_coordinates(u: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch
     return (lo + hi) / 2 + (hi - lo) / 2 * torch.tanh(u)
 
 
-def from_coordinates(q: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, margin: float = 1e-6) -> torch.Tensor:
+def from_coordinates(
+    q: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, margin: float = 1e-6
+) -> torch.Tensor:
     """Inverse of :func:`to_coordinates` for coordinates inside their ranges.
 
     Values exactly on a bound map to the value of the bound moved inwards by ``margin`` of the range (a

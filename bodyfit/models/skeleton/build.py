@@ -29,7 +29,12 @@ from dataclasses import replace
 
 import numpy as np
 
-from bodyfit.models.skeleton.rajagopal import ROOT_TRANSLATIONS, parse_model, rajagopal_osim_path, upgraded_document
+from bodyfit.models.skeleton.rajagopal import (
+    ROOT_TRANSLATIONS,
+    parse_model,
+    rajagopal_osim_path,
+    upgraded_document,
+)
 from bodyfit.models.skeleton.spec import (
     Body,
     Coordinate,
@@ -80,8 +85,16 @@ SPINE_RANGES = {
         "White & Panjabi 1990, thoracic segmental ROM summed T1-T12 (flexion 30, extension 20 deg)",
         "+ = extension",
     ),
-    "thorax_bending": (_rng(-25, 25), "White & Panjabi 1990, thoracic lateral bending", "+ = bend to the left"),
-    "thorax_rotation": (_rng(-30, 30), "White & Panjabi 1990, thoracic axial rotation", "+ = turn to the left"),
+    "thorax_bending": (
+        _rng(-25, 25),
+        "White & Panjabi 1990, thoracic lateral bending",
+        "+ = bend to the left",
+    ),
+    "thorax_rotation": (
+        _rng(-30, 30),
+        "White & Panjabi 1990, thoracic axial rotation",
+        "+ = turn to the left",
+    ),
     "neck_extension": (_rng(-45, 45), f"{AAOS}: cervical flexion 45, extension 45 deg", "+ = extension"),
     "neck_bending": (_rng(-45, 45), f"{AAOS}: cervical lateral bending 45 deg", "+ = bend to the left"),
     "neck_rotation": (_rng(-60, 60), f"{AAOS}: cervical rotation 60 deg", "+ = turn to the left"),
@@ -92,7 +105,11 @@ SCAPULA_RANGES = {
         "Ludewig et al. 2009 (JBJS 91:378), McClure et al. 2001 (JSES 10:269): protraction/retraction",
         "+ = protraction",
     ),
-    "scapula_elevation": (_rng(-10, 30), "Ludewig et al. 2009: scapular elevation/depression", "+ = elevation"),
+    "scapula_elevation": (
+        _rng(-10, 30),
+        "Ludewig et al. 2009: scapular elevation/depression",
+        "+ = elevation",
+    ),
     "scapula_upward_rot": (_rng(-10, 60), "Ludewig et al. 2009: upward rotation up to ~50 deg", "+ = upward"),
 }
 
@@ -125,7 +142,7 @@ def _unit(v: np.ndarray) -> Vec:
 
 
 def _link(name: str, segment: str) -> Body:
-    return Body(name, segment, 0.0, (0.0, 0.0, 0.0), (0.0,) * 6, is_link=True)  # type: ignore[arg-type]
+    return Body(name, segment, 0.0, (0.0, 0.0, 0.0), (0.0,) * 6, is_link=True)
 
 
 def mirror_side(name: str) -> str:
@@ -236,7 +253,11 @@ def scapula_joints_right(thorax_base: Vec, contact: Vec) -> list[Joint]:
         "scapula_r",
         Offset(),
         Offset(),
-        (_linear(tangent, "scapula_elevation_r"), _linear(nv, "scapula_upward_rot_r"), _zero(_unit(np.cross(tangent, n)))),
+        (
+            _linear(tangent, "scapula_elevation_r"),
+            _linear(nv, "scapula_upward_rot_r"),
+            _zero(_unit(np.cross(tangent, n))),
+        ),
         (
             _sine(nv, "scapula_elevation_r", r_h, math.pi / 2, -r_h),  # r_h (cos e - 1) along the normal
             _sine(Y, "scapula_elevation_r", THORAX_VERTICAL_RADIUS, 0.0, 0.0),  # r_v sin e upwards
@@ -247,7 +268,9 @@ def scapula_joints_right(thorax_base: Vec, contact: Vec) -> list[Joint]:
     return [a, b]
 
 
-def _split_mass(torso: Body, name: str, fraction: float, com: Vec, geometry: tuple[str, ...], origin: Vec) -> Body:
+def _split_mass(
+    torso: Body, name: str, fraction: float, com: Vec, geometry: tuple[str, ...], origin: Vec
+) -> Body:
     inertia = tuple(v * fraction for v in torso.inertia)
     offset = (-origin[0], -origin[1], -origin[2])
     return Body(name, name, torso.mass * fraction, com, inertia, geometry, offset)  # type: ignore[arg-type]
@@ -262,29 +285,45 @@ def build_skeleton() -> SkeletonSpec:
     cervical_base: Vec = (THORACOLUMBAR[0], THORACOLUMBAR[1] + THORACIC_LENGTH, THORACOLUMBAR[2])
 
     new_bodies = {
-        "torso": _split_mass(torso, "torso", MASS_SPLIT["torso"], (-0.04, 0.09, 0.0), ("hat_spine.vtp",), (0, 0, 0)),
+        "torso": _split_mass(
+            torso, "torso", MASS_SPLIT["torso"], (-0.04, 0.09, 0.0), ("hat_spine.vtp",), (0, 0, 0)
+        ),
         "thorax": _split_mass(
             torso, "thorax", MASS_SPLIT["thorax"], (0.03, 0.1, 0.0), ("hat_ribs_scap.vtp",), THORACOLUMBAR
         ),
         "head": _split_mass(
-            torso, "head", MASS_SPLIT["head"], (0.05, 0.12, 0.0), ("hat_skull.vtp", "hat_jaw.vtp"), cervical_base
+            torso,
+            "head",
+            MASS_SPLIT["head"],
+            (0.05, 0.12, 0.0),
+            ("hat_skull.vtp", "hat_jaw.vtp"),
+            cervical_base,
         ),
         "thoracic_link": _link("thoracic_link", "thorax"),
         "cervical_link": _link("cervical_link", "head"),
         "scapulothoracic_link_r": _link("scapulothoracic_link_r", "thorax"),
         "scapula_r": Body(
-            "scapula_r", "scapula_r", torso.mass * SCAPULA_MASS_FRACTION, (0.03, 0.0, 0.03), (0.001,) * 3 + (0.0,) * 3  # type: ignore[arg-type]
+            "scapula_r",
+            "scapula_r",
+            torso.mass * SCAPULA_MASS_FRACTION,
+            (0.03, 0.0, 0.03),
+            (0.001,) * 3 + (0.0,) * 3,
         ),
     }
     for name in ("scapulothoracic_link_r", "scapula_r"):
         b = new_bodies[name]
         new_bodies[mirror_side(name)] = replace(
-            b, name=mirror_side(name), segment=mirror_side(b.segment), mass_center=(*b.mass_center[:2], -b.mass_center[2])
+            b,
+            name=mirror_side(name),
+            segment=mirror_side(b.segment),
+            mass_center=(*b.mass_center[:2], -b.mass_center[2]),
         )
     body.update(new_bodies)
 
     added = spine_joints("thorax", "torso", "thoracic_link", "thorax", THORACOLUMBAR, THORACIC_LENGTH)
-    added += spine_joints("neck", "thorax", "cervical_link", "head", (0.0, THORACIC_LENGTH, 0.0), CERVICAL_LENGTH)
+    added += spine_joints(
+        "neck", "thorax", "cervical_link", "head", (0.0, THORACIC_LENGTH, 0.0), CERVICAL_LENGTH
+    )
     scap_r = scapula_joints_right(THORACOLUMBAR, SCAPULA_CONTACT_R)
     added += scap_r + [mirror_joint(j) for j in scap_r]
 
@@ -292,7 +331,11 @@ def build_skeleton() -> SkeletonSpec:
     for j in joints:
         if j.name.startswith("acromial_"):
             side = j.name[-1]
-            contact = SCAPULA_CONTACT_R if side == "r" else (SCAPULA_CONTACT_R[0], SCAPULA_CONTACT_R[1], -SCAPULA_CONTACT_R[2])
+            contact = (
+                SCAPULA_CONTACT_R
+                if side == "r"
+                else (SCAPULA_CONTACT_R[0], SCAPULA_CONTACT_R[1], -SCAPULA_CONTACT_R[2])
+            )
             j = replace(
                 j,
                 parent=f"scapula_{side}",
@@ -313,7 +356,9 @@ def build_skeleton() -> SkeletonSpec:
             side = c.name[-1]
             for stem, (rng, src, desc) in SCAPULA_RANGES.items():
                 joint = "scapulothoracic_abduction" if stem == "scapula_abduction" else "scapulothoracic"
-                named.append(Coordinate(f"{stem}_{side}", f"{joint}_{side}", "rotational", rng, src, False, desc))
+                named.append(
+                    Coordinate(f"{stem}_{side}", f"{joint}_{side}", "rotational", rng, src, False, desc)
+                )
         if base in EXTRA_RANGES:
             rng, src, desc = EXTRA_RANGES[base]
             c = replace(c, range=rng, range_source=f"unlocked; {src}", description=desc)

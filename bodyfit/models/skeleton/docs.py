@@ -10,8 +10,8 @@ from bodyfit.models.skeleton.spec import SkeletonSpec
 def _axis_text(v: tuple[float, float, float]) -> str:
     names = {(1.0, 0.0, 0.0): "+x", (-1.0, 0.0, 0.0): "-x", (0.0, 1.0, 0.0): "+y", (0.0, -1.0, 0.0): "-y"}
     names.update({(0.0, 0.0, 1.0): "+z", (0.0, 0.0, -1.0): "-z"})
-    key = tuple(float(round(c, 12)) for c in v)
-    return names.get(key, "(" + ", ".join(f"{c:.3f}" for c in v) + ")")  # type: ignore[call-overload]
+    key = (float(round(v[0], 12)), float(round(v[1], 12)), float(round(v[2], 12)))
+    return names.get(key, "(" + ", ".join(f"{c:.3f}" for c in v) + ")")
 
 
 def skeleton_markdown(spec: SkeletonSpec) -> str:
@@ -64,7 +64,7 @@ def skeleton_markdown(spec: SkeletonSpec) -> str:
         "axis, elevation up its meridian with the matching tilt, upward rotation about the surface normal). "
         "The humerus hangs from the scapula through Rajagopal's `acromial` joint. With all added DOFs at "
         "zero every Rajagopal body sits exactly where Rajagopal2015 puts it.",
-        "- **Unlocked** subtalar, mtp and wrist coordinates (locked in Rajagopal2015) with literature ranges.",
+        "- **Unlocked** subtalar, mtp and wrist coordinates (locked in Rajagopal2015), literature ranges.",
         "",
         "In exported .osim files the added joints are OpenSim CustomJoints through light link bodies "
         "(`thoracic_link`, `cervical_link`, `scapulothoracic_link_*`); the patella keeps Rajagopal's coupled "

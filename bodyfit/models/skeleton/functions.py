@@ -2,7 +2,8 @@
 
 Every :class:`~bodyfit.models.skeleton.spec.Function` is written in one form,
 
-    f(x) = sum_k [lower_k <= x < upper_k] * cubic_k(x - anchor_k) + amp sin(omega x + phase) + a g1(x) + b g2(x),
+    f(x) = sum_k [lower_k <= x < upper_k] * cubic_k(x - anchor_k)
+           + amp sin(omega x + phase) + a g1(x) + b g2(x),
 
 so all transform axes of a skeleton are evaluated with the same tensor operations (no data-dependent
 control flow; exports to ONNX). Splines keep their pieces in local coordinates, which keeps float32 exact to

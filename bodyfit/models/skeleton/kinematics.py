@@ -34,7 +34,7 @@ def _unit(v: tuple[float, float, float]) -> list[float]:
 
 
 def _levels(parents: list[int]) -> list[list[int]]:
-    depth = []
+    depth: list[int] = []
     for i, p in enumerate(parents):
         depth.append(0 if p < 0 else depth[p] + 1)
         assert p < i, "joints must be in topological order"
@@ -44,6 +44,27 @@ def _levels(parents: list[int]) -> list[list[int]]:
 class SkeletonKinematics(nn.Module):
     """Forward kinematics: coordinates (B, n_dof), root translation (B, 3), per-segment scale factors
     (B, n_seg, 3) -> body frames (B, n_body, 4, 4) and joint centres (B, n_joint, 3)."""
+
+    # buffers (see __init__)
+    cols: torch.Tensor
+    fn_lower: torch.Tensor
+    fn_upper: torch.Tensor
+    fn_anchor: torch.Tensor
+    fn_coef: torch.Tensor
+    fn_sine: torch.Tensor
+    fn_arc: torch.Tensor
+    rot_axes: torch.Tensor
+    trans_axes: torch.Tensor
+    trans_scale_w: torch.Tensor
+    trans_unscaled: torch.Tensor
+    p_rot: torch.Tensor
+    p_trans: torch.Tensor
+    c_rot: torch.Tensor
+    c_trans: torch.Tensor
+    p_seg: torch.Tensor
+    c_seg: torch.Tensor
+    f_seg: torch.Tensor
+    inv_order: torch.Tensor
 
     def __init__(self, spec: SkeletonSpec, dtype: torch.dtype = torch.float32) -> None:
         super().__init__()
@@ -79,7 +100,7 @@ class SkeletonKinematics(nn.Module):
         self._has_parent = [parents[lvl[0]] >= 0 for lvl in levels]
         assert all(all((parents[i] >= 0) == hp for i in lvl) for lvl, hp in zip(levels, self._has_parent))
 
-        def buf(name: str, value: np.ndarray, as_dtype: bool = True) -> None:
+        def buf(name: str, value: np.ndarray | torch.Tensor, as_dtype: bool = True) -> None:
             t = torch.as_tensor(value)
             self.register_buffer(name, t.to(dtype) if as_dtype else t, persistent=False)
 
@@ -146,7 +167,9 @@ class SkeletonKinematics(nn.Module):
         tc = self.c_trans * s_c
         Rc_T = self.c_rot.transpose(-1, -2)
         R_loc = self.p_rot @ R @ Rc_T
-        t_loc = (self.p_rot @ (p - (R @ (Rc_T @ tc.unsqueeze(-1))).squeeze(-1)).unsqueeze(-1)).squeeze(-1) + tp
+        t_loc = (self.p_rot @ (p - (R @ (Rc_T @ tc.unsqueeze(-1))).squeeze(-1)).unsqueeze(-1)).squeeze(
+            -1
+        ) + tp
 
         # Compose level by level.
         Rw: torch.Tensor | None = None

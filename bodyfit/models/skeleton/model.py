@@ -118,7 +118,9 @@ class Skeleton:
         if root is not None:
             rt = _as_tensor(root, qt.dtype)
             if tuple(rt.shape) != (B, 3):
-                raise ShapeError(f"root translation must have shape ({B}, 3) in metres; got {tuple(rt.shape)}")
+                raise ShapeError(
+                    f"root translation must have shape ({B}, 3) in metres; got {tuple(rt.shape)}"
+                )
             _check_finite("root translation", rt)
         if scales is not None:
             st = _as_tensor(scales, qt.dtype)
@@ -143,9 +145,8 @@ class Skeleton:
             for i in torch.nonzero(bad).flatten().tolist()[:5]:
                 vals = q[:, i]
                 worst = float(vals.min()) if float(vals.min()) < lo[i] else float(vals.max())
-                parts.append(
-                    f"{self.dof_names[i]}={worst:.4g} rad (range {self.ranges[i, 0]:.4g}..{self.ranges[i, 1]:.4g})"
-                )
+                lo_i, hi_i = self.ranges[i]
+                parts.append(f"{self.dof_names[i]}={worst:.4g} rad (range {lo_i:.4g}..{hi_i:.4g})")
             raise CoordinateRangeError(
                 "coordinates outside their joint limits: " + "; ".join(parts) + ". Clamp them yourself or "
                 "pass unconstrained values through Skeleton.from_unbounded."
@@ -184,4 +185,6 @@ class Skeleton:
 def _check_finite(what: str, t: torch.Tensor) -> None:
     if not bool(torch.isfinite(t).all()):
         bad = torch.nonzero(~torch.isfinite(t))[0].tolist()
-        raise NonFiniteError(f"{what} contain NaN or infinite values (first at index {bad}); send finite numbers")
+        raise NonFiniteError(
+            f"{what} contain NaN or infinite values (first at index {bad}); send finite numbers"
+        )

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import io
 from pathlib import Path
 
 import torch
@@ -20,7 +19,9 @@ class _FullInputs(torch.nn.Module):
         super().__init__()
         self.fk = fk
 
-    def forward(self, q: torch.Tensor, root: torch.Tensor, scales: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(
+        self, q: torch.Tensor, root: torch.Tensor, scales: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         pose = self.fk(q, root, scales)
         return pose.frames, pose.joint_centres
 
@@ -31,9 +32,12 @@ def export_fk_onnx(fk: SkeletonKinematics, path: str | Path | None = None, opset
     ``path`` when given)."""
     dtype = fk.p_trans.dtype
     B = 2
-    args = (torch.zeros(B, fk.n_dof, dtype=dtype), torch.zeros(B, 3, dtype=dtype), torch.ones(B, fk.n_seg, 3, dtype=dtype))
+    args = (
+        torch.zeros(B, fk.n_dof, dtype=dtype),
+        torch.zeros(B, 3, dtype=dtype),
+        torch.ones(B, fk.n_seg, 3, dtype=dtype),
+    )
     batch = torch.export.Dim("batch", min=1)
-    buf = io.BytesIO()
     program = torch.onnx.export(
         _FullInputs(fk).eval(),
         args,
@@ -45,8 +49,7 @@ def export_fk_onnx(fk: SkeletonKinematics, path: str | Path | None = None, opset
         verbose=False,
     )
     assert program is not None
-    program.save(buf)
-    data = buf.getvalue()
+    data: bytes = program.model_proto.SerializeToString()
     if path is not None:
         Path(path).write_bytes(data)
     return data

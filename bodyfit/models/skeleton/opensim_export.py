@@ -67,7 +67,9 @@ def _function_xml(parent: ET.Element, fn: Function, k: float, coord_range: tuple
         raise ValueError(f"cannot export function kind {fn.kind}")
 
 
-def _offset_frame(parent: ET.Element, name: str, body_path: str, translation: np.ndarray, orientation: Sequence[float]) -> None:
+def _offset_frame(
+    parent: ET.Element, name: str, body_path: str, translation: np.ndarray, orientation: Sequence[float]
+) -> None:
     f = _sub(parent, "PhysicalOffsetFrame", name=name)
     _sub(f, "socket_parent", body_path)
     _sub(f, "translation", _fmt(translation))
@@ -77,6 +79,7 @@ def _offset_frame(parent: ET.Element, name: str, body_path: str, translation: np
 def _body_xml(parent: ET.Element, body: Body, s: np.ndarray) -> None:
     el = _sub(parent, "Body", name=body.name)
     volume = float(np.prod(s))
+    inertia: tuple[float, ...]
     if body.is_link:
         mass, inertia = LINK_MASS, (LINK_INERTIA,) * 3 + (0.0,) * 3
     else:
@@ -99,7 +102,9 @@ def _body_xml(parent: ET.Element, body: Body, s: np.ndarray) -> None:
             _sub(m, "mesh_file", mesh)
 
 
-def osim_document(spec: SkeletonSpec, scales: np.ndarray | None = None, name: str = "bodyfit") -> ET.ElementTree:
+def osim_document(
+    spec: SkeletonSpec, scales: np.ndarray | None = None, name: str = "bodyfit"
+) -> ET.ElementTree:
     """The skeleton as an OpenSim 4 document.
 
     Args:
@@ -120,7 +125,11 @@ def osim_document(spec: SkeletonSpec, scales: np.ndarray | None = None, name: st
 
     doc = ET.Element("OpenSimDocument", Version="40000")
     model = _sub(doc, "Model", name=name)
-    _sub(model, "credits", "bodyfit skeleton: Rajagopal2015 (Rajagopal et al. 2016) with spine and scapula joints")
+    _sub(
+        model,
+        "credits",
+        "bodyfit skeleton: Rajagopal2015 (Rajagopal et al. 2016) with spine and scapula joints",
+    )
     _sub(model, "publications", "Rajagopal A. et al. (2016) IEEE TBME 63(10):2068-79")
     _sub(model, "length_units", "meters")
     _sub(model, "force_units", "N")
@@ -155,8 +164,20 @@ def osim_document(spec: SkeletonSpec, scales: np.ndarray | None = None, name: st
             _sub(c, "locked", "false")
         frames = _sub(jel, "frames")
         parent_path = "/ground" if j.parent == "ground" else f"/bodyset/{j.parent}"
-        _offset_frame(frames, f"{j.parent}_offset", parent_path, np.asarray(j.parent_offset.translation) * scale_of(j.parent), j.parent_offset.orientation)
-        _offset_frame(frames, f"{j.child}_offset", f"/bodyset/{j.child}", np.asarray(j.child_offset.translation) * scale_of(j.child), j.child_offset.orientation)
+        _offset_frame(
+            frames,
+            f"{j.parent}_offset",
+            parent_path,
+            np.asarray(j.parent_offset.translation) * scale_of(j.parent),
+            j.parent_offset.orientation,
+        )
+        _offset_frame(
+            frames,
+            f"{j.child}_offset",
+            f"/bodyset/{j.child}",
+            np.asarray(j.child_offset.translation) * scale_of(j.child),
+            j.child_offset.orientation,
+        )
         st = _sub(jel, "SpatialTransform")
         s_f = scale_of(j.scale_segment) if j.scale_segment in seg else np.ones(3)
         for k, (axname, ax) in enumerate(zip(AXIS_NAMES, (*j.rotations, *j.translations))):
@@ -184,7 +205,9 @@ def osim_document(spec: SkeletonSpec, scales: np.ndarray | None = None, name: st
     return tree
 
 
-def write_osim(path: str | Path, spec: SkeletonSpec, scales: np.ndarray | None = None, name: str = "bodyfit") -> Path:
+def write_osim(
+    path: str | Path, spec: SkeletonSpec, scales: np.ndarray | None = None, name: str = "bodyfit"
+) -> Path:
     """Write a scaled OpenSim model of ``spec``. See :func:`osim_document`."""
     path = Path(path)
     osim_document(spec, scales, name).write(path, encoding="UTF-8", xml_declaration=True)
@@ -216,7 +239,15 @@ def write_mot(
     times = np.arange(T) / fps if times is None else np.asarray(times, np.float64)
     data = np.concatenate([times[:, None], np.degrees(q), root], axis=1)
     cols = ["time", *mot_columns(spec)]
-    lines = [name, "version=1", f"nRows={T}", f"nColumns={len(cols)}", "inDegrees=yes", "endheader", "\t".join(cols)]
+    lines = [
+        name,
+        "version=1",
+        f"nRows={T}",
+        f"nColumns={len(cols)}",
+        "inDegrees=yes",
+        "endheader",
+        "\t".join(cols),
+    ]
     lines += ["\t".join(f"{v:.10g}" for v in row) for row in data]
     path = Path(path)
     path.write_text("\n".join(lines) + "\n")

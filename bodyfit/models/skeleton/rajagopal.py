@@ -12,7 +12,15 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 from bodyfit.models.errors import AssetError
-from bodyfit.models.skeleton.spec import Body, Coordinate, Function, Joint, Offset, SkeletonSpec, TransformAxis
+from bodyfit.models.skeleton.spec import (
+    Body,
+    Coordinate,
+    Function,
+    Joint,
+    Offset,
+    SkeletonSpec,
+    TransformAxis,
+)
 
 RAJAGOPAL_RELPATH = Path("models/rajagopal_data/Rajagopal2015.osim")
 ROOT_TRANSLATIONS = ("pelvis_tx", "pelvis_ty", "pelvis_tz")
@@ -88,6 +96,15 @@ def _coord_axis(axis: tuple[float, float, float], name: str) -> TransformAxis:
 X, Y, Z = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
 
 
+def _joint_frame(joint: ET.Element, socket: str) -> tuple[str, Offset]:
+    """(body name, offset) of the joint's frame named by ``socket``."""
+    frames = {f.get("name"): f for f in joint.iter("PhysicalOffsetFrame")}
+    f = frames[joint.findtext(socket)]
+    body = (f.findtext("socket_parent") or "").split("/")[-1]
+    t, o = _vec(f.findtext("translation")), _vec(f.findtext("orientation"))
+    return body, Offset((t[0], t[1], t[2]), (o[0], o[1], o[2]))
+
+
 def parse_model(doc: ET.Element) -> tuple[list[Body], list[Joint], list[Coordinate], dict[str, bool]]:
     """Bodies, joints (topological order), coordinates and their locked flags of an OpenSim 4 document.
 
@@ -120,15 +137,8 @@ def parse_model(doc: ET.Element) -> tuple[list[Body], list[Joint], list[Coordina
     coords: list[Coordinate] = []
     locked: dict[str, bool] = {}
     for j in model.find("JointSet/objects") or []:
-        frames = {f.get("name"): f for f in j.iter("PhysicalOffsetFrame")}
-
-        def frame(socket: str) -> tuple[str, Offset]:
-            f = frames[j.findtext(socket)]
-            body = (f.findtext("socket_parent") or "").split("/")[-1]
-            return body, Offset(_vec(f.findtext("translation")), _vec(f.findtext("orientation")))  # type: ignore[arg-type]
-
-        parent, p_off = frame("socket_parent_frame")
-        child, c_off = frame("socket_child_frame")
+        parent, p_off = _joint_frame(j, "socket_parent_frame")
+        child, c_off = _joint_frame(j, "socket_child_frame")
         names = [c.get("name", "") for c in j.iter("Coordinate")]
         kind = j.tag
         if kind == "CustomJoint":
@@ -167,13 +177,13 @@ def parse_model(doc: ET.Element) -> tuple[list[Body], list[Joint], list[Coordina
     placed = {"ground"}
     pending = list(joints)
     while pending:
-        ready = [j for j in pending if j.parent in placed]
+        ready = [jt for jt in pending if jt.parent in placed]
         if not ready:
             raise AssetError("the joint graph is not a tree rooted at ground")
-        for j in ready:
-            ordered.append(j)
-            placed.add(j.child)
-            pending.remove(j)
+        for jt in ready:
+            ordered.append(jt)
+            placed.add(jt.child)
+            pending.remove(jt)
     body_list = [bodies[j.child] for j in ordered]
     return body_list, ordered, coords, locked
 

@@ -79,7 +79,7 @@ class TransformAxis:
 
     @staticmethod
     def from_json(d: dict[str, Any]) -> TransformAxis:
-        return TransformAxis(tuple(d["axis"]), d["coordinate"], Function.from_json(d["function"]))  # type: ignore[arg-type]
+        return TransformAxis(tuple(d["axis"]), d["coordinate"], Function.from_json(d["function"]))
 
 
 @dataclass(frozen=True)
