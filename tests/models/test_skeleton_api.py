@@ -145,10 +145,10 @@ def test_corrupted_or_missing_asset_fails_with_rebuild_hint(tmp_path: Path) -> N
     shutil.copytree(REPO / "assets", folder)
     with (folder / "skeleton.json").open("a") as f:
         f.write(" ")
-    with pytest.raises(AssetError, match="corrupted or stale.*bodyfit build-assets"):
+    with pytest.raises(AssetError, match=r"corrupted or stale.*bodyfit build-assets"):
         Skeleton.load(folder)
     (folder / "skeleton.json").unlink()
-    with pytest.raises(AssetError, match="missing.*bodyfit build-assets"):
+    with pytest.raises(AssetError, match=r"missing.*bodyfit build-assets"):
         Skeleton.load(folder)
     (folder / "manifest.json").write_text("{not json")
     with pytest.raises(AssetError, match="not valid JSON"):
