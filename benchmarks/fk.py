@@ -80,6 +80,9 @@ class Results:
     ours_fps_b1024: float
     ratio_b1: float
     ratio_b1024: float
+    onnx_fps_b1: float
+    ratio_onnx_b1: float
+    onnx_parity_max_m: float
     processor: str
     cpu_count: int | None
     torch_threads: int
@@ -198,6 +201,36 @@ def batched_call(skel: Skeleton, poses: Poses, batch: int) -> Callable[[], None]
     return run
 
 
+def onnx_single_pose_loop(skel: Skeleton, poses: Poses) -> tuple[Callable[[], None], float]:
+    """A closure running the exported FK in ONNX Runtime once per pose (B=1, float32), and the largest
+    position difference (m) between ONNX Runtime and torch over all poses in one batch."""
+    import onnxruntime as ort
+
+    from bodyfit.models.skeleton.onnx_export import export_fk_onnx
+
+    fk = skel.kinematics(torch.float32)
+    options = ort.SessionOptions()
+    options.log_severity_level = 3
+    sess = ort.InferenceSession(export_fk_onnx(fk), options, providers=["CPUExecutionProvider"])
+    q = poses.q.astype(np.float32)
+    root = poses.root.astype(np.float32)
+    ones = np.ones((len(q), len(skel.segments), 3), np.float32)
+    frames, _ = sess.run(None, {"coordinates": q, "root": root, "scales": ones})
+    with torch.inference_mode():
+        ref = fk(torch.as_tensor(q), torch.as_tensor(root)).frames.numpy()
+    parity = float(np.abs(frames[..., :3, 3] - ref[..., :3, 3]).max())
+    feeds = [
+        {"coordinates": q[i : i + 1], "root": root[i : i + 1], "scales": ones[i : i + 1]}
+        for i in range(len(q))
+    ]
+
+    def run() -> None:
+        for feed in feeds:
+            sess.run(None, feed)
+
+    return run, parity
+
+
 # -- measurement ----------------------------------------------------------------------------------------
 def accuracy(ours: torch.Tensor, reference: np.ndarray) -> tuple[float, float]:
     """Largest position error (m) and geodesic rotation error (rad) between two (N, n_b, 4, 4) stacks."""
@@ -234,6 +267,8 @@ def run_benchmark(cfg: Settings) -> Results:
     opensim_fps = rate(opensim_loop(ref, values, bodies), n, cfg.warmup, cfg.repeats)
     ours_b1 = rate(single_pose_loop(skel, poses), n, cfg.warmup, cfg.repeats)
     ours_batch = rate(batched_call(skel, poses, BATCH), BATCH, cfg.warmup + 3, cfg.repeats * 5)
+    onnx_loop, onnx_parity = onnx_single_pose_loop(skel, poses)
+    onnx_b1 = rate(onnx_loop, n, cfg.warmup, cfg.repeats)
     return Results(
         n_poses=n,
         quick=cfg.quick,
@@ -246,6 +281,9 @@ def run_benchmark(cfg: Settings) -> Results:
         ours_fps_b1024=ours_batch,
         ratio_b1=ours_b1 / opensim_fps,
         ratio_b1024=ours_batch / opensim_fps,
+        onnx_fps_b1=onnx_b1,
+        ratio_onnx_b1=onnx_b1 / opensim_fps,
+        onnx_parity_max_m=onnx_parity,
         processor=platform.processor() or platform.machine(),
         cpu_count=os.cpu_count(),
         torch_threads=torch.get_num_threads(),
@@ -259,6 +297,7 @@ def table(r: Results) -> str:
         ("OpenSim 4.6 (set + realizePosition + read)", f"{r.opensim_fps:14,.0f}", "1.00x"),
         ("ours, torch float32, B=1 loop", f"{r.ours_fps_b1:14,.0f}", f"{r.ratio_b1:.2f}x"),
         (f"ours, torch float32, B={BATCH}", f"{r.ours_fps_b1024:14,.0f}", f"{r.ratio_b1024:.2f}x"),
+        ("ours, ONNX Runtime float32, B=1 loop", f"{r.onnx_fps_b1:14,.0f}", f"{r.ratio_onnx_b1:.2f}x"),
     ]
     width = max(len(name) for name, _, _ in rows)
     lines = [
