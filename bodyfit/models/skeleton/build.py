@@ -36,6 +36,9 @@ from bodyfit.models.skeleton.rajagopal import (
     upgraded_document,
 )
 from bodyfit.models.skeleton.spec import (
+    X_AXIS,
+    Y_AXIS,
+    Z_AXIS,
     Body,
     Coordinate,
     Function,
@@ -43,12 +46,13 @@ from bodyfit.models.skeleton.spec import (
     Offset,
     SkeletonSpec,
     TransformAxis,
+    Vec3,
+    coordinate_axis,
+    fixed_axis,
 )
 
-Vec = tuple[float, float, float]
-X: Vec = (1.0, 0.0, 0.0)
-Y: Vec = (0.0, 1.0, 0.0)
-Z: Vec = (0.0, 0.0, 1.0)
+Vec = Vec3
+X, Y, Z = X_AXIS, Y_AXIS, Z_AXIS
 
 # --- anatomy in Rajagopal's torso frame (origin at L5/S1), read off the torso bone geometry ------------
 # (hat_spine.vtp: vertebral bodies; hat_ribs_scap.vtp: ribcage and scapulae; C7 marker at y = 0.435).
@@ -115,14 +119,6 @@ SCAPULA_RANGES = {
 
 
 # --- small helpers --------------------------------------------------------------------------------------
-def _linear(axis: Vec, coord: str, slope: float = 1.0) -> TransformAxis:
-    return TransformAxis(axis, coord, Function("linear", {"slope": slope, "intercept": 0.0}))
-
-
-def _zero(axis: Vec) -> TransformAxis:
-    return TransformAxis(axis, None, Function("constant", {"value": 0.0}))
-
-
 def _sine(axis: Vec, coord: str, amplitude: float, phase: float, offset: float) -> TransformAxis:
     fn = Function("sine", {"amplitude": amplitude, "omega": 1.0, "phase": phase, "offset": offset})
     return TransformAxis(axis, coord, fn)
@@ -203,8 +199,8 @@ def spine_joints(prefix: str, parent: str, link: str, child: str, base: Vec, len
         link,
         Offset(base),
         Offset(),
-        (_linear(Z, ext), _zero(X), _zero(Y)),
-        (_arc(X, ext, a=length), _arc(Y, ext, b=length), _zero(Z)),
+        (coordinate_axis(Z, ext), fixed_axis(X), fixed_axis(Y)),
+        (_arc(X, ext, a=length), _arc(Y, ext, b=length), fixed_axis(Z)),
         child,
     )
     b = Joint(
@@ -214,8 +210,8 @@ def spine_joints(prefix: str, parent: str, link: str, child: str, base: Vec, len
         child,
         Offset(),
         Offset(),
-        (_linear(X, bend), _linear(Y, rot), _zero(Z)),
-        (_zero(X), _arc(Y, bend, b=length), _arc(Z, bend, a=-length)),
+        (coordinate_axis(X, bend), coordinate_axis(Y, rot), fixed_axis(Z)),
+        (fixed_axis(X), _arc(Y, bend, b=length), _arc(Z, bend, a=-length)),
         child,
     )
     return [a, b]
@@ -236,11 +232,11 @@ def scapula_joints_right(thorax_base: Vec, contact: Vec) -> list[Joint]:
         "scapulothoracic_link_r",
         Offset(_sub(contact, thorax_base)),
         Offset(),
-        (_linear(Y, "scapula_abduction_r"), _zero(X), _zero(Z)),
+        (coordinate_axis(Y, "scapula_abduction_r"), fixed_axis(X), fixed_axis(Z)),
         (
             # r_h * (cos(phi0 + a) - cos(phi0)) along x, -r_h * (sin(phi0 + a) - sin(phi0)) along z
             _sine(X, "scapula_abduction_r", r_h, phi0 + math.pi / 2, -r_h * math.cos(phi0)),
-            _zero(Y),
+            fixed_axis(Y),
             _sine(Z, "scapula_abduction_r", -r_h, phi0, r_h * math.sin(phi0)),
         ),
         "thorax",
@@ -254,14 +250,14 @@ def scapula_joints_right(thorax_base: Vec, contact: Vec) -> list[Joint]:
         Offset(),
         Offset(),
         (
-            _linear(tangent, "scapula_elevation_r"),
-            _linear(nv, "scapula_upward_rot_r"),
-            _zero(_unit(np.cross(tangent, n))),
+            coordinate_axis(tangent, "scapula_elevation_r"),
+            coordinate_axis(nv, "scapula_upward_rot_r"),
+            fixed_axis(_unit(np.cross(tangent, n))),
         ),
         (
             _sine(nv, "scapula_elevation_r", r_h, math.pi / 2, -r_h),  # r_h (cos e - 1) along the normal
             _sine(Y, "scapula_elevation_r", THORAX_VERTICAL_RADIUS, 0.0, 0.0),  # r_v sin e upwards
-            _zero(tangent),
+            fixed_axis(tangent),
         ),
         "thorax",
     )

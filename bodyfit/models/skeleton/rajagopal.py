@@ -13,6 +13,9 @@ from pathlib import Path
 
 from bodyfit.models.errors import AssetError
 from bodyfit.models.skeleton.spec import (
+    X_AXIS,
+    Y_AXIS,
+    Z_AXIS,
     Body,
     Coordinate,
     Function,
@@ -20,6 +23,8 @@ from bodyfit.models.skeleton.spec import (
     Offset,
     SkeletonSpec,
     TransformAxis,
+    coordinate_axis,
+    fixed_axis,
 )
 
 RAJAGOPAL_RELPATH = Path("models/rajagopal_data/Rajagopal2015.osim")
@@ -85,17 +90,6 @@ def _axis(el: ET.Element, coupled: dict[str, str]) -> TransformAxis:
     return TransformAxis(tuple(_vec(el.findtext("axis"))), coord, fn)  # type: ignore[arg-type]
 
 
-def _const(axis: tuple[float, float, float]) -> TransformAxis:
-    return TransformAxis(axis, None, Function("constant", {"value": 0.0}))
-
-
-def _coord_axis(axis: tuple[float, float, float], name: str) -> TransformAxis:
-    return TransformAxis(axis, name, Function("linear", {"slope": 1.0, "intercept": 0.0}))
-
-
-X, Y, Z = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
-
-
 def _joint_frame(joint: ET.Element, socket: str) -> tuple[str, Offset]:
     """(body name, offset) of the joint's frame named by ``socket``."""
     frames = {f.get("name"): f for f in joint.iter("PhysicalOffsetFrame")}
@@ -146,13 +140,15 @@ def parse_model(doc: ET.Element) -> tuple[list[Body], list[Joint], list[Coordina
             rot, trans = tuple(axes[:3]), tuple(axes[3:])
             jkind = "walker_knee" if j.get("name", "").startswith("walker_knee") else "custom"
         elif kind == "PinJoint":
-            rot, trans = (_coord_axis(Z, names[0]), _const(X), _const(Y)), (_const(X), _const(Y), _const(Z))
+            rot = (coordinate_axis(Z_AXIS, names[0]), fixed_axis(X_AXIS), fixed_axis(Y_AXIS))
+            trans = (fixed_axis(X_AXIS), fixed_axis(Y_AXIS), fixed_axis(Z_AXIS))
             jkind = "pin"
         elif kind == "UniversalJoint":
-            rot = (_coord_axis(X, names[0]), _coord_axis(Y, names[1]), _const(Z))
-            trans, jkind = (_const(X), _const(Y), _const(Z)), "universal"
+            rot = (coordinate_axis(X_AXIS, names[0]), coordinate_axis(Y_AXIS, names[1]), fixed_axis(Z_AXIS))
+            trans, jkind = (fixed_axis(X_AXIS), fixed_axis(Y_AXIS), fixed_axis(Z_AXIS)), "universal"
         elif kind == "WeldJoint":
-            rot, trans = (_const(X), _const(Y), _const(Z)), (_const(X), _const(Y), _const(Z))
+            rot = (fixed_axis(X_AXIS), fixed_axis(Y_AXIS), fixed_axis(Z_AXIS))
+            trans = rot
             jkind = "weld"
         else:
             raise AssetError(f"unsupported joint type {kind} ({j.get('name')})")

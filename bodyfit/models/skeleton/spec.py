@@ -82,6 +82,22 @@ class TransformAxis:
         return TransformAxis(tuple(d["axis"]), d["coordinate"], Function.from_json(d["function"]))
 
 
+Vec3 = tuple[float, float, float]
+X_AXIS: Vec3 = (1.0, 0.0, 0.0)
+Y_AXIS: Vec3 = (0.0, 1.0, 0.0)
+Z_AXIS: Vec3 = (0.0, 0.0, 1.0)
+
+
+def fixed_axis(axis: Vec3) -> TransformAxis:
+    """A transform axis that does not move (constant 0)."""
+    return TransformAxis(axis, None, Function("constant", {"value": 0.0}))
+
+
+def coordinate_axis(axis: Vec3, coordinate: str) -> TransformAxis:
+    """A transform axis whose value is the coordinate itself."""
+    return TransformAxis(axis, coordinate, Function("linear", {"slope": 1.0, "intercept": 0.0}))
+
+
 @dataclass(frozen=True)
 class Offset:
     """A frame fixed on a body: translation (m) and XYZ body-fixed Euler orientation (rad)."""
