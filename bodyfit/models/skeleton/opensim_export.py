@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bodyfit.models.skeleton.functions import evaluate_function
 from bodyfit.models.skeleton.spec import Body, Function, SkeletonSpec, is_identity, translation_scale_weights
 
 ARC_KNOTS = 61  # SimmSpline samples of an arc function over its coordinate range (error < 1e-8 m)
@@ -55,8 +56,6 @@ def _function_xml(parent: ET.Element, fn: Function, k: float, coord_range: tuple
         _sub(el, "phase", repr(p["phase"]))
         _sub(el, "offset", repr(k * p["offset"]))
     elif fn.kind == "arc":
-        from bodyfit.models.skeleton.functions import evaluate_function
-
         lo, hi = coord_range
         pad = 0.05 * (hi - lo)
         x = np.linspace(lo - pad, hi + pad, ARC_KNOTS)
