@@ -35,6 +35,7 @@ def demo(
 ) -> None:
     """Pose the built-in skeleton through a short motion and write it: JSON, .npz and OpenSim .osim + .mot."""
     import numpy as np
+    import trimesh
 
     from bodyfit.models.errors import BodyfitError
     from bodyfit.models.skeleton import Skeleton
@@ -79,7 +80,12 @@ def demo(
     (out / "pose.json").write_text(json.dumps({"frame": 0, "body_origins_m": first}, indent=1) + "\n")
     write_osim(out / "skeleton.osim", skel.spec, name="bodyfit_demo")
     write_mot(out / "demo.mot", skel.spec, q, root, fps=60.0)
-    typer.echo(f"wrote {frames} posed frames to {out}/ (pose.npz, pose.json, skeleton.osim, demo.mot)")
+    bones = skel.bone_mesh()
+    trimesh.Trimesh(skel.pose_bones(pose.frames[:1])[0].numpy(), bones.faces, process=False).export(
+        out / "bones_frame0.ply"
+    )
+    files = "pose.npz, pose.json, skeleton.osim, demo.mot, bones_frame0.ply"
+    typer.echo(f"wrote {frames} posed frames to {out}/ ({files})")
 
 
 def main() -> None:  # pragma: no cover - console entry point

@@ -7,10 +7,14 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
 from bodyfit.models.assets import assets_dir, write_manifest
+from bodyfit.models.skeleton.bones import BONES_ASSET, build_bone_mesh
 from bodyfit.models.skeleton.build import build_skeleton
 from bodyfit.models.skeleton.docs import skeleton_markdown
 from bodyfit.models.skeleton.model import SKELETON_ASSET
+from bodyfit.models.skeleton.rajagopal import nimblephysics_data_dir
 
 
 def _version(pkg: str) -> str:
@@ -36,6 +40,18 @@ def build_all(
         docs.mkdir(parents=True, exist_ok=True)
         (docs / "skeleton.md").write_text(skeleton_markdown(spec))
     timings["skeleton"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    log("bones: Rajagopal2015 bone geometry attached to the skeleton's bodies")
+    bones = build_bone_mesh(spec, nimblephysics_data_dir() / "Geometry")
+    np.savez_compressed(
+        out / BONES_ASSET,
+        vertices=bones["vertices"],
+        faces=bones["faces"],
+        vertex_body=bones["vertex_body"],
+        body_names=bones["body_names"],
+    )
+    timings["bones"] = time.perf_counter() - t0
     write_manifest(
         out,
         {
@@ -44,7 +60,12 @@ def build_all(
                 "n_body": len(spec.bodies),
                 "n_segment": len(spec.segments),
                 "build_seconds": round(timings["skeleton"], 2),
-            }
+            },
+            BONES_ASSET: {
+                "vertices": len(bones["vertices"]),
+                "faces": len(bones["faces"]),
+                "build_seconds": round(timings["bones"], 2),
+            },
         },
         {
             "format": "bodyfit-assets/1",

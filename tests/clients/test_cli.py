@@ -32,6 +32,8 @@ def test_demo_writes_posed_skeleton(tmp_path: Path) -> None:
         np.radians(values[:, knee]), data["coordinates"][:, skel.dof_index("knee_angle_r")], atol=1e-8
     )
     assert (tmp_path / "skeleton.osim").read_text().startswith("<?xml")
+    ply = (tmp_path / "bones_frame0.ply").read_bytes()
+    assert ply.startswith(b"ply") and f"element vertex {len(skel.bone_mesh().vertices)}".encode() in ply
 
 
 def test_demo_reports_a_broken_asset_folder_cleanly(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

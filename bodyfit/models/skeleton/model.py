@@ -11,6 +11,7 @@ import torch
 
 from bodyfit.models.assets import verified_asset
 from bodyfit.models.errors import CoordinateRangeError, NonFiniteError, ShapeError, UnknownCoordinateError
+from bodyfit.models.skeleton.bones import BoneMesh, pose_bones
 from bodyfit.models.skeleton.bounds import from_coordinates, to_coordinates
 from bodyfit.models.skeleton.kinematics import Pose, SkeletonKinematics
 from bodyfit.models.skeleton.spec import SkeletonSpec
@@ -29,15 +30,17 @@ def _as_tensor(x: torch.Tensor | np.ndarray, dtype: torch.dtype | None) -> torch
 class Skeleton:
     """A loaded skeleton. Holds the spec and its compiled kinematics; no mutable state is exposed."""
 
-    def __init__(self, spec: SkeletonSpec) -> None:
+    def __init__(self, spec: SkeletonSpec, folder: Path | None = None) -> None:
         self.spec = spec
+        self._folder = folder
         self._fk: dict[torch.dtype, SkeletonKinematics] = {}
+        self._bones: BoneMesh | None = None
         self.ranges = np.array([c.range for c in spec.coordinates], dtype=np.float64)  # (n_dof, 2)
 
     @classmethod
     def load(cls, folder: Path | None = None) -> Skeleton:
         """Load the built-in skeleton asset (hash-checked against the manifest)."""
-        return cls(SkeletonSpec.load(verified_asset(SKELETON_ASSET, folder)))
+        return cls(SkeletonSpec.load(verified_asset(SKELETON_ASSET, folder)), folder)
 
     # -- names -----------------------------------------------------------------------------------------
     @property
@@ -170,6 +173,24 @@ class Skeleton:
         if dtype not in self._fk:
             self._fk[dtype] = SkeletonKinematics(self.spec, dtype)
         return self._fk[dtype]
+
+    def bone_mesh(self) -> BoneMesh:
+        """The bone mesh asset (loaded on first use, hash-checked)."""
+        if self._bones is None:
+            self._bones = BoneMesh.load(self.spec, self._folder)
+        return self._bones
+
+    def pose_bones(
+        self, frames: torch.Tensor, scales: torch.Tensor | np.ndarray | None = None
+    ) -> torch.Tensor:
+        """Bone mesh vertices (B, V, 3) for body frames (B, n_body, 4, 4) from :meth:`forward` (same
+        scales); triangles are ``bone_mesh().faces``."""
+        bones = self.bone_mesh()
+        seg = {s: i for i, s in enumerate(self.spec.segments)}
+        body_seg = torch.tensor([seg[b.segment] for b in self.spec.bodies])
+        vb = torch.as_tensor(bones.vertex_body.astype(np.int64))
+        s = None if scales is None else torch.as_tensor(scales, dtype=frames.dtype)
+        return pose_bones(torch.as_tensor(bones.vertices), vb, body_seg[vb], frames, s)
 
     def forward(
         self,
