@@ -155,9 +155,8 @@ class SkeletonKinematics(nn.Module):
             s_p, s_c, s_f = padded[:, self.p_seg], padded[:, self.c_seg], padded[:, self.f_seg]
 
         # Joint transform X_FM: body-fixed rotations; translations along axes given in F.
-        R = axis_angle_matrix(self.rot_axes[:, 0], theta[..., 0])
-        R = R @ axis_angle_matrix(self.rot_axes[:, 1], theta[..., 1])
-        R = R @ axis_angle_matrix(self.rot_axes[:, 2], theta[..., 2])
+        Rk = axis_angle_matrix(self.rot_axes, theta)  # (B, J, 3, 3, 3): one matrix per axis
+        R = Rk[:, :, 0] @ Rk[:, :, 1] @ Rk[:, :, 2]
         # Translation functions scale with the joint's scale segment (OpenSim: the parent body).
         k = torch.einsum("jkc,bjc->bjk", self.trans_scale_w, s_f.expand(B, len(self.spec.joints), 3))
         p = torch.einsum("bjk,jkc->bjc", d * (k + self.trans_unscaled), self.trans_axes)
