@@ -25,6 +25,7 @@ mirror image of the right.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -162,9 +163,12 @@ def mirror_joint(j: Joint) -> Joint:
     def off(o: Offset) -> Offset:
         return Offset(pos(o.translation), (-o.orientation[0], -o.orientation[1], o.orientation[2]))
 
-    def ax(a: TransformAxis, f: object) -> TransformAxis:
+    def ax(a: TransformAxis, f: Callable[[Vec], Vec]) -> TransformAxis:
         coord = mirror_side(a.coordinate) if a.coordinate else None
-        return TransformAxis(f(a.axis), coord, a.function)  # type: ignore[operator]
+        return TransformAxis(f(a.axis), coord, a.function)
+
+    r0, r1, r2 = (ax(a, rot_axis) for a in j.rotations)
+    t0, t1, t2 = (ax(a, pos) for a in j.translations)
 
     return replace(
         j,
@@ -173,8 +177,8 @@ def mirror_joint(j: Joint) -> Joint:
         child=mirror_side(j.child),
         parent_offset=off(j.parent_offset),
         child_offset=off(j.child_offset),
-        rotations=tuple(ax(a, rot_axis) for a in j.rotations),  # type: ignore[arg-type]
-        translations=tuple(ax(a, pos) for a in j.translations),  # type: ignore[arg-type]
+        rotations=(r0, r1, r2),
+        translations=(t0, t1, t2),
         scale_segment=mirror_side(j.scale_segment),
     )
 
@@ -275,7 +279,7 @@ def _split_mass(
 def build_skeleton() -> SkeletonSpec:
     """The bodyfit skeleton: Rajagopal2015 plus spine, scapulae and unlocked coordinates."""
     path = rajagopal_osim_path()
-    bodies, joints, coords, _locked = parse_model(upgraded_document(path))
+    bodies, joints, coords = parse_model(upgraded_document(path))
     body = {b.name: b for b in bodies}
     torso = body["torso"]
     cervical_base: Vec = (THORACOLUMBAR[0], THORACOLUMBAR[1] + THORACIC_LENGTH, THORACOLUMBAR[2])

@@ -21,7 +21,6 @@ from bodyfit.models.skeleton.spec import (
     Function,
     Joint,
     Offset,
-    SkeletonSpec,
     TransformAxis,
     coordinate_axis,
     fixed_axis,
@@ -99,8 +98,8 @@ def _joint_frame(joint: ET.Element, socket: str) -> tuple[str, Offset]:
     return body, Offset((t[0], t[1], t[2]), (o[0], o[1], o[2]))
 
 
-def parse_model(doc: ET.Element) -> tuple[list[Body], list[Joint], list[Coordinate], dict[str, bool]]:
-    """Bodies, joints (topological order), coordinates and their locked flags of an OpenSim 4 document.
+def parse_model(doc: ET.Element) -> tuple[list[Body], list[Joint], list[Coordinate]]:
+    """Bodies, joints (topological order) and coordinates of an OpenSim 4 document.
 
     Coordinates made dependent by a CoordinateCouplerConstraint with the identity function (the
     patellofemoral ``knee_angle_*_beta``) are replaced by their independent coordinate.
@@ -129,7 +128,6 @@ def parse_model(doc: ET.Element) -> tuple[list[Body], list[Joint], list[Coordina
 
     joints: list[Joint] = []
     coords: list[Coordinate] = []
-    locked: dict[str, bool] = {}
     for j in model.find("JointSet/objects") or []:
         parent, p_off = _joint_frame(j, "socket_parent_frame")
         child, c_off = _joint_frame(j, "socket_child_frame")
@@ -159,7 +157,6 @@ def parse_model(doc: ET.Element) -> tuple[list[Body], list[Joint], list[Coordina
         )
         for c in j.iter("Coordinate"):
             name = c.get("name", "")
-            locked[name] = c.findtext("locked", "false").strip() == "true"
             if name in coupled:
                 continue
             lo, hi = _vec(c.findtext("range"))
@@ -181,15 +178,4 @@ def parse_model(doc: ET.Element) -> tuple[list[Body], list[Joint], list[Coordina
             placed.add(jt.child)
             pending.remove(jt)
     body_list = [bodies[j.child] for j in ordered]
-    return body_list, ordered, coords, locked
-
-
-def rajagopal_spec(path: Path | None = None) -> SkeletonSpec:
-    """Rajagopal2015 exactly as OpenSim defines it (all coordinates free, original ranges)."""
-    path = path or rajagopal_osim_path()
-    bodies, joints, coords, _ = parse_model(upgraded_document(path))
-    named = tuple(c for c in coords if c.name not in ROOT_TRANSLATIONS)
-    roots = tuple(next(c for c in coords if c.name == n) for n in ROOT_TRANSLATIONS)
-    return SkeletonSpec(
-        tuple(bodies), tuple(joints), named, roots, tuple(b.name for b in bodies), {"source": str(path.name)}
-    )
+    return body_list, ordered, coords
