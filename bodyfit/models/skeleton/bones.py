@@ -77,11 +77,12 @@ def build_bone_mesh(spec: SkeletonSpec, geometry_dir: Path) -> dict[str, np.ndar
 
 @dataclass(frozen=True)
 class BoneMesh:
-    """Bone vertices in body frames (V, 3), triangles (F, 3), vertex -> body index (V,)."""
+    """Bone vertices in body frames (V, 3), triangles (F, 3), each vertex's body and scale segment (V,)."""
 
     vertices: np.ndarray
     faces: np.ndarray
     vertex_body: np.ndarray
+    vertex_segment: np.ndarray
 
     @classmethod
     def load(cls, spec: SkeletonSpec, folder: Path | None = None) -> BoneMesh:
@@ -91,7 +92,9 @@ class BoneMesh:
                 raise AssetError(
                     f"{BONES_ASSET} was built for another skeleton; rebuild with `bodyfit build-assets`"
                 )
-            return cls(data["vertices"], data["faces"], data["vertex_body"])
+            vertex_body = data["vertex_body"].astype(np.int64)
+            vertex_segment = np.asarray(spec.body_segment_index, np.int64)[vertex_body]
+            return cls(data["vertices"], data["faces"], vertex_body, vertex_segment)
 
 
 def pose_bones(

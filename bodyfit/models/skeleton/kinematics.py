@@ -77,7 +77,7 @@ class SkeletonKinematics(nn.Module):
         zero_col = len(names)  # q_ext carries a trailing zero column for constant functions
         body_idx = {b.name: i for i, b in enumerate(spec.bodies)}
         seg_idx = {s: i for i, s in enumerate(spec.segments)}
-        body_seg = [seg_idx[b.segment] for b in spec.bodies]
+        body_seg = spec.body_segment_index
 
         fns, cols = [], []
         rot_axes, trans_axes, trans_w = [], [], []
@@ -166,9 +166,8 @@ class SkeletonKinematics(nn.Module):
         tc = self.c_trans * s_c
         Rc_T = self.c_rot.transpose(-1, -2)
         R_loc = self.p_rot @ R @ Rc_T
-        t_loc = (self.p_rot @ (p - (R @ (Rc_T @ tc.unsqueeze(-1))).squeeze(-1)).unsqueeze(-1)).squeeze(
-            -1
-        ) + tp
+        t_fm = p - (R @ (Rc_T @ tc.unsqueeze(-1))).squeeze(-1)  # X_FM @ inv(X_cofs), translation part
+        t_loc = (self.p_rot @ t_fm.unsqueeze(-1)).squeeze(-1) + tp
 
         # Compose level by level.
         Rw: torch.Tensor | None = None

@@ -186,11 +186,14 @@ class Skeleton:
         """Bone mesh vertices (B, V, 3) for body frames (B, n_body, 4, 4) from :meth:`forward` (same
         scales); triangles are ``bone_mesh().faces``."""
         bones = self.bone_mesh()
-        seg = {s: i for i, s in enumerate(self.spec.segments)}
-        body_seg = torch.tensor([seg[b.segment] for b in self.spec.bodies])
-        vb = torch.as_tensor(bones.vertex_body.astype(np.int64))
         s = None if scales is None else torch.as_tensor(scales, dtype=frames.dtype)
-        return pose_bones(torch.as_tensor(bones.vertices), vb, body_seg[vb], frames, s)
+        return pose_bones(
+            torch.as_tensor(bones.vertices),
+            torch.as_tensor(bones.vertex_body),
+            torch.as_tensor(bones.vertex_segment),
+            frames,
+            s,
+        )
 
     def forward(
         self,

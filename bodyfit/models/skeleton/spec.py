@@ -179,6 +179,12 @@ class SkeletonSpec:
     def body_names(self) -> list[str]:
         return [b.name for b in self.bodies]
 
+    @property
+    def body_segment_index(self) -> list[int]:
+        """For each body, the index in ``segments`` of the scale segment it belongs to."""
+        seg = {s: i for i, s in enumerate(self.segments)}
+        return [seg[b.segment] for b in self.bodies]
+
     def body_index(self, name: str) -> int:
         return self.body_names.index(name)
 
