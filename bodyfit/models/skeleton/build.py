@@ -147,6 +147,11 @@ def mirror_side(name: str) -> str:
     return name[:-2] + "_l" if name.endswith("_r") else name
 
 
+def mirror_point(v: Vec) -> Vec:
+    """Mirror a position or translation axis across the sagittal plane (z -> -z)."""
+    return (v[0], v[1], -v[2])
+
+
 def mirror_joint(j: Joint) -> Joint:
     """Mirror a joint across the sagittal plane (z -> -z).
 
@@ -154,21 +159,18 @@ def mirror_joint(j: Joint) -> Joint:
     XYZ Euler offsets (a, b, c) become (-a, -b, c).
     """
 
-    def pos(v: Vec) -> Vec:
-        return (v[0], v[1], -v[2])
-
     def rot_axis(v: Vec) -> Vec:
         return (-v[0], -v[1], v[2])
 
     def off(o: Offset) -> Offset:
-        return Offset(pos(o.translation), (-o.orientation[0], -o.orientation[1], o.orientation[2]))
+        return Offset(mirror_point(o.translation), (-o.orientation[0], -o.orientation[1], o.orientation[2]))
 
     def ax(a: TransformAxis, f: Callable[[Vec], Vec]) -> TransformAxis:
         coord = mirror_side(a.coordinate) if a.coordinate else None
         return TransformAxis(f(a.axis), coord, a.function)
 
     r0, r1, r2 = (ax(a, rot_axis) for a in j.rotations)
-    t0, t1, t2 = (ax(a, pos) for a in j.translations)
+    t0, t1, t2 = (ax(a, mirror_point) for a in j.translations)
 
     return replace(
         j,
@@ -331,11 +333,7 @@ def build_skeleton() -> SkeletonSpec:
     for j in joints:
         if j.name.startswith("acromial_"):
             side = j.name[-1]
-            contact = (
-                SCAPULA_CONTACT_R
-                if side == "r"
-                else (SCAPULA_CONTACT_R[0], SCAPULA_CONTACT_R[1], -SCAPULA_CONTACT_R[2])
-            )
+            contact = SCAPULA_CONTACT_R if side == "r" else mirror_point(SCAPULA_CONTACT_R)
             j = replace(
                 j,
                 parent=f"scapula_{side}",
@@ -347,6 +345,11 @@ def build_skeleton() -> SkeletonSpec:
     ordered = _depth_first(out)
 
     # Coordinates: Rajagopal's (with the unlocked ranges), then the added ones after lumbar / before arms.
+    owner: dict[str, str] = {}  # added coordinate -> the sub-joint whose axes it drives first
+    for jt in added:
+        for a in (*jt.rotations, *jt.translations):
+            if a.coordinate:
+                owner.setdefault(a.coordinate, jt.name)
     named: list[Coordinate] = []
     for c in coords:
         if c.name in ROOT_TRANSLATIONS:
@@ -355,18 +358,15 @@ def build_skeleton() -> SkeletonSpec:
         if c.name.startswith("arm_flex"):
             side = c.name[-1]
             for stem, (rng, src, desc) in SCAPULA_RANGES.items():
-                joint = "scapulothoracic_abduction" if stem == "scapula_abduction" else "scapulothoracic"
-                named.append(
-                    Coordinate(f"{stem}_{side}", f"{joint}_{side}", "rotational", rng, src, False, desc)
-                )
+                name = f"{stem}_{side}"
+                named.append(Coordinate(name, owner[name], "rotational", rng, src, False, desc))
         if base in EXTRA_RANGES:
             rng, src, desc = EXTRA_RANGES[base]
             c = replace(c, range=rng, range_source=f"unlocked; {src}", description=desc)
         named.append(c)
         if c.name == "lumbar_rotation":
             for name, (rng, src, desc) in SPINE_RANGES.items():
-                joint = name.rsplit("_", 1)[0] + ("_extension" if name.endswith("extension") else "")
-                named.append(Coordinate(name, joint, "rotational", rng, src, False, desc))
+                named.append(Coordinate(name, owner[name], "rotational", rng, src, False, desc))
     roots = tuple(next(c for c in coords if c.name == n) for n in ROOT_TRANSLATIONS)
 
     bodies_out = tuple(body[j.child] for j in ordered)
