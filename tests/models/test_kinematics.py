@@ -13,14 +13,11 @@ from bodyfit.models.skeleton.build import (
     THORACIC_LENGTH,
     THORAX_AXIS,
     THORAX_VERTICAL_RADIUS,
-    mirror_side,
 )
+from bodyfit.models.skeleton.model import LATERAL_DOFS
 from tests.conftest import random_pose
 
-LATERAL = {
-    "pelvis_list", "pelvis_rotation", "lumbar_bending", "lumbar_rotation",
-    "thorax_bending", "thorax_rotation", "neck_bending", "neck_rotation",
-}  # fmt: skip
+LATERAL = LATERAL_DOFS
 
 
 def test_gradcheck_float64(skeleton: Skeleton) -> None:
@@ -61,14 +58,6 @@ def test_any_batch_size(skeleton: Skeleton) -> None:
     assert fk(q[:0]).frames.shape == (0, len(skeleton.body_names), 4, 4)
 
 
-def _mirror_pose(skel: Skeleton, q: np.ndarray) -> np.ndarray:
-    out = np.empty_like(q)
-    for i, name in enumerate(skel.dof_names):
-        twin = name[:-2] + "_r" if name.endswith("_l") else mirror_side(name)
-        out[:, skel.dof_index(twin)] = -q[:, i] if name in LATERAL else q[:, i]
-    return out
-
-
 def test_left_right_mirror_symmetry(skeleton: Skeleton) -> None:
     """Mirrored coordinates give the mirror image (z -> -z) of every body. Measured: positions agree
     exactly, orientations to 1e-5 rad (Rajagopal2015 writes pi/2 as 1.5708 in some frame offsets)."""
@@ -76,10 +65,9 @@ def test_left_right_mirror_symmetry(skeleton: Skeleton) -> None:
     q = random_pose(skeleton, 200, seed=4)
     q[:, [skeleton.dof_index(n) for n in LATERAL]] *= 0.5
     a = fk(torch.tensor(q)).frames
-    b = fk(torch.tensor(_mirror_pose(skeleton, q))).frames
+    b = fk(torch.tensor(skeleton.mirror_coordinates(q))).frames
     M = torch.diag(torch.tensor([1.0, 1.0, -1.0, 1.0], dtype=torch.float64))
-    names = skeleton.body_names
-    twin = [names.index(n[:-2] + "_r") if n.endswith("_l") else names.index(mirror_side(n)) for n in names]
+    twin = skeleton.twin_bodies()
     mirrored = M @ b[:, twin] @ M
     assert float((a[..., :3, 3] - mirrored[..., :3, 3]).norm(dim=-1).max()) < 1e-9
     assert float((a[..., :3, :3] - mirrored[..., :3, :3]).abs().max()) < 1e-4

@@ -17,6 +17,20 @@ from bodyfit.models.skeleton.kinematics import Pose, SkeletonKinematics
 from bodyfit.models.skeleton.spec import SkeletonSpec
 
 SKELETON_ASSET = "skeleton.json"
+# Midline DOFs whose sign flips in a left-right mirror image (the rest swap sides, sign kept).
+LATERAL_DOFS = frozenset({
+    "pelvis_list", "pelvis_rotation", "lumbar_bending", "lumbar_rotation",
+    "thorax_bending", "thorax_rotation", "neck_bending", "neck_rotation",
+})  # fmt: skip
+
+
+def twin_name(name: str) -> str:
+    """The other side's name (``x_r`` <-> ``x_l``); midline names map to themselves."""
+    if name.endswith("_r"):
+        return name[:-2] + "_l"
+    if name.endswith("_l"):
+        return name[:-2] + "_r"
+    return name
 RANGE_TOLERANCE = 1e-9
 
 
@@ -64,6 +78,17 @@ class Skeleton:
             return self.dof_names.index(name)
         except ValueError:
             raise self._unknown(name) from None
+
+    def mirror_coordinates(self, q: np.ndarray) -> np.ndarray:
+        """Coordinates of the left-right mirror image (z -> -z) of a pose. q: (B, n_dof) -> (B, n_dof)."""
+        out = np.empty_like(q)
+        for i, name in enumerate(self.dof_names):
+            out[:, self.dof_index(twin_name(name))] = -q[:, i] if name in LATERAL_DOFS else q[:, i]
+        return out
+
+    def twin_bodies(self) -> list[int]:
+        """Index of each body's mirror twin (itself on the midline)."""
+        return [self.body_names.index(twin_name(n)) for n in self.body_names]
 
     def _unknown(self, name: str) -> UnknownCoordinateError:
         close = difflib.get_close_matches(name, self.dof_names, n=3)
@@ -115,7 +140,7 @@ class Skeleton:
                 f"got {tuple(qt.shape)}. Use Skeleton.coordinates({{name: value}}) to build it by name."
             )
         B = qt.shape[0]
-        _check_finite("coordinates", qt)
+        check_finite("coordinates", qt)
         self.check_range(qt)
         rt = st = None
         if root is not None:
@@ -124,7 +149,7 @@ class Skeleton:
                 raise ShapeError(
                     f"root translation must have shape ({B}, 3) in metres; got {tuple(rt.shape)}"
                 )
-            _check_finite("root translation", rt)
+            check_finite("root translation", rt)
         if scales is not None:
             st = _as_tensor(scales, qt.dtype)
             n = len(self.spec.segments)
@@ -133,7 +158,7 @@ class Skeleton:
                     f"scale factors must have shape ({B}, {n}, 3), one (x, y, z) factor per segment in the "
                     f"order of Skeleton.segments; got {tuple(st.shape)}"
                 )
-            _check_finite("scale factors", st)
+            check_finite("scale factors", st)
             if bool((st <= 0).any()):
                 raise CoordinateRangeError("scale factors must be positive (1 = the unscaled skeleton)")
         return qt, rt, st
@@ -206,7 +231,7 @@ class Skeleton:
         return self.kinematics(qt.dtype)(qt, rt, st)
 
 
-def _check_finite(what: str, t: torch.Tensor) -> None:
+def check_finite(what: str, t: torch.Tensor) -> None:
     if not bool(torch.isfinite(t).all()):
         bad = torch.nonzero(~torch.isfinite(t))[0].tolist()
         raise NonFiniteError(

@@ -26,6 +26,34 @@ class _FullInputs(torch.nn.Module):
         return pose.frames, pose.joint_centres
 
 
+def export_module(
+    module: torch.nn.Module,
+    args: tuple[torch.Tensor, ...],
+    inputs: tuple[str, ...],
+    outputs: tuple[str, ...],
+    path: str | Path | None = None,
+    opset: int = 18,
+) -> bytes:
+    """Export ``module`` with the dynamo exporter, axis 0 of every input a dynamic batch. Returns the model
+    bytes (also written to ``path`` when given)."""
+    batch = torch.export.Dim("batch", min=1)
+    program = torch.onnx.export(
+        module.eval(),
+        args,
+        input_names=list(inputs),
+        output_names=list(outputs),
+        dynamic_shapes=tuple({0: batch} for _ in args),
+        opset_version=opset,
+        dynamo=True,
+        verbose=False,
+    )
+    assert program is not None
+    data: bytes = program.model_proto.SerializeToString()
+    if path is not None:
+        Path(path).write_bytes(data)
+    return data
+
+
 def export_fk_onnx(fk: SkeletonKinematics, path: str | Path | None = None, opset: int = 18) -> bytes:
     """Export ``fk`` to ONNX: inputs coordinates (B, n_dof), root (B, 3), scales (B, n_seg, 3); outputs
     frames (B, n_body, 4, 4) and joint_centres (B, n_joint, 3). Returns the model bytes (also written to
@@ -37,19 +65,4 @@ def export_fk_onnx(fk: SkeletonKinematics, path: str | Path | None = None, opset
         torch.zeros(B, 3, dtype=dtype),
         torch.ones(B, fk.n_seg, 3, dtype=dtype),
     )
-    batch = torch.export.Dim("batch", min=1)
-    program = torch.onnx.export(
-        _FullInputs(fk).eval(),
-        args,
-        input_names=list(INPUTS),
-        output_names=list(OUTPUTS),
-        dynamic_shapes=({0: batch}, {0: batch}, {0: batch}),
-        opset_version=opset,
-        dynamo=True,
-        verbose=False,
-    )
-    assert program is not None
-    data: bytes = program.model_proto.SerializeToString()
-    if path is not None:
-        Path(path).write_bytes(data)
-    return data
+    return export_module(_FullInputs(fk), args, INPUTS, OUTPUTS, path, opset)

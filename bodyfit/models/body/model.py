@@ -1,0 +1,263 @@
+"""The body model: one parameter set drives the skin, the anatomical joints and the skeleton.
+
+    scales   s = s_mean + c_b P_b                          (BLSM eq. 4; per segment, x y z)
+    template V = V_mean + c_b P_bc + c_s P_s                (BLSM eq. 1, 7, 8; in the bind pose)
+    frames   T(q, s), bind frames T(q_bind, s)              (the skeleton's forward kinematics)
+    skin     v = sum_j w_j T_j T_bind,j^-1 V                (LBS, BLSM eq. 12)
+    joints   anatomical joint centres, fixed points of the skeleton's bodies
+
+Shape coefficients are ``c = [c_b, c_s]``, each in units of its population standard deviation (so a
+standard normal draw is a plausible body). Coordinates are the skeleton's (OpenSim names and ranges);
+``root`` is the pelvis translation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from bodyfit.models.assets import verified_asset
+from bodyfit.models.body.lbs import linear_blend_coordinate_major, skinning_transforms
+from bodyfit.models.errors import AssetError, ShapeError
+from bodyfit.models.skeleton.model import Skeleton, check_finite
+from bodyfit.models.skeleton.spec import SkeletonSpec
+
+BODY_ASSET = "body.npz"
+
+# Anatomical joints: name -> (joint of the skeleton, which side of it the centre is fixed to). "child" is
+# the joint's frame on the child body (it follows the child, e.g. through the knee's translations);
+# "parent" the joint's frame on its parent (the start of a spine arc). The subtalar joint is left out:
+# Rajagopal2015 puts its frame at the posterior-inferior corner of the calcaneus, at the skin of the heel,
+# not at a joint centre; the radioulnar frame sits on the radial head, at the skin of thin forearms. Both
+# axes are in ``frames``.
+_MIDLINE_JOINTS = (
+    ("pelvis", "ground_pelvis", "child"),
+    ("lumbosacral", "back", "child"),
+    ("thoracolumbar", "thorax_extension", "parent"),
+    ("cervicothoracic", "neck_extension", "parent"),
+    ("skull_base", "neck", "child"),
+)
+_SIDE_JOINTS = (
+    ("hip", "hip", "child"),
+    ("knee", "walker_knee", "child"),
+    ("ankle", "ankle", "child"),
+    ("mtp", "mtp", "child"),
+    ("shoulder", "acromial", "child"),
+    ("elbow", "elbow", "child"),
+    ("wrist", "radius_hand", "child"),
+)
+ANATOMICAL_JOINTS: tuple[tuple[str, str, str], ...] = _MIDLINE_JOINTS + tuple(
+    (f"{name}_{s}", f"{joint}_{s}", where) for s in ("r", "l") for name, joint, where in _SIDE_JOINTS
+)
+
+
+def joint_anchors(spec: SkeletonSpec) -> tuple[list[int], np.ndarray]:
+    """Body index and body-frame point (before scaling) of every anatomical joint.
+
+    Returns:
+        bodies: (J,) body indices; points: (J, 3).
+    """
+    bodies, points = [], []
+    for _, joint_name, where in ANATOMICAL_JOINTS:
+        joint = spec.joint(joint_name)
+        if where == "parent":
+            bodies.append(spec.body_names.index(joint.parent))
+            points.append(joint.parent_offset.translation)
+        else:
+            bodies.append(spec.body_names.index(joint.child))
+            points.append(joint.child_offset.translation)
+    return bodies, np.asarray(points, np.float64)
+
+
+def body_points(
+    frames: torch.Tensor, scales: torch.Tensor, body: torch.Tensor, segment: torch.Tensor, local: torch.Tensor
+) -> torch.Tensor:
+    """World positions of body-fixed points.
+
+    Args:
+        frames: (B, n_body, 4, 4); scales: (B, n_seg, 3); body, segment: (P,) indices; local: (P, 3)
+            points in their body frames before scaling.
+    Returns:
+        (B, P, 3).
+    """
+    T = frames[:, body]
+    p = local * scales[:, segment]
+    return (T[..., :3, :3] @ p.unsqueeze(-1)).squeeze(-1) + T[..., :3, 3]
+
+
+class BodyDecoder(nn.Module):
+    """Buffers-only torch module: (shape, coordinates, root) -> skin vertices, joints, frames, scales.
+
+    No validation (see :class:`BodyModel`); any batch size; dtype fixed at construction.
+    """
+
+    scale_mean: torch.Tensor
+    scale_basis: torch.Tensor
+    shape_basis: torch.Tensor
+    weights_t: torch.Tensor
+    skinned_bodies: torch.Tensor
+    bind_q: torch.Tensor
+    joint_local: torch.Tensor
+    joint_body: torch.Tensor
+    joint_segment: torch.Tensor
+
+    def __init__(self, skeleton: Skeleton, data: dict[str, np.ndarray], dtype: torch.dtype) -> None:
+        super().__init__()
+        self.fk = skeleton.kinematics(dtype)
+        self.n_bone = int(data["scale_basis"].shape[0])
+        self.n_seg = n_seg = len(skeleton.segments)
+        bodies, local = joint_anchors(skeleton.spec)
+        seg_of_body = np.asarray(skeleton.spec.body_segment_index)
+
+        def buf(name: str, value: np.ndarray) -> None:
+            self.register_buffer(name, torch.as_tensor(np.ascontiguousarray(value, np.float64)).to(dtype))
+
+        buf("scale_mean", data["scale_mean"].reshape(n_seg * 3))
+        buf("scale_basis", data["scale_basis"].reshape(self.n_bone, n_seg * 3))
+        # Template, coordinate-major: rest (3, B, V) = [1, c] (B, 1 + K) @ shape_basis (3, 1 + K, V).
+        mean = data["vertices_mean"][None]
+        basis = np.concatenate([mean, data["bone_correctives"], data["identity_basis"]])
+        buf("shape_basis", basis.transpose(2, 0, 1))
+        # Only bodies that carry skin enter the blend.
+        W = np.asarray(data["weights"], np.float64)
+        skinned = np.flatnonzero(W.sum(axis=0) > 0)
+        buf("weights_t", W[:, skinned].T)
+        self.register_buffer("skinned_bodies", torch.as_tensor(skinned, dtype=torch.long))
+        buf("bind_q", data["bind_q"].reshape(1, -1))
+        buf("joint_local", local)
+        self.register_buffer("joint_body", torch.as_tensor(bodies, dtype=torch.long))
+        self.register_buffer("joint_segment", torch.as_tensor(seg_of_body[bodies], dtype=torch.long))
+
+    def forward(
+        self, shape: torch.Tensor, q: torch.Tensor, root: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Args:
+            shape: (B, n_shape) coefficients [bone, identity]; q: (B, n_dof); root: (B, 3).
+        Returns:
+            vertices (B, V, 3), joints (B, J, 3), frames (B, n_body, 4, 4), scales (B, n_seg, 3).
+        """
+        B = shape.shape[0]
+        scales = (self.scale_mean + shape[:, : self.n_bone] @ self.scale_basis).reshape(B, self.n_seg, 3)
+        coeffs = torch.cat([torch.ones_like(shape[:, :1]), shape], dim=1)  # (B, 1 + n_shape)
+        rest = coeffs.unsqueeze(0) @ self.shape_basis  # (3, B, V)
+        # One FK call for the pose and the bind pose of every body.
+        both = self.fk(
+            torch.cat([q, self.bind_q.expand(B, -1)]),
+            torch.cat([root, torch.zeros_like(root)]),
+            torch.cat([scales, scales]),
+        ).frames
+        frames, bind = both[:B], both[B:]
+        transforms = skinning_transforms(frames[:, self.skinned_bodies], bind[:, self.skinned_bodies])
+        vertices = linear_blend_coordinate_major(rest, self.weights_t, transforms)
+        joints = body_points(frames, scales, self.joint_body, self.joint_segment, self.joint_local)
+        return vertices, joints, frames, scales
+
+
+@dataclass(frozen=True)
+class BodyOutput:
+    """vertices (B, V, 3); joints (B, J, 3); frames (B, n_body, 4, 4); scales (B, n_seg, 3);
+    bones (B, V_bone, 3) skeleton-mesh vertices when asked for, else None."""
+
+    vertices: torch.Tensor
+    joints: torch.Tensor
+    frames: torch.Tensor
+    scales: torch.Tensor
+    bones: torch.Tensor | None = None
+
+
+class BodyModel:
+    """The loaded body model: validated forward, names, faces; buffers live in :class:`BodyDecoder`."""
+
+    def __init__(self, skeleton: Skeleton, data: dict[str, np.ndarray]) -> None:
+        self.skeleton = skeleton
+        self.data = data
+        self.faces = data["faces"].astype(np.int64)
+        self.n_bone = int(data["scale_basis"].shape[0])
+        self.n_identity = int(data["identity_basis"].shape[0])
+        self.joint_names = [name for name, _, _ in ANATOMICAL_JOINTS]
+        self.landmark_names = [str(n) for n in data["landmark_names"]]
+        self._decoders: dict[torch.dtype, BodyDecoder] = {}
+
+    @classmethod
+    def load(cls, folder: Path | None = None) -> BodyModel:
+        """Load the built-in body model (hash-checked against the manifest)."""
+        skeleton = Skeleton.load(folder)
+        path = verified_asset(BODY_ASSET, folder)
+        try:
+            with np.load(path) as npz:
+                data = {k: npz[k] for k in npz.files}
+        except (OSError, ValueError) as exc:
+            raise AssetError(f"cannot read {path}: {exc}; rebuild it with `bodyfit build-assets`") from exc
+        return cls(skeleton, data)
+
+    @property
+    def n_shape(self) -> int:
+        return self.n_bone + self.n_identity
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.data["vertices_mean"].shape[0])
+
+    @property
+    def dof_names(self) -> list[str]:
+        return self.skeleton.dof_names
+
+    @property
+    def bind_coordinates(self) -> np.ndarray:
+        """(n_dof,) coordinates of the bind pose, in which the template is stored."""
+        return np.asarray(self.data["bind_q"], np.float64)
+
+    def decoder(self, dtype: torch.dtype = torch.float32) -> BodyDecoder:
+        """The torch module for ``dtype``; built once per dtype."""
+        if dtype not in self._decoders:
+            self._decoders[dtype] = BodyDecoder(self.skeleton, self.data, dtype)
+        return self._decoders[dtype]
+
+    def validate_shape(
+        self, shape: torch.Tensor | np.ndarray | None, batch: int, dtype: torch.dtype
+    ) -> torch.Tensor:
+        """(B, n_shape) shape coefficients as a tensor; None means the mean body."""
+        if shape is None:
+            return torch.zeros(batch, self.n_shape, dtype=dtype)
+        t = torch.as_tensor(shape).to(dtype)
+        if t.ndim != 2 or t.shape[1] != self.n_shape or t.shape[0] != batch:
+            raise ShapeError(
+                f"shape coefficients must have shape ({batch}, {self.n_shape}): {self.n_bone} bone "
+                f"coefficients then {self.n_identity} identity coefficients; got {tuple(t.shape)}"
+            )
+        check_finite("shape coefficients", t)
+        return t
+
+    def forward(
+        self,
+        shape: torch.Tensor | np.ndarray | None = None,
+        coordinates: torch.Tensor | np.ndarray | None = None,
+        root: torch.Tensor | np.ndarray | None = None,
+        skeleton_mesh: bool = False,
+        dtype: torch.dtype = torch.float32,
+    ) -> BodyOutput:
+        """Validated forward pass.
+
+        Args:
+            shape: (B, n_shape) or None (mean body).
+            coordinates: (B, n_dof) in ``dof_names`` order (radians / metres) or None (zero pose). Build it
+                by name with ``model.skeleton.coordinates({...})``.
+            root: (B, 3) pelvis translation in metres, or None.
+            skeleton_mesh: also pose the Rajagopal bone mesh scaled to the body.
+        Raises:
+            ShapeError, NonFiniteError, CoordinateRangeError.
+        """
+        if coordinates is None:
+            batch = 1 if shape is None else int(np.shape(shape)[0])
+            coordinates = np.zeros((batch, self.skeleton.n_dof))
+        q, r, _ = self.skeleton.validate(coordinates, root, dtype=dtype)
+        B = q.shape[0]
+        c = self.validate_shape(shape, B, dtype)
+        r = torch.zeros(B, 3, dtype=dtype) if r is None else r
+        vertices, joints, frames, scales = self.decoder(dtype)(c, q, r)
+        bones = self.skeleton.pose_bones(frames, scales) if skeleton_mesh else None
+        return BodyOutput(vertices, joints, frames, scales, bones)
