@@ -112,16 +112,14 @@ def build_all(
     skeleton = Skeleton(spec, out)
     body, metrics = build_body(skeleton, default_cache_dir(), config, log)
     body = _float32(body)
+    model = BodyModel(skeleton, body)
     # The mesh users get at zero parameters (zero shape, zero coordinates, zero root).
-    body["template"] = (
-        BodyModel(skeleton, body).forward(dtype=torch.float64).vertices[0].numpy().astype(np.float32)
-    )
+    body["template"] = model.forward(dtype=torch.float64).vertices[0].numpy().astype(np.float32)
     np.savez_compressed(out / BODY_ASSET, allow_pickle=False, **body)
     timings["body"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     log("onnx: exporting the body forward (float32, dynamic batch)")
-    model = BodyModel(skeleton, body)
     export_onnx(out, model)
     timings["onnx"] = time.perf_counter() - t0
     entries[BODY_ASSET] = {

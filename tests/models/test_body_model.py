@@ -19,6 +19,7 @@ from bodyfit.models.errors import (
     ShapeError,
     UnknownCoordinateError,
 )
+from bodyfit.models.skeleton.model import twin_name
 from tests.conftest import random_pose
 
 REPO = Path(__file__).resolve().parents[2]
@@ -84,8 +85,7 @@ def test_mirrored_parameters_give_the_mirrored_mesh(body: BodyModel) -> None:
     flip = np.array([1.0, 1.0, -1.0])
     gap = np.linalg.norm(a.vertices.numpy() - b.vertices.numpy()[:, mirror] * flip, axis=-1)
     assert gap.max() < 1e-3
-    twin = [body.joint_names.index(n[:-2] + ("_l" if n.endswith("_r") else "_r")) if n[-2:] in ("_r", "_l")
-            else body.joint_names.index(n) for n in body.joint_names]  # fmt: skip
+    twin = [body.joint_names.index(twin_name(n)) for n in body.joint_names]
     assert np.abs(a.joints.numpy() - b.joints.numpy()[:, twin] * flip).max() < 1e-3
 
 

@@ -49,13 +49,21 @@ _BONE_PREFIX_TO_BODY: tuple[tuple[str, str], ...] = (
 )
 
 
+_MIDLINE_BODIES = frozenset({"pelvis", "torso", "thorax", "cervical_link", "head"})
+
+
+def sided_body(body: str, side: str) -> str:
+    """Our body name on an anny side (``"L"``, ``"R"`` or ``""``): ``femur``, ``L`` -> ``femur_l``; midline
+    bodies keep their name."""
+    return f"{body}_{side.lower()}" if side and body not in _MIDLINE_BODIES else body
+
+
 def anny_bone_body(label: str) -> str:
     """Our body name for an anny bone label (e.g. ``upperleg02.L`` -> ``femur_l``)."""
     base, _, side = label.partition(".")
     for prefix, body in _BONE_PREFIX_TO_BODY:
         if base.startswith(prefix):
-            bilateral = body not in ("pelvis", "torso", "thorax", "cervical_link", "head")
-            return f"{body}_{side.lower()}" if bilateral and side else body
+            return sided_body(body, side)
     raise KeyError(f"anny bone {label!r} has no body in our skeleton; add it to _BONE_PREFIX_TO_BODY")
 
 

@@ -21,7 +21,7 @@ import torch
 
 from bodyfit.models.body import landmarks as lmk
 from bodyfit.models.body.anny_source import AnnySource, Population
-from bodyfit.models.body.lbs import linear_blend, skinning_transforms
+from bodyfit.models.body.lbs import linear_blend, rigid_inverse, skinning_transforms
 from bodyfit.models.body.model import ANATOMICAL_JOINTS, body_points, joint_anchors
 from bodyfit.models.body.shape_space import fit_correctives, fit_joint_regressor, fit_pca, vertex_errors
 from bodyfit.models.body.skeleton_fit import BONE_TIPS, fit_skeleton
@@ -140,10 +140,7 @@ def build_body(
     n_hold_pose = max(config.n_posed // 10, 4)
     train_ids = rng.choice(np.flatnonzero(~held), config.n_posed, replace=config.n_posed > (~held).sum())
     test_ids = rng.choice(np.flatnonzero(held), n_hold_pose, replace=n_hold_pose > held.sum())
-    parents = [
-        body_names.index(j.parent) if j.parent in body_names else -1 for j in _joint_per_body(skeleton)
-    ]
-    mask = support_mask(W0, parents)
+    mask = support_mask(W0, skeleton.spec.body_parent_index)
     loss = QuadraticSkinningLoss(V, len(body_names))
     evaluation = []
     for ids, train in ((train_ids, True), (test_ids, False)):
@@ -217,11 +214,6 @@ def _stats(x: np.ndarray) -> dict[str, float]:
     return {"mean": round(float(np.mean(x)) * 1e3, 2), "max": round(float(np.max(x)) * 1e3, 2)}
 
 
-def _joint_per_body(skeleton: Skeleton) -> list[Any]:
-    by_child = {j.child: j for j in skeleton.spec.joints}
-    return [by_child[b] for b in skeleton.body_names]
-
-
 def _bind_pose(skeleton: Skeleton, q: np.ndarray) -> np.ndarray:
     """Mean fitted pose, made left-right symmetric, pelvis upright: the pose the template is stored in."""
     mean = q.mean(axis=0, keepdims=True)
@@ -265,7 +257,7 @@ def _anny_posed(
     scales = torch.as_tensor(fit.scales[ids])
     frames = fk(torch.as_tensor(q), None, scales).frames
     rest_frames = frames_a[ids]
-    motion = (frames @ torch.linalg.inv(rest_frames)).numpy()
+    motion = (frames @ rigid_inverse(rest_frames)).numpy()
     bones = bone_transforms(
         src.bone_labels, src.bone_body, skeleton.body_names, motion, rest_frames[..., :3, 3].numpy()
     )

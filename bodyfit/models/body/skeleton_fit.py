@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from bodyfit.models.body.model import body_points
 from bodyfit.models.skeleton.model import Skeleton
 
 # Joint-centre targets: target name -> (body, point in the body frame before scaling, weight).
@@ -170,8 +171,7 @@ def _fit_chunk(
     def loss_fn() -> tuple[torch.Tensor, torch.Tensor]:
         s = torch.exp(log_s)
         frames = fk(q, root, s).frames
-        T = frames[:, body_idx]
-        x = (T[..., :3, :3] @ (local * s[:, seg_idx]).unsqueeze(-1)).squeeze(-1) + T[..., :3, 3]
+        x = body_points(frames, s, body_idx, seg_idx, local)
         dist2 = ((x - target) ** 2).sum(-1)  # (N, P)
         z = frames[:, axis_body, :3, 2]
         loss = (dist2 * w).sum() + 1e-3 * (1 - (z * axis_target).sum(-1)).sum()

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
+from bodyfit.models.body.anny_source import sided_body
 from bodyfit.models.body.lbs import normalised_weights, skinning_transforms
 
 # anny bone prefix -> (body a, body b, t): rotation interpolated from a (t=0) to b (t=1), about the
@@ -54,9 +55,8 @@ def bone_transforms(
             out[:, k] = motion[:, body_names.index(bone_body[k])]
             continue
         a_name, b_name, t = rule
-        suffix = f"_{side.lower()}" if side else ""
-        a = body_names.index(a_name + (suffix if a_name not in ("pelvis", "torso", "thorax", "head") else ""))
-        b = body_names.index(b_name + (suffix if b_name not in ("pelvis", "torso", "thorax", "head") else ""))
+        a = body_names.index(sided_body(a_name, side))
+        b = body_names.index(sided_body(b_name, side))
         Ra, Rb = motion[:, a, :3, :3], motion[:, b, :3, :3]
         rel = Rotation.from_matrix(np.swapaxes(Ra, 1, 2) @ Rb).as_rotvec()
         R = Ra @ Rotation.from_rotvec(t * rel).as_matrix()

@@ -75,7 +75,6 @@ class SkeletonKinematics(nn.Module):
         names = [c.name for c in (*spec.coordinates, *spec.root_coordinates)]
         col = {n: i for i, n in enumerate(names)}
         zero_col = len(names)  # q_ext carries a trailing zero column for constant functions
-        body_idx = {b.name: i for i, b in enumerate(spec.bodies)}
         seg_idx = {s: i for i, s in enumerate(spec.segments)}
         body_seg = spec.body_segment_index
 
@@ -90,8 +89,7 @@ class SkeletonKinematics(nn.Module):
             trans_w.append([translation_scale_weights(a.axis, a.function) for a in j.translations])
         table = FunctionTable.compile(fns)
 
-        parents = [(-1 if j.parent == "ground" else body_idx[j.parent]) for j in spec.joints]
-        assert [body_idx[j.child] for j in spec.joints] == list(range(self.n_body))
+        parents = spec.body_parent_index
         levels = _levels(parents)
         order = [i for lvl in levels for i in lvl]  # concatenation order of the level outputs
         pos_in_order = {b: k for k, b in enumerate(order)}

@@ -185,6 +185,13 @@ class SkeletonSpec:
         seg = {s: i for i, s in enumerate(self.segments)}
         return [seg[b.segment] for b in self.bodies]
 
+    @property
+    def body_parent_index(self) -> list[int]:
+        """For each body, the index of its parent body (-1 for ground). Joint i moves body i."""
+        names = self.body_names
+        assert [j.child for j in self.joints] == names, "joints must be listed in body order"
+        return [-1 if j.parent == "ground" else names.index(j.parent) for j in self.joints]
+
     def body_index(self, name: str) -> int:
         return self.body_names.index(name)
 
