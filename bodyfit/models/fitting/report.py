@@ -1,0 +1,63 @@
+"""The error report every fit returns (DESIGN.md section 6)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class DistanceStats:
+    """Distances in millimetres."""
+
+    mean: float
+    median: float
+    p95: float
+    max: float
+
+    @classmethod
+    def of(cls, metres: np.ndarray) -> DistanceStats:
+        """Statistics of distances given in metres (any shape; NaN entries ignored)."""
+        d = np.asarray(metres, np.float64).ravel() * 1000.0
+        d = d[np.isfinite(d)]
+        if d.size == 0:
+            return cls(float("nan"), float("nan"), float("nan"), float("nan"))
+        return cls(float(d.mean()), float(np.median(d)), float(np.percentile(d, 95)), float(d.max()))
+
+
+@dataclass(frozen=True)
+class FitReport:
+    """What a fit reports about itself.
+
+    Attributes:
+        distances: per-vertex / per-point / per-marker distances of the result to the input (mm).
+        limit_violations: number of coordinate values outside their joint limits (always 0 when the fit
+            worked; counted, not assumed).
+        iterations: optimiser iterations over all stages.
+        seconds: wall time of the fit.
+        confident: False when the result should not be trusted; ``reasons`` says why.
+        reasons: human-readable causes of low confidence (empty when confident).
+        extra: fit-specific numbers (e.g. per-stage losses, scan coverage).
+    """
+
+    distances: DistanceStats
+    limit_violations: int
+    iterations: int
+    seconds: float
+    confident: bool
+    reasons: tuple[str, ...] = ()
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dictionary (distances in mm)."""
+        out = asdict(self)
+        out["reasons"] = list(self.reasons)
+        return out
+
+
+def count_limit_violations(q: np.ndarray, ranges: np.ndarray, tolerance: float = 1e-9) -> int:
+    """Number of entries of q (..., n_dof) outside ``ranges`` (n_dof, 2)."""
+    q = np.asarray(q, np.float64)
+    return int(((q < ranges[:, 0] - tolerance) | (q > ranges[:, 1] + tolerance)).sum())
