@@ -146,15 +146,18 @@ class AnnySource:
             poses.append(self._to_ours_frames(rest["rest_bone_poses"]))
         return {"vertices": np.concatenate(verts), "bone_poses": np.concatenate(poses)}
 
-    def posed(self, pop: Population, bone_world: np.ndarray, chunk: int = 128) -> np.ndarray:
+    def posed(
+        self, pop: Population, bone_world: np.ndarray, chunk: int = 128, anny_frame: bool = False
+    ) -> np.ndarray:
         """Pose bodies by world transforms of anny's bones given in our frame.
 
         Args:
             pop: N bodies.
             bone_world: (N, 104, 4, 4) rigid transforms (ours), each mapping a bone's rest placement to
                 its posed placement.
+            anny_frame: return anny's whole mesh in anny's frame (what anny's own fitter takes).
         Returns:
-            (N, V, 3) posed vertices in our frame.
+            (N, V, 3) posed vertices of our template in our frame, or (N, V_anny, 3) with ``anny_frame``.
         """
         out = []
         R = self._rot
@@ -171,7 +174,7 @@ class AnnySource:
                 world = M_anny @ rest["rest_bone_poses"]
                 transforms, _ = self.model.get_bone_transforms(world, rest["rest_bone_poses"])
                 v = self.model.get_skinned_vertices(rest["rest_vertices"], transforms)
-            out.append(self._to_ours_points(v[:, self.keep]))
+            out.append(v.numpy() if anny_frame else self._to_ours_points(v[:, self.keep]))
         return np.concatenate(out)
 
     def skinning_weights(self, body_names: list[str]) -> np.ndarray:

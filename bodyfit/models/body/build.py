@@ -20,21 +20,14 @@ import numpy as np
 import torch
 
 from bodyfit.models.body import landmarks as lmk
+from bodyfit.models.body.anny_posed import PELVIS_ROTATIONS, pose_anny, random_poses, template_landmarks
 from bodyfit.models.body.anny_source import AnnySource, Population
-from bodyfit.models.body.lbs import linear_blend, rigid_inverse, skinning_transforms
+from bodyfit.models.body.lbs import linear_blend, skinning_transforms
 from bodyfit.models.body.model import ANATOMICAL_JOINTS, body_points, joint_anchors
 from bodyfit.models.body.shape_space import fit_correctives, fit_joint_regressor, fit_pca, vertex_errors
-from bodyfit.models.body.skeleton_fit import BONE_TIPS, fit_skeleton
-from bodyfit.models.body.skinning_fit import (
-    QuadraticSkinningLoss,
-    bone_transforms,
-    refine_weights,
-    support_mask,
-)
+from bodyfit.models.body.skeleton_fit import place_skeletons
+from bodyfit.models.body.skinning_fit import QuadraticSkinningLoss, refine_weights, support_mask
 from bodyfit.models.skeleton.model import Skeleton
-
-PELVIS_ROTATIONS = ("pelvis_tilt", "pelvis_list", "pelvis_rotation")
-SCALP_THICKNESS = 0.006  # metres of soft tissue over the top of the skull
 
 
 @dataclass(frozen=True)
@@ -64,10 +57,7 @@ def build_body(
     # a. template ------------------------------------------------------------------------------------
     clock.start("template", "loading anny (first use builds its cache: about 1.5 min)")
     src = AnnySource(cache_dir)
-    mean_pop = Population({k: np.array([0.5]) for k in src.sample(1, 0).phenotypes}, np.array([35.0]))
-    mean_body = src.rest(mean_pop)["vertices"][0]
-    mirror = lmk.mirror_map(mean_body)
-    landmarks = lmk.pick_landmarks(mean_body, mirror)
+    landmarks, mirror = template_landmarks(src)
     names = lmk.landmark_names()
     body_names = skeleton.body_names
     twin = skeleton.twin_bodies()
@@ -91,11 +81,7 @@ def build_body(
 
     # c. skeleton inside each body, bind pose, joint regressor -------------------------------------------
     clock.start("skeleton_fit", "placing the skeleton inside every body from its landmarks")
-    L = A_pose[:, landmarks]
-    points = lmk.joint_targets(L, names)
-    points.update({k: L[:, names.index(k)] for k in BONE_TIPS})
-    points["vertex"] = points["vertex"] - np.array([0.0, SCALP_THICKNESS, 0.0])
-    fit = fit_skeleton(skeleton, points, lmk.axis_targets(L, names), iterations=config.skeleton_iterations)
+    fit = place_skeletons(skeleton, A_pose[:, landmarks], config.skeleton_iterations)
     metrics["skeleton_fit_mm"] = {k: _stats(v) for k, v in fit.errors.items()}
     bind_q = _bind_pose(skeleton, fit.q[~held])
     fk = skeleton.kinematics(torch.float64)
@@ -145,8 +131,8 @@ def build_body(
     evaluation = []
     for ids, train in ((train_ids, True), (test_ids, False)):
         for chunk in np.array_split(ids, max(1, len(ids) // 16)):
-            q = _random_poses(skeleton, len(chunk), rng)
-            target, posed_frames = _anny_posed(src, pop, skeleton, fit, chunk, q, frames_a)
+            q = random_poses(skeleton, len(chunk), rng)
+            target, posed_frames = pose_anny(src, pop, skeleton, fit, chunk, q, frames_a)
             rest_t = torch.as_tensor(Y_np[chunk])
             if train:
                 loss.add(rest_t, posed_frames, frames_bind[chunk], torch.as_tensor(target))
@@ -231,37 +217,6 @@ def _symmetric_vertices(Y: np.ndarray, mirror: np.ndarray) -> np.ndarray:
 def _symmetric_weights(W: np.ndarray, mirror: np.ndarray, twin: list[int]) -> np.ndarray:
     """Average weights (V, n_body) with their mirror (vertex mirror, body twin)."""
     return 0.5 * (W + W[mirror][:, twin])
-
-
-def _random_poses(skeleton: Skeleton, n: int, rng: np.random.Generator) -> np.ndarray:
-    """Poses across the DOF ranges (uniform within 80% of each range about its middle; pelvis upright)."""
-    lo, hi = skeleton.ranges[:, 0], skeleton.ranges[:, 1]
-    mid, half = 0.5 * (lo + hi), 0.4 * (hi - lo)
-    q = mid + half * rng.uniform(-1.0, 1.0, (n, skeleton.n_dof))
-    for name in PELVIS_ROTATIONS:
-        q[:, skeleton.dof_index(name)] = 0.0
-    return q
-
-
-def _anny_posed(
-    src: AnnySource,
-    pop: Population,
-    skeleton: Skeleton,
-    fit: Any,
-    ids: np.ndarray,
-    q: np.ndarray,
-    frames_a: torch.Tensor,
-) -> tuple[np.ndarray, torch.Tensor]:
-    """anny bodies ``ids`` posed to coordinates q (root 0). Returns target vertices and our body frames."""
-    fk = skeleton.kinematics(torch.float64)
-    scales = torch.as_tensor(fit.scales[ids])
-    frames = fk(torch.as_tensor(q), None, scales).frames
-    rest_frames = frames_a[ids]
-    motion = (frames @ rigid_inverse(rest_frames)).numpy()
-    bones = bone_transforms(
-        src.bone_labels, src.bone_body, skeleton.body_names, motion, rest_frames[..., :3, 3].numpy()
-    )
-    return src.posed(pop.subset(ids), bones), frames
 
 
 def _reconstruction_curve(

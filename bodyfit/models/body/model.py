@@ -13,6 +13,7 @@ standard normal draw is a plausible body). Coordinates are the skeleton's (OpenS
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -131,6 +132,16 @@ class BodyDecoder(nn.Module):
         buf("joint_local", local)
         self.register_buffer("joint_body", torch.as_tensor(bodies, dtype=torch.long))
         self.register_buffer("joint_segment", torch.as_tensor(seg_of_body[bodies], dtype=torch.long))
+
+    def restricted(self, vertices: np.ndarray) -> BodyDecoder:
+        """A decoder that outputs only ``vertices`` (V',) template indices, sharing every other buffer.
+        Fitting runs its early iterations on such a subset."""
+        index = torch.as_tensor(np.asarray(vertices, np.int64))
+        sub = copy.copy(self)
+        sub._buffers = dict(self._buffers)
+        sub.shape_basis = self.shape_basis[:, :, index].contiguous()
+        sub.weights_t = self.weights_t[:, index].contiguous()
+        return sub
 
     def forward(
         self, shape: torch.Tensor, q: torch.Tensor, root: torch.Tensor

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from bodyfit.models.body import landmarks as lmk
 from bodyfit.models.body.model import body_points
 from bodyfit.models.skeleton.model import Skeleton
 
@@ -59,6 +60,7 @@ BONE_TIPS: dict[str, tuple[str, tuple[float, float, float], float]] = {
 AXES = ("femur_r", "femur_l", "humerus_r", "humerus_l", "hand_r", "hand_l", "pelvis", "head")
 
 RANGE_MARGIN = 0.25  # radians
+SCALP_THICKNESS = 0.006  # metres of soft tissue over the top of the skull
 
 # Segments without their own targets follow a neighbour.
 TIED_SEGMENTS = (
@@ -94,6 +96,19 @@ def bone_tip_points(skeleton: Skeleton) -> dict[str, tuple[str, np.ndarray, floa
         v = bones.vertices[bones.vertex_body == names.index(body)]
         out[lm] = (body, v[np.argmax(v @ np.asarray(direction))], weight)
     return out
+
+
+def place_skeletons(skeleton: Skeleton, L: np.ndarray, iterations: int) -> SkeletonFit:
+    """Fit the skeleton inside bodies from their landmark positions.
+
+    Args:
+        L: (N, n_landmark, 3) landmark positions in :func:`landmarks.landmark_names` order.
+    """
+    names = lmk.landmark_names()
+    points = lmk.joint_targets(L, names)
+    points.update({k: L[:, names.index(k)] for k in BONE_TIPS})
+    points["vertex"] = points["vertex"] - np.array([0.0, SCALP_THICKNESS, 0.0])
+    return fit_skeleton(skeleton, points, lmk.axis_targets(L, names), iterations=iterations)
 
 
 def fit_skeleton(

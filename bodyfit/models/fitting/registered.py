@@ -1,0 +1,411 @@
+"""Fit the body model to meshes in its own topology (registered meshes), batched.
+
+Staged as in BLSM (paper 000, section 5.2): a rigid start from the trunk (Kabsch), then the trunk's pose and
+the bone-length coefficients on trunk vertices, then every coordinate on a spread vertex subset, then
+everything including identity shape, and a last pass on all vertices. Each stage minimises
+
+    sum_b [ mean_v w_bv |v_bv(c_b, q_b, r_b) - x_bv|^2 (mm^2) + lambda |c_b|^2 ]
+
+by L-BFGS over unconstrained coordinates ``u`` (``q = from_unbounded(u)``, BLSM eq. 6), so every pose it
+returns respects the joint limits. The model holds buffers only; the optimisation state lives here.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from scipy.spatial.transform import Rotation
+
+from bodyfit.models.body.model import BodyDecoder, BodyModel
+from bodyfit.models.errors import ShapeError
+from bodyfit.models.fitting.report import DistanceStats, FitReport, count_limit_violations
+from bodyfit.models.skeleton.model import check_finite
+
+PELVIS_ROTATIONS = ("pelvis_tilt", "pelvis_list", "pelvis_rotation")  # intrinsic Z, X, Y (scipy "ZXY")
+TRUNK_BODIES = ("pelvis", "torso", "thoracic_link", "thorax")
+TRUNK_DOF_PREFIXES = ("pelvis_", "lumbar_", "thorax_")
+CONFIDENT_MEAN_MM = 10.0
+MIN_PART_WEIGHT = 0.7  # a vertex belongs to a body's rigid part above this skinning weight
+MIN_PART_VERTICES = 20
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One fitting stage.
+
+    coordinates: "trunk" (pelvis, lumbar, thoracic DOFs) or "all"; shape: "none", "bone" or "all";
+    vertices: "trunk", "subset" (farthest-point subset of the whole body) or "all"; iterations: L-BFGS
+    iterations.
+    """
+
+    name: str
+    coordinates: str
+    shape: str
+    vertices: str
+    iterations: int
+
+
+DEFAULT_STAGES = (
+    Stage("trunk", "trunk", "bone", "trunk", 10),
+    Stage("limbs", "all", "none", "subset", 20),
+    Stage("all", "all", "all", "subset", 80),
+    Stage("refine", "all", "all", "all", 10),
+)
+
+
+@dataclass(frozen=True)
+class RegisteredFitConfig:
+    """stages: run in order; subset_size: vertices of the farthest-point subset; shape_prior: weight of
+    |c|^2 (coefficients are in population standard deviations) against the loss in mm^2."""
+
+    stages: tuple[Stage, ...] = DEFAULT_STAGES
+    subset_size: int = 1000
+    shape_prior: float = 1e-2
+    dtype: torch.dtype = torch.float32
+
+
+@dataclass(frozen=True)
+class BodyFit:
+    """Fitted parameters and the registration, batch first.
+
+    shape: (B, n_shape); coordinates: (B, n_dof) in range; root: (B, 3); vertices: (B, V, 3) the model
+    at the fitted parameters (the registration in our topology); joints: (B, J, 3); reports: B reports.
+    """
+
+    shape: np.ndarray
+    coordinates: np.ndarray
+    root: np.ndarray
+    vertices: np.ndarray
+    joints: np.ndarray
+    reports: list[FitReport] = field(default_factory=list)
+
+
+def farthest_point_subset(points: np.ndarray, n: int) -> np.ndarray:
+    """Indices (n,) of a farthest-point sample of points (V, 3), starting from the point nearest the mean."""
+    n = min(n, len(points))
+    chosen = np.empty(n, np.int64)
+    chosen[0] = int(np.argmin(np.linalg.norm(points - points.mean(0), axis=1)))
+    dist = np.linalg.norm(points - points[chosen[0]], axis=1)
+    for k in range(1, n):
+        chosen[k] = int(np.argmax(dist))
+        dist = np.minimum(dist, np.linalg.norm(points - points[chosen[k]], axis=1))
+    return chosen
+
+
+def kabsch(source: np.ndarray, target: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted rigid alignment: R, t minimising sum_i w_i |R s_i + t - x_i|^2.
+
+    Args:
+        source: (V, 3); target: (B, V, 3); weights: (B, V) non-negative.
+    Returns:
+        R (B, 3, 3) proper rotations; t (B, 3).
+    """
+    w = weights / weights.sum(axis=1, keepdims=True)
+    mu_s = np.einsum("bv,vc->bc", w, source)
+    mu_t = np.einsum("bv,bvc->bc", w, target)
+    H = np.einsum("bv,bvi,bvj->bij", w, source[None] - mu_s[:, None], target - mu_t[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(np.swapaxes(Vt, 1, 2) @ np.swapaxes(U, 1, 2)))
+    D = np.zeros_like(H)
+    D[:, 0, 0] = D[:, 1, 1] = 1.0
+    D[:, 2, 2] = d
+    R = np.swapaxes(Vt, 1, 2) @ D @ np.swapaxes(U, 1, 2)
+    return R, mu_t - np.einsum("bij,bj->bi", R, mu_s)
+
+
+class RegisteredFitter:
+    """Fits :class:`BodyModel` to (B, V, 3) meshes in its topology. Reusable and stateless between calls."""
+
+    def __init__(self, model: BodyModel, config: RegisteredFitConfig | None = None) -> None:
+        self.model = model
+        self.config = config or RegisteredFitConfig()
+        dtype = self.config.dtype
+        skel = model.skeleton
+        self.decoder = model.decoder(dtype)
+        template = model.data["vertices_mean"]
+        body_of_vertex = np.argmax(model.data["weights"], axis=1)
+        trunk_ids = [skel.body_names.index(b) for b in TRUNK_BODIES]
+        self.index = {
+            "trunk": np.flatnonzero(np.isin(body_of_vertex, trunk_ids)),
+            "subset": np.sort(farthest_point_subset(template, self.config.subset_size)),
+            "all": np.arange(model.n_vertices),
+        }
+        self.decoders: dict[str, BodyDecoder] = {
+            k: self.decoder if k == "all" else self.decoder.restricted(v) for k, v in self.index.items()
+        }
+        trunk = np.array([n.startswith(TRUNK_DOF_PREFIXES) for n in skel.dof_names])
+        self.dof_mask = {
+            "trunk": torch.as_tensor(trunk, dtype=dtype),
+            "all": torch.ones(skel.n_dof, dtype=dtype),
+        }
+        nb, ns = model.n_bone, model.n_shape
+        self.shape_mask = {
+            "none": torch.zeros(ns, dtype=dtype),
+            "bone": torch.as_tensor(np.arange(ns) < nb, dtype=dtype),
+            "all": torch.ones(ns, dtype=dtype),
+        }
+        self.pelvis = [skel.dof_index(n) for n in PELVIS_ROTATIONS]
+        # Bodies with enough of their own skin for a rigid fit, and those vertices.
+        W = model.data["weights"]
+        self._part_bodies: list[int] = []
+        self._part_index: list[np.ndarray] = []
+        for j in range(W.shape[1]):
+            own = np.flatnonzero(W[:, j] > MIN_PART_WEIGHT)
+            if len(own) >= MIN_PART_VERTICES:
+                self._part_bodies.append(j)
+                self._part_index.append(own)
+        scale_mean = torch.as_tensor(model.data["scale_mean"], dtype=torch.float64)[None]
+        bind_q = torch.as_tensor(model.bind_coordinates)[None]
+        self._bind_frames = skel.kinematics(torch.float64)(bind_q, None, scale_mean).frames[0].numpy()
+        self._scales = self._preconditioner()
+
+    # -- input -----------------------------------------------------------------------------------------
+    def validate(
+        self, targets: np.ndarray | torch.Tensor, weights: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(B, V, 3) targets and (B, V) weights as float64 arrays; raises ShapeError / NonFiniteError."""
+        x = np.asarray(targets, np.float64)
+        V = self.model.n_vertices
+        if x.ndim == 2:
+            x = x[None]
+        if x.ndim != 3 or x.shape[1:] != (V, 3):
+            raise ShapeError(
+                f"registered meshes must have shape (B, {V}, 3) (our template's vertices in its order, "
+                f"metres); got {x.shape}. Fit other topologies as scans or through a stored correspondence."
+            )
+        check_finite("mesh vertices", torch.as_tensor(x))
+        w = np.ones(x.shape[:2]) if weights is None else np.asarray(weights, np.float64)
+        if w.shape != x.shape[:2]:
+            raise ShapeError(f"vertex weights must have shape {x.shape[:2]}; got {w.shape}")
+        check_finite("vertex weights", torch.as_tensor(w))
+        if (w < 0).any() or (w.sum(axis=1) <= 0).any():
+            raise ShapeError("vertex weights must be non-negative with at least one positive weight per mesh")
+        return x, w
+
+    # -- start -----------------------------------------------------------------------------------------
+    def rigid_start(self, x: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Coordinates (B, n_dof) and root (B, 3) from a Kabsch fit of the template's trunk.
+
+        The template is stored in the bind pose with the pelvis at the origin, so the trunk's rotation is
+        the pelvis orientation (intrinsic ZXY Euler angles = tilt, list, rotation) and its translation the
+        root.
+        """
+        idx = self.index["trunk"]
+        R, t = kabsch(self.model.data["vertices_mean"][idx], x[:, idx], w[:, idx] + 1e-12)
+        euler = Rotation.from_matrix(R).as_euler("ZXY")
+        ranges = self.model.skeleton.ranges[self.pelvis]
+        euler = np.clip(euler, ranges[:, 0] + 1e-3, ranges[:, 1] - 1e-3)
+        q = np.repeat(self.model.bind_coordinates[None], len(x), axis=0)
+        q[:, self.pelvis] = euler
+        return q, t
+
+    def bone_start(self, x: np.ndarray, w: np.ndarray, iterations: int = 30) -> tuple[np.ndarray, np.ndarray]:
+        """Coordinates (B, n_dof) and root (B, 3) from each body's own rigid motion.
+
+        Every skinned body's vertices are aligned rigidly (Kabsch) from the template to the target, giving
+        the body's world orientation. The pelvis frame gives the root and the pelvis coordinates (intrinsic
+        ZXY Euler angles = tilt, list, rotation) directly; the other coordinates are fitted to the bodies'
+        orientations (inverse kinematics on rotations, L-BFGS, in range). This sees each joint's rotation
+        directly, so large rotations (a raised arm, a deep squat) do not trap the vertex fit in a wrong pose.
+        """
+        B = len(x)
+        dtype = self.config.dtype
+        skel = self.model.skeleton
+        bind = self._bind_frames
+        template = self.model.data["vertices_mean"]
+        target = np.zeros((B, len(self._part_bodies), 4, 4))
+        for k, (body, idx) in enumerate(zip(self._part_bodies, self._part_index, strict=True)):
+            R, t = kabsch(template[idx], x[:, idx], w[:, idx] + 1e-12)
+            target[:, k, :3, :3] = R @ bind[body, :3, :3]
+            target[:, k, :3, 3] = np.einsum("bij,j->bi", R, bind[body, :3, 3]) + t
+        pelvis = target[:, self._part_bodies.index(0)]
+        lo, hi = skel.ranges[:, 0], skel.ranges[:, 1]
+        q = np.repeat(self.model.bind_coordinates[None], B, axis=0)
+        q[:, self.pelvis] = Rotation.from_matrix(pelvis[:, :3, :3]).as_euler("ZXY")
+        margin = 0.1 * (hi - lo)
+        q = np.clip(q, lo + margin, hi - margin)
+        q[:, self.pelvis] = np.clip(q[:, self.pelvis], lo[self.pelvis] + 1e-3, hi[self.pelvis] - 1e-3)
+        root = torch.as_tensor(pelvis[:, :3, 3], dtype=dtype)
+        free = torch.ones(skel.n_dof, dtype=dtype)
+        free[self.pelvis] = 0.0
+        u = skel.to_unbounded(torch.as_tensor(q, dtype=dtype)).requires_grad_(True)
+        scales = torch.as_tensor(self.model.data["scale_mean"], dtype=dtype).expand(B, -1, -1)
+        bodies = torch.as_tensor(self._part_bodies)
+        R_target = torch.as_tensor(target[..., :3, :3], dtype=dtype)
+        fk = skel.kinematics(dtype)
+        opt = torch.optim.LBFGS(
+            [u], max_iter=iterations, history_size=20, tolerance_grad=1e-10, line_search_fn="strong_wolfe"
+        )
+
+        def closure() -> torch.Tensor:
+            opt.zero_grad()
+            u_eff = u * free + u.detach() * (1 - free)
+            F = fk(skel.from_unbounded(u_eff), root, scales).frames[:, bodies]
+            loss = ((F[..., :3, :3] - R_target) ** 2).sum()
+            loss.backward()
+            return loss
+
+        opt.step(closure)
+        return skel.from_unbounded(u).detach().double().numpy(), root.double().numpy()
+
+    # -- fit -------------------------------------------------------------------------------------------
+    def fit(
+        self,
+        targets: np.ndarray | torch.Tensor,
+        weights: np.ndarray | None = None,
+        init: BodyFit | None = None,
+        shared_shape: bool = False,
+    ) -> BodyFit:
+        """Fit B meshes.
+
+        Args:
+            targets: (B, V, 3) vertices in our template's order, metres, any placement.
+            weights: (B, V) per-vertex confidence (0 = missing), default ones.
+            init: a previous fit to start from (warm start), instead of the rigid start.
+            shared_shape: one shape for all B meshes (a sequence of one person).
+        Returns:
+            :class:`BodyFit` with one report per mesh.
+        """
+        start = time.perf_counter()
+        x, w = self.validate(targets, weights)
+        B = len(x)
+        dtype = self.config.dtype
+        skel = self.model.skeleton
+        if init is None:
+            q0, r0 = self.bone_start(x, w)
+            c0 = np.zeros((B, self.model.n_shape))
+        else:
+            q0, r0, c0 = init.coordinates, init.root, init.shape
+        lo, hi = skel.ranges[:, 0], skel.ranges[:, 1]
+        margin = 1e-3 * (hi - lo)
+        q0t = torch.as_tensor(np.clip(q0, lo + margin, hi - margin), dtype=dtype)
+        c_init = c0.mean(0, keepdims=True) if shared_shape else c0
+        # Optimised in preconditioned units (see _preconditioner): u = z_u s_u, root = z_r s_r, c = z_c s_c.
+        s_u, s_r, s_c = self._scales
+        z_u = (skel.to_unbounded(q0t) / s_u).detach().requires_grad_(True)
+        z_r = (torch.as_tensor(r0, dtype=dtype) / s_r).requires_grad_(True)
+        z_c = (torch.as_tensor(c_init, dtype=dtype) / s_c).requires_grad_(True)
+        xt = torch.as_tensor(x, dtype=dtype)
+        wt = torch.as_tensor(w / w.mean(axis=1, keepdims=True), dtype=dtype)
+        iterations = 0
+        losses: dict[str, float] = {}
+        for stage in self.config.stages:
+            n_iter, loss = self._run_stage(stage, (z_u, z_r, z_c), xt, wt)
+            iterations += n_iter
+            losses[stage.name] = loss
+        with torch.no_grad():
+            # In float64: float32 tanh saturates to exactly +-1, which rounds onto (or past) a bound.
+            q = skel.from_unbounded((z_u * s_u).double())
+            root = z_r * s_r
+            c = (z_c * s_c).expand(B, -1)
+            verts, joints, _, _ = self.decoder(c, q.to(dtype), root)
+        seconds = time.perf_counter() - start
+        v_np = verts.double().numpy()
+        q_np = q.numpy()
+        dist = np.linalg.norm(v_np - x, axis=-1)
+        reports = [self._report(dist[b], w[b], q_np[b], iterations, seconds / B, losses) for b in range(B)]
+        return BodyFit(
+            c.double().numpy(), q_np, root.double().numpy(), v_np, joints.double().numpy(), reports
+        )
+
+    def _preconditioner(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Per-parameter units (u: (n_dof,), root: (3,), c: (n_shape,)) in which one unit moves the subset's
+        vertices by about 1 mm RMS, from the Jacobian at the mean body in the bind pose. L-BFGS starts from a
+        scalar Hessian guess; without this the pelvis (moving every vertex) and a wrist (moving a few) differ
+        in curvature by orders of magnitude and it converges slowly."""
+        skel = self.model.skeleton
+        dtype = self.config.dtype
+        lo, hi = skel.ranges[:, 0], skel.ranges[:, 1]
+        q = np.clip(self.model.bind_coordinates, lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo))
+        n_dof, ns = skel.n_dof, self.model.n_shape
+        p0 = torch.cat([
+            skel.to_unbounded(torch.as_tensor(q[None], dtype=dtype)), torch.zeros(1, 3 + ns, dtype=dtype)
+        ], dim=1)  # fmt: skip
+        decoder = self.decoders["subset"]
+
+        def f(p: torch.Tensor) -> torch.Tensor:
+            u, r, c = p[:, :n_dof], p[:, n_dof : n_dof + 3], p[:, n_dof + 3 :]
+            return decoder(c, skel.from_unbounded(u), r)[0] * 1000.0
+
+        P = p0.shape[1]
+        cols = torch.stack(
+            [torch.func.jvp(f, (p0,), (torch.eye(P, dtype=dtype)[k : k + 1],))[1] for k in range(P)]
+        )
+        rms = cols.reshape(P, -1, 3).norm(dim=-1).pow(2).mean(-1).sqrt().clamp_min(1e-3)  # (P,) mm per unit
+        scale = 1.0 / rms
+        return scale[:n_dof], scale[n_dof : n_dof + 3], scale[n_dof + 3 :]
+
+    def _run_stage(
+        self,
+        stage: Stage,
+        z: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+        x: torch.Tensor,
+        w: torch.Tensor,
+    ) -> tuple[int, float]:
+        z_u, z_r, z_c = z
+        s_u, s_r, s_c = self._scales
+        B = x.shape[0]
+        decoder = self.decoders[stage.vertices]
+        idx = torch.as_tensor(self.index[stage.vertices])
+        xs, ws = x[:, idx] * 1000.0, w[:, idx]
+        dmask = self.dof_mask[stage.coordinates]
+        smask = self.shape_mask[stage.shape]
+        params = [z_u, z_r] + ([z_c] if stage.shape != "none" else [])
+        skel = self.model.skeleton
+        prior = self.config.shape_prior
+        opt = torch.optim.LBFGS(
+            params,
+            lr=1.0,
+            max_iter=stage.iterations,
+            history_size=20,
+            tolerance_grad=1e-9,
+            tolerance_change=1e-12,
+            line_search_fn="strong_wolfe",
+        )
+
+        def closure() -> torch.Tensor:
+            opt.zero_grad()
+            u = (z_u * dmask + z_u.detach() * (1 - dmask)) * s_u
+            c = (z_c * smask + z_c.detach() * (1 - smask)) * s_c
+            verts = decoder(c.expand(B, -1), skel.from_unbounded(u), z_r * s_r)[0]
+            err = ((verts * 1000.0 - xs) ** 2).sum(-1)
+            loss = (err * ws).mean(1).sum() + prior * (c**2).sum()
+            loss.backward()
+            return loss
+
+        final = opt.step(closure)
+        n_iter = int(opt.state[opt._params[0]].get("n_iter", stage.iterations))
+        return n_iter, float(final.detach()) / B if final is not None else float("nan")
+
+    def _report(
+        self,
+        dist: np.ndarray,
+        w: np.ndarray,
+        q: np.ndarray,
+        iterations: int,
+        seconds: float,
+        losses: dict[str, float],
+    ) -> FitReport:
+        used = dist[w > 0]
+        stats = DistanceStats.of(used)
+        violations = count_limit_violations(q, self.model.skeleton.ranges)
+        reasons = []
+        if stats.mean > CONFIDENT_MEAN_MM:
+            reasons.append(
+                f"mean vertex error {stats.mean:.1f} mm exceeds {CONFIDENT_MEAN_MM:.0f} mm: the mesh may not "
+                "be a human body in our topology, or its pose is outside the joint limits"
+            )
+        if violations:
+            reasons.append(f"{violations} coordinates outside their joint limits")
+        return FitReport(
+            distances=stats,
+            limit_violations=violations,
+            iterations=iterations,
+            seconds=seconds,
+            confident=not reasons,
+            reasons=tuple(reasons),
+            extra={"stage_start_loss_mm2": {k: round(v, 4) for k, v in losses.items()}},
+        )
