@@ -144,10 +144,12 @@ class BodyDecoder(nn.Module):
         return sub
 
     def forward(
-        self, shape: torch.Tensor, q: torch.Tensor, root: torch.Tensor
+        self, shape: torch.Tensor, q: torch.Tensor, root: torch.Tensor, bind: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Args:
             shape: (B, n_shape) coefficients [bone, identity]; q: (B, n_dof); root: (B, 3).
+            bind: (B, n_body, 4, 4) the body frames in the bind pose for these shapes, when the caller has
+                them (fitting does); computed by forward kinematics otherwise.
         Returns:
             vertices (B, V, 3), joints (B, J, 3), frames (B, n_body, 4, 4), scales (B, n_seg, 3).
         """
@@ -155,13 +157,16 @@ class BodyDecoder(nn.Module):
         scales = (self.scale_mean + shape[:, : self.n_bone] @ self.scale_basis).reshape(B, self.n_seg, 3)
         coeffs = torch.cat([torch.ones_like(shape[:, :1]), shape], dim=1)  # (B, 1 + n_shape)
         rest = coeffs.unsqueeze(0) @ self.shape_basis  # (3, B, V)
-        # One FK call for the pose and the bind pose of every body.
-        both = self.fk(
-            torch.cat([q, self.bind_q.expand(B, -1)]),
-            torch.cat([root, torch.zeros_like(root)]),
-            torch.cat([scales, scales]),
-        ).frames
-        frames, bind = both[:B], both[B:]
+        if bind is None:
+            # One FK call for the pose and the bind pose of every body.
+            both = self.fk(
+                torch.cat([q, self.bind_q.expand(B, -1)]),
+                torch.cat([root, torch.zeros_like(root)]),
+                torch.cat([scales, scales]),
+            ).frames
+            frames, bind = both[:B], both[B:]
+        else:
+            frames = self.fk(q, root, scales).frames
         transforms = skinning_transforms(frames[:, self.skinned_bodies], bind[:, self.skinned_bodies])
         vertices = linear_blend_coordinate_major(rest, self.weights_t, transforms)
         joints = body_points(frames, scales, self.joint_body, self.joint_segment, self.joint_local)

@@ -21,6 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from bodyfit.models.body.model import BodyDecoder, BodyModel
 from bodyfit.models.errors import ShapeError
+from bodyfit.models.fitting.lbfgs import batched_lbfgs
 from bodyfit.models.fitting.report import DistanceStats, FitReport, count_limit_violations
 from bodyfit.models.skeleton.model import check_finite
 
@@ -161,6 +162,7 @@ class RegisteredFitter:
         bind_q = torch.as_tensor(model.bind_coordinates)[None]
         self._bind_frames = skel.kinematics(torch.float64)(bind_q, None, scale_mean).frames[0].numpy()
         self._scales = self._preconditioner()
+        self._bind_base, self._bind_delta = self._linear_bind()
 
     # -- input -----------------------------------------------------------------------------------------
     def validate(
@@ -285,9 +287,9 @@ class RegisteredFitter:
         c_init = c0.mean(0, keepdims=True) if shared_shape else c0
         # Optimised in preconditioned units (see _preconditioner): u = z_u s_u, root = z_r s_r, c = z_c s_c.
         s_u, s_r, s_c = self._scales
-        z_u = (skel.to_unbounded(q0t) / s_u).detach().requires_grad_(True)
-        z_r = (torch.as_tensor(r0, dtype=dtype) / s_r).requires_grad_(True)
-        z_c = (torch.as_tensor(c_init, dtype=dtype) / s_c).requires_grad_(True)
+        z_u = (skel.to_unbounded(q0t) / s_u).detach()
+        z_r = torch.as_tensor(r0, dtype=dtype) / s_r
+        z_c = torch.as_tensor(c_init, dtype=dtype) / s_c
         xt = torch.as_tensor(x, dtype=dtype)
         wt = torch.as_tensor(w / w.mean(axis=1, keepdims=True), dtype=dtype)
         iterations = 0
@@ -338,6 +340,45 @@ class RegisteredFitter:
         scale = 1.0 / rms
         return scale[:n_dof], scale[n_dof : n_dof + 3], scale[n_dof + 3 :]
 
+    def _linear_bind(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Bind-pose body frames as an affine function of the bone coefficients c_b.
+
+        At a fixed pose a body's origin is a sum of rotated, scaled joint offsets, so it is linear in the
+        segment scales and hence in c_b, and the orientations do not depend on them: the fit then needs
+        forward kinematics for the pose only. Checked against forward kinematics here.
+
+        Returns:
+            base (n_body, 4, 4) frames at c_b = 0; delta (n_bone, n_body, 3) origin change per coefficient.
+        """
+        skel, nb = self.model.skeleton, self.model.n_bone
+        fk = skel.kinematics(torch.float64)
+        mean = torch.as_tensor(self.model.data["scale_mean"], dtype=torch.float64)
+        basis = torch.as_tensor(self.model.data["scale_basis"], dtype=torch.float64)
+
+        def frames(c_b: torch.Tensor) -> torch.Tensor:
+            scales = mean + torch.einsum("nk,kjc->njc", c_b, basis)
+            return fk(torch.as_tensor(self.model.bind_coordinates).expand(len(c_b), -1), None, scales).frames
+
+        F = frames(torch.cat([torch.zeros(1, nb), torch.eye(nb)]).double())
+        base, delta = F[0], F[1:, :, :3, 3] - F[0, :, :3, 3]
+        probe = torch.as_tensor(np.random.default_rng(0).normal(size=(4, nb)) * 2.0)
+        linear = base[:, :3, 3] + torch.einsum("nk,kjc->njc", probe, delta)
+        exact = frames(probe)
+        if float((exact[..., :3, 3] - linear).abs().max()) > 1e-9 or not torch.allclose(
+            exact[..., :3, :3], base[:, :3, :3].expand_as(exact[..., :3, :3])
+        ):
+            raise AssertionError("bind-pose frames are not affine in the bone coefficients")
+        dtype = self.config.dtype
+        return base.to(dtype), delta.to(dtype)
+
+    def _bind(self, c: torch.Tensor) -> torch.Tensor:
+        """(B, n_body, 4, 4) bind-pose frames for shape coefficients c (B, n_shape)."""
+        t = self._bind_base[:, :3, 3] + torch.einsum(
+            "bk,kjc->bjc", c[:, : self.model.n_bone], self._bind_delta
+        )
+        base = self._bind_base.expand(len(c), -1, -1, -1)
+        return torch.cat([torch.cat([base[..., :3, :3], t.unsqueeze(-1)], -1), base[..., 3:, :]], -2)
+
     def _run_stage(
         self,
         stage: Stage,
@@ -345,40 +386,43 @@ class RegisteredFitter:
         x: torch.Tensor,
         w: torch.Tensor,
     ) -> tuple[int, float]:
+        """One stage by :func:`batched_lbfgs`: one problem per mesh, or one problem for the whole batch when
+        the shape is shared. Updates ``z`` (u: (B, n_dof), root: (B, 3), c: (1 or B, n_shape)) in place."""
         z_u, z_r, z_c = z
         s_u, s_r, s_c = self._scales
         B = x.shape[0]
+        rows = z_c.shape[0]
+        per_row = B // rows
         decoder = self.decoders[stage.vertices]
         idx = torch.as_tensor(self.index[stage.vertices])
         xs, ws = x[:, idx] * 1000.0, w[:, idx]
-        dmask = self.dof_mask[stage.coordinates]
-        smask = self.shape_mask[stage.shape]
-        params = [z_u, z_r] + ([z_c] if stage.shape != "none" else [])
+        fd = torch.nonzero(self.dof_mask[stage.coordinates]).flatten()
+        fs = torch.nonzero(self.shape_mask[stage.shape]).flatten()
+        n_pose = per_row * (len(fd) + 3)
         skel = self.model.skeleton
         prior = self.config.shape_prior
-        opt = torch.optim.LBFGS(
-            params,
-            lr=1.0,
-            max_iter=stage.iterations,
-            history_size=20,
-            tolerance_grad=1e-9,
-            tolerance_change=1e-12,
-            line_search_fn="strong_wolfe",
-        )
 
-        def closure() -> torch.Tensor:
-            opt.zero_grad()
-            u = (z_u * dmask + z_u.detach() * (1 - dmask)) * s_u
-            c = (z_c * smask + z_c.detach() * (1 - smask)) * s_c
-            verts = decoder(c.expand(B, -1), skel.from_unbounded(u), z_r * s_r)[0]
-            err = ((verts * 1000.0 - xs) ** 2).sum(-1)
-            loss = (err * ws).mean(1).sum() + prior * (c**2).sum()
-            loss.backward()
-            return loss
+        def unpack(Z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+            pose = Z[:, :n_pose].reshape(B, len(fd) + 3)
+            u = z_u.index_copy(1, fd, pose[:, : len(fd)])
+            c = z_c.index_copy(1, fs, Z[:, n_pose:])
+            return u, pose[:, len(fd) :], c
 
-        final = opt.step(closure)
-        n_iter = int(opt.state[opt._params[0]].get("n_iter", stage.iterations))
-        return n_iter, float(final.detach()) / B if final is not None else float("nan")
+        def losses(Z: torch.Tensor) -> torch.Tensor:
+            u, r, c = unpack(Z)
+            c_full = c * s_c
+            c_mesh = c_full.repeat_interleave(per_row, 0)
+            verts = decoder(c_mesh, skel.from_unbounded(u * s_u), r * s_r, self._bind(c_mesh))[0]
+            err = (((verts * 1000.0 - xs) ** 2).sum(-1) * ws).mean(1)  # (B,)
+            return err.reshape(rows, per_row).sum(1) + prior * (c_full**2).sum(1)
+
+        Z0 = torch.cat([torch.cat([z_u[:, fd], z_r], 1).reshape(rows, n_pose), z_c[:, fs]], 1)
+        result = batched_lbfgs(losses, Z0, stage.iterations)
+        u, r, c = unpack(result.z)
+        z_u.copy_(u)
+        z_r.copy_(r)
+        z_c.copy_(c)
+        return stage.iterations, float(result.loss.sum()) / B
 
     def _report(
         self,
@@ -407,5 +451,5 @@ class RegisteredFitter:
             seconds=seconds,
             confident=not reasons,
             reasons=tuple(reasons),
-            extra={"stage_start_loss_mm2": {k: round(v, 4) for k, v in losses.items()}},
+            extra={"stage_loss_mm2": {k: round(v, 4) for k, v in losses.items()}},
         )
