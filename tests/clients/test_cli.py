@@ -49,3 +49,41 @@ def test_every_command_documents_its_options() -> None:
         result = runner.invoke(app, [command, "--help"])
         assert result.exit_code == 0
         assert "--out" in result.output
+
+
+def test_fit_registered_meshes(tmp_path: Path) -> None:
+    """`bodyfit fit` on two meshes of the model written as PLY in millimetres: reports and outputs."""
+    import json
+
+    import trimesh
+
+    from bodyfit.models.body.model import BodyModel
+
+    model = BodyModel.load()
+    q = model.skeleton.coordinates({"knee_angle_r": 0.9, "hip_flexion_r": 0.6, "elbow_flex_l": 1.2}, batch=2)
+    shape = np.random.default_rng(0).normal(size=(2, model.n_shape)) * 0.5
+    verts = model.forward(shape, q, np.array([[0.1, 0.9, 0.0], [2.0, 1.0, -1.0]])).vertices.numpy()
+    paths = []
+    for k, v in enumerate(verts):
+        paths.append(tmp_path / f"m{k}.ply")
+        trimesh.Trimesh(v * 1000.0, model.faces, process=False).export(paths[-1])
+    out = tmp_path / "fit"
+    result = runner.invoke(app, ["fit", *map(str, paths), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    reports = json.loads((out / "fit.json").read_text())
+    assert [r["confident"] for r in reports] == [True, True]
+    assert max(r["distances"]["mean"] for r in reports) < 3.0
+    data = np.load(out / "fit.npz")
+    knee = model.dof_names.index("knee_angle_r")
+    assert abs(data["coordinates"][0, knee] - 0.9) < 0.1
+    assert (out / "registration_001.ply").exists() and (out / "fit.mot").exists()
+
+
+def test_fit_rejects_a_mesh_of_another_topology(tmp_path: Path) -> None:
+    import trimesh
+
+    path = tmp_path / "sphere.ply"
+    trimesh.creation.icosphere(subdivisions=4, radius=0.8).export(path)
+    result = runner.invoke(app, ["fit", str(path), "--out", str(tmp_path / "o")])
+    assert result.exit_code == 2
+    assert "13348" in result.output and "Traceback" not in result.output
