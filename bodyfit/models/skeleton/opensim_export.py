@@ -101,8 +101,14 @@ def _body_xml(parent: ET.Element, body: Body, s: np.ndarray) -> None:
             _sub(m, "mesh_file", mesh)
 
 
+Marker = tuple[str, str, Sequence[float]]  # (name, body, location in the body frame before scaling, m)
+
+
 def osim_document(
-    spec: SkeletonSpec, scales: np.ndarray | None = None, name: str = "bodyfit"
+    spec: SkeletonSpec,
+    scales: np.ndarray | None = None,
+    name: str = "bodyfit",
+    markers: Sequence[Marker] | None = None,
 ) -> ET.ElementTree:
     """The skeleton as an OpenSim 4 document.
 
@@ -110,6 +116,8 @@ def osim_document(
         spec: the skeleton.
         scales: (n_seg, 3) per-segment scale factors (``spec.segments`` order), or None for ones.
         name: the model name.
+        markers: optional MarkerSet: ``(name, body, location)`` with the location in the body's frame
+            before scaling (it is scaled with the body, like everything else in the written model).
     """
     seg = {s: i for i, s in enumerate(spec.segments)}
     S = np.ones((len(spec.segments), 3)) if scales is None else np.asarray(scales, np.float64)
@@ -189,6 +197,17 @@ def osim_document(
             rng = ranges.get(ax.coordinate, (-math.pi, math.pi)) if ax.coordinate else (-1.0, 1.0)
             _function_xml(ta, ax.function, factor, rng)
 
+    if markers:
+        mset = _sub(_sub(model, "MarkerSet", name="markerset"), "objects")
+        for marker_name, body, location in markers:
+            if body not in body_by_name:
+                raise ValueError(
+                    f"marker {marker_name!r} is on {body!r}, which is not a body of the skeleton"
+                )
+            m = _sub(mset, "Marker", name=marker_name)
+            _sub(m, "socket_parent_frame", f"/bodyset/{body}")
+            _sub(m, "location", _fmt(np.asarray(location, np.float64) * scale_of(body)))
+            _sub(m, "fixed", "false")
     if couplers:
         cset = _sub(_sub(model, "ConstraintSet", name="constraintset"), "objects")
         for indep, dep in couplers:
@@ -205,11 +224,15 @@ def osim_document(
 
 
 def write_osim(
-    path: str | Path, spec: SkeletonSpec, scales: np.ndarray | None = None, name: str = "bodyfit"
+    path: str | Path,
+    spec: SkeletonSpec,
+    scales: np.ndarray | None = None,
+    name: str = "bodyfit",
+    markers: Sequence[Marker] | None = None,
 ) -> Path:
-    """Write a scaled OpenSim model of ``spec``. See :func:`osim_document`."""
+    """Write a scaled OpenSim model of ``spec`` (optionally with a MarkerSet). See :func:`osim_document`."""
     path = Path(path)
-    osim_document(spec, scales, name).write(path, encoding="UTF-8", xml_declaration=True)
+    osim_document(spec, scales, name, markers).write(path, encoding="UTF-8", xml_declaration=True)
     return path
 
 

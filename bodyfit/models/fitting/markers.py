@@ -1,0 +1,211 @@
+"""Motion capture markers -> our skeleton's coordinates, per frame, within the joint limits.
+
+``fit_markers(trial, static)`` is the public entry point:
+
+1. pick the marker protocol (:mod:`.marker_sets`: OpenSim gait2392 or Rajagopal2015, or by name overlap)
+   and put its virtual markers on our template (:func:`.calibration.virtual_markers`);
+2. calibrate the subject (:mod:`.subject`): from the static trial (scales and standing pose from the
+   anatomical markers, then every marker placed where the static trial saw it, as OpenSim's ScaleTool and
+   MarkerPlacer do) or, without one, from K frames of the motion itself (scales, technical marker
+   locations and those frames' poses together);
+3. inverse kinematics of all frames at once (:mod:`.marker_solve`);
+4. an error report (:class:`~.report.FitReport`): marker distances, joint-limit violations, iterations,
+   time, and confidence with reasons.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from bodyfit.models.body.model import BodyModel
+from bodyfit.models.fitting.calibration import (
+    DofPlan,
+    ScaleModel,
+    VirtualMarkers,
+    place_markers,
+    virtual_markers,
+)
+from bodyfit.models.fitting.marker_sets import MarkerSetError, choose_marker_set, normalise_name
+from bodyfit.models.fitting.marker_solve import solve_ik
+from bodyfit.models.fitting.mocap_io import MarkerTrial
+from bodyfit.models.fitting.report import DistanceStats, FitReport, count_limit_violations
+from bodyfit.models.fitting.subject import calibrate
+from bodyfit.models.skeleton.opensim_export import write_mot, write_osim
+from bodyfit.models.skeleton.spec import SkeletonSpec
+
+MIN_VISIBLE = 6  # markers a frame needs for a trustworthy pose
+MAX_MEAN_ERROR = 0.02  # m: a mean marker error above this makes the fit not confident
+CALIBRATION_FRAMES = 24  # frames of the motion used when there is no static trial
+
+
+@dataclass(frozen=True)
+class MarkerFit:
+    """The result of :func:`fit_markers`.
+
+    Attributes:
+        coordinates: (T, n_dof) radians / metres in ``dof_names`` order, inside the joint limits.
+        root: (T, 3) pelvis translation (m). times: (T,) s.
+        scales: (n_seg, 3) segment scale factors of the subject.
+        markers: the calibrated virtual markers (body-frame locations before scaling).
+        marker_errors: (T, M) distance of each model marker to its measurement (m; NaN where missing),
+            markers in ``markers.names`` order.
+        static_coordinates: (n_dof,) the standing pose of the static trial, or None.
+        marker_set: the protocol used. dof_names: coordinate names. report: the error report.
+    """
+
+    coordinates: np.ndarray
+    root: np.ndarray
+    times: np.ndarray
+    scales: np.ndarray
+    markers: VirtualMarkers
+    marker_errors: np.ndarray
+    static_coordinates: np.ndarray | None
+    marker_set: str
+    dof_names: list[str]
+    report: FitReport
+
+    def write(self, folder: str | Path, spec: SkeletonSpec, name: str = "subject") -> dict[str, Path]:
+        """Write ``<name>.osim`` (scaled skeleton with the calibrated MarkerSet) and ``<name>.mot``."""
+        out = Path(folder)
+        out.mkdir(parents=True, exist_ok=True)
+        marker_rows = list(zip(self.markers.names, self.markers.bodies, self.markers.local))
+        osim = write_osim(out / f"{name}.osim", spec, self.scales, name, marker_rows)
+        rate = 1.0 / float(np.median(np.diff(self.times))) if len(self.times) > 1 else 60.0
+        mot = write_mot(out / f"{name}.mot", spec, self.coordinates, self.root, self.times, rate, name)
+        return {"osim": osim, "mot": mot}
+
+
+def _observed(trial: MarkerTrial, names: list[str]) -> np.ndarray:
+    """(T, M) positions of the set's markers ``names`` in a trial (NaN for absent ones). -> (T, M, 3)."""
+    index = {normalise_name(n): i for i, n in enumerate(trial.names)}
+    out = np.full((trial.n_frames, len(names), 3), np.nan)
+    for k, n in enumerate(names):
+        if n in index:
+            out[:, k] = trial.positions[:, index[n]]
+    return out
+
+
+def _calibration_frames(observed: np.ndarray, count: int) -> np.ndarray:
+    """Up to ``count`` frames spread evenly over the trial, among those showing the most markers."""
+    seen = np.isfinite(observed).all(-1).sum(-1)
+    good = np.flatnonzero(seen >= seen.max() - 2)
+    return good[np.unique(np.linspace(0, len(good) - 1, min(count, len(good))).round().astype(int))]
+
+
+def fit_markers(
+    trial: MarkerTrial,
+    static: MarkerTrial | None = None,
+    marker_set: str = "auto",
+    *,
+    model: BodyModel | None = None,
+    weights: Mapping[str, float] | None = None,
+    static_window: tuple[float, float] | None = None,
+    calibration_frames: int = CALIBRATION_FRAMES,
+    max_iterations: int = 50,
+) -> MarkerFit:
+    """Coordinates of our skeleton for every frame of a marker trial, with subject calibration.
+
+    Args:
+        trial: the motion (:func:`~.mocap_io.read_markers`), positions in our world frame.
+        static: a standing trial of the same subject with the same markers (plus any static-only
+            anatomical ones, e.g. knee and ankle markers), or None to calibrate from the motion.
+        marker_set: ``"auto"`` (the set sharing most names), ``"gait2392"`` or ``"rajagopal"``.
+        model: the body model (loaded when None).
+        weights: IK weight overrides by marker name (0 drops a marker).
+        static_window: (start, stop) seconds of the static trial to average (default: all of it).
+        calibration_frames: frames of the motion used for calibration when ``static`` is None.
+        max_iterations: Levenberg-Marquardt iterations per frame and pass.
+    Returns:
+        :class:`MarkerFit`.
+    Raises:
+        MarkerSetError: unknown set or too few shared markers. ShapeError/ValueError: bad inputs.
+    """
+    t0 = time.perf_counter()
+    model = model or BodyModel.load()
+    skel = model.skeleton
+    names_all = [*trial.names, *(static.names if static is not None else ())]
+    defn = choose_marker_set(names_all, marker_set)
+    vm = virtual_markers(defn, model)
+    if weights:
+        unknown = sorted(set(weights) - set(vm.names))
+        if unknown:
+            raise MarkerSetError(f"weights name markers not in the {defn.name} set: {', '.join(unknown)}")
+        w = vm.weights.copy()
+        for n, v in weights.items():
+            w[vm.names.index(n)] = float(v)
+        vm = replace(vm, weights=w)
+    in_trial = {normalise_name(n) for n in trial.names}
+    in_static = {normalise_name(n) for n in static.names} if static is not None else set()
+    used = [n for n, wt in zip(vm.names, vm.weights) if wt > 0 and (n in in_trial or n in in_static)]
+    vm = vm.subset(used)
+    plan = DofPlan.build(skel, defn)
+    scale_model = ScaleModel(model)
+    reasons: list[str] = []
+
+    if static is not None:
+        window = static if static_window is None else static.between(*static_window)
+        st_obs = np.nanmean(_observed(window, used), axis=0)[None]  # (1, M, 3)
+        anat = vm.anatomical & np.isfinite(st_obs[0]).all(-1)
+        if anat.sum() < MIN_VISIBLE:
+            raise MarkerSetError(
+                f"the static trial shows {int(anat.sum())} anatomical markers of the {defn.name} set; "
+                f"at least {MIN_VISIBLE} are needed to scale the subject"
+            )
+        fit_vm = replace(vm, weights=np.where(anat, vm.weights, 0.0))
+        cal = calibrate(skel, scale_model, fit_vm, st_obs, np.zeros(1), plan, np.zeros(len(used), bool))
+        seen = np.isfinite(st_obs[0]).all(-1)
+        markers = place_markers(skel, vm, st_obs[0], cal.q[0], cal.root[0], cal.scales, seen)
+        static_q: np.ndarray | None = cal.q[0]
+        missing = [n for n, s in zip(used, seen) if not s and n in in_trial]
+        if missing:
+            reasons.append(f"markers not in the static trial keep default locations: {', '.join(missing)}")
+    else:
+        obs = _observed(trial, used)
+        frames = _calibration_frames(obs, calibration_frames)
+        first = solve_ik(skel, vm, scale_model.mean.numpy(), obs[frames], trial.times[frames], plan)
+        cal = calibrate(
+            skel, scale_model, vm, obs[frames], trial.times[frames], plan, ~vm.anatomical, start=first.q
+        )
+        markers, static_q = cal.markers, None
+    t_cal = time.perf_counter()
+
+    ik_names = [n for n in markers.names if n in in_trial]
+    ik_markers = markers.subset(ik_names)
+    observed = _observed(trial, ik_names)
+    sol = solve_ik(skel, ik_markers, cal.scales, observed, trial.times, plan, max_iterations=max_iterations)
+    seconds = time.perf_counter() - t0
+
+    visible = np.isfinite(observed).all(-1).sum(-1)
+    if (visible < MIN_VISIBLE).any():
+        reasons.append(f"{int((visible < MIN_VISIBLE).sum())} frames show fewer than {MIN_VISIBLE} markers")
+    mean_error = float(np.nanmean(sol.errors)) if np.isfinite(sol.errors).any() else float("nan")
+    if not mean_error <= MAX_MEAN_ERROR:
+        reasons.append(f"mean marker error {mean_error * 1000:.1f} mm exceeds {MAX_MEAN_ERROR * 1000:.0f} mm")
+    unused = sorted({normalise_name(n) for n in trial.names} - set(vm.names))
+    per_marker = {n: float(np.nanmean(sol.errors[:, i]) * 1000) for i, n in enumerate(ik_names)}
+    report = FitReport(
+        distances=DistanceStats.of(sol.errors),
+        limit_violations=count_limit_violations(sol.q, skel.ranges),
+        iterations=cal.iterations + sol.iterations,
+        seconds=seconds,
+        confident=not reasons or (len(reasons) == 1 and reasons[0].startswith("markers not in")),
+        reasons=tuple(reasons),
+        extra={
+            "marker_set": defn.name,
+            "calibration": "static" if static is not None else f"motion ({len(cal.q)} frames)",
+            "calibration_seconds": t_cal - t0,
+            "ik_seconds": seconds - (t_cal - t0),
+            "calibration_error_mm": DistanceStats.of(cal.errors[np.isfinite(cal.errors)]).mean,
+            "marker_mean_error_mm": per_marker,
+            "unused_markers": unused,
+        },
+    )
+    return MarkerFit(
+        sol.q, sol.root, trial.times.copy(), cal.scales, markers, sol.errors, static_q, defn.name,
+        list(skel.dof_names), report,
+    )  # fmt: skip
