@@ -95,6 +95,8 @@ def virtual_markers(defn: MarkerSetDef, model: BodyModel) -> VirtualMarkers:
                 points.append(to_local(unit, b, F[:3, :3] @ np.asarray(loc) + F[:3, 3]))
             else:
                 v = lm_index[key]
+                if m.near is not None:
+                    v = int(np.argmin(np.linalg.norm(V - (V[v] + np.asarray(m.near)), axis=1)))
                 world = V[v] + m.offset * normals[v]
                 points.append(to_local(F_mean, b, world) / S_mean[seg_of[b]])
         local.append(np.mean(points, axis=0))

@@ -9,7 +9,10 @@ default location comes from one of two sources, or the mean of several:
   (the upper trunk above our added thoracic joints) at the neutral pose.
 * ``lm:NAME``: a bony landmark vertex of our template skin (:mod:`bodyfit.models.body.landmarks`) on the
   mean body at the neutral pose, moved outwards along the skin normal by the marker's ``offset`` (a 14 mm
-  marker on a 2-3 mm base sits about 10 mm off the skin).
+  marker on a 2-3 mm base sits about 10 mm off the skin). With ``near`` set, the skin vertex nearest to
+  the landmark moved by ``near`` (m, right side; mirrored for the left) is used instead: the toe marker
+  sits on the nail of the hallux, 1 cm behind its tip, where a marker can stay on (not at the tip itself,
+  which touches the floor).
 
 ``anatomical`` markers sit on palpated bony landmarks: they scale the subject and set its static pose.
 The others (thigh and shank clusters, forearm and midfoot markers) are technical: wherever the lab put
@@ -104,7 +107,9 @@ class MarkerSetError(BodyfitError):
 @dataclass(frozen=True)
 class MarkerDef:
     """One virtual marker: the name used in trial files, our body, its sources (``raj:`` / ``lm:`` names,
-    averaged), whether it is anatomical, its IK weight and, for landmark sources, its skin offset (m)."""
+    averaged), whether it is anatomical, its IK weight and, for landmark sources, its skin offset (m)
+    and an optional displacement ``near`` (m, our frame at the neutral pose, right side) to a nearby
+    skin point."""
 
     name: str
     body: str
@@ -112,6 +117,7 @@ class MarkerDef:
     anatomical: bool
     weight: float = 1.0
     offset: float = SKIN_OFFSET
+    near: tuple[float, float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -128,11 +134,17 @@ class MarkerSetDef:
         return [m.name for m in self.markers]
 
 
-def _sided(rows: list[tuple[str, str, tuple[str, ...], bool, float]]) -> list[MarkerDef]:
-    """Expand right/left templates: ``{S}`` -> R/L, ``{s}`` -> r/l in names, bodies and sources."""
+Row = tuple[str, str, tuple[str, ...], bool, float]
+HALLUX_NAIL = (-0.010, 0.005, 0.0)  # from the toe-tip landmark to the nail of the hallux
+
+
+def _sided(rows: list[Row], near: dict[str, tuple[float, float, float]] | None = None) -> list[MarkerDef]:
+    """Expand right/left templates: ``{S}`` -> R/L, ``{s}`` -> r/l in names, bodies and sources; ``near``
+    (by template name) displacements are mirrored (z -> -z) for the left side."""
     out = []
     for name, body, sources, anat, weight in rows:
-        for S, s in (("R", "r"), ("L", "l")):
+        shift = (near or {}).get(name)
+        for S, s, sign in (("R", "r", 1.0), ("L", "l", -1.0)):
             fill = {"S": S, "s": s}
             out.append(
                 MarkerDef(
@@ -141,6 +153,7 @@ def _sided(rows: list[tuple[str, str, tuple[str, ...], bool, float]]) -> list[Ma
                     tuple(src.format(**fill) for src in sources),
                     anat,
                     weight,
+                    near=None if shift is None else (shift[0], shift[1], sign * shift[2]),
                 )
             )
     return out
@@ -194,7 +207,8 @@ GAIT2392 = MarkerSetDef(
                 ("{S}.Wrist.Med", "radius_{s}", ("raj:{S}FAulna",), True, 1.0),
                 ("{S}.Wrist.Lat", "radius_{s}", ("raj:{S}FAradius",), True, 1.0),
                 ("{S}.Temple", "head", ("lm:tragion_{s}",), False, 0.1),
-            ]
+            ],
+            near={"{S}.Toe.Tip": HALLUX_NAIL},
         ),
     ),
     _LOCK_FEET_HANDS,

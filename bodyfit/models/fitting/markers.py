@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -34,7 +35,8 @@ from bodyfit.models.fitting.marker_sets import MarkerSetError, choose_marker_set
 from bodyfit.models.fitting.marker_solve import solve_ik
 from bodyfit.models.fitting.mocap_io import MarkerTrial
 from bodyfit.models.fitting.report import DistanceStats, FitReport, count_limit_violations
-from bodyfit.models.fitting.subject import calibrate
+from bodyfit.models.fitting.subject import Calibration, calibrate
+from bodyfit.models.skeleton.model import Skeleton
 from bodyfit.models.skeleton.opensim_export import write_mot, write_osim
 from bodyfit.models.skeleton.spec import SkeletonSpec
 
@@ -126,6 +128,8 @@ def fit_markers(
         MarkerSetError: unknown set or too few shared markers. ShapeError/ValueError: bad inputs.
     """
     t0 = time.perf_counter()
+    if trial.n_frames == 0:
+        raise MarkerSetError("the trial has no frames")
     model = model or BodyModel.load()
     skel = model.skeleton
     names_all = [*trial.names, *(static.names if static is not None else ())]
@@ -145,25 +149,13 @@ def fit_markers(
     vm = vm.subset(used)
     plan = DofPlan.build(skel, defn)
     scale_model = ScaleModel(model)
-    reasons: list[str] = []
-
+    notes: list[str] = []
     if static is not None:
         window = static if static_window is None else static.between(*static_window)
-        st_obs = np.nanmean(_observed(window, used), axis=0)[None]  # (1, M, 3)
-        anat = vm.anatomical & np.isfinite(st_obs[0]).all(-1)
-        if anat.sum() < MIN_VISIBLE:
-            raise MarkerSetError(
-                f"the static trial shows {int(anat.sum())} anatomical markers of the {defn.name} set; "
-                f"at least {MIN_VISIBLE} are needed to scale the subject"
-            )
-        fit_vm = replace(vm, weights=np.where(anat, vm.weights, 0.0))
-        cal = calibrate(skel, scale_model, fit_vm, st_obs, np.zeros(1), plan, np.zeros(len(used), bool))
-        seen = np.isfinite(st_obs[0]).all(-1)
-        markers = place_markers(skel, vm, st_obs[0], cal.q[0], cal.root[0], cal.scales, seen)
-        static_q: np.ndarray | None = cal.q[0]
-        missing = [n for n, s in zip(used, seen) if not s and n in in_trial]
+        cal, markers = _calibrate_static(skel, scale_model, vm, _observed(window, used), plan, defn.name)
+        missing = [n for n in used if n in in_trial and not np.isfinite(_observed(window, [n])).any()]
         if missing:
-            reasons.append(f"markers not in the static trial keep default locations: {', '.join(missing)}")
+            notes.append(f"not in the static trial, left at their default locations: {', '.join(missing)}")
     else:
         obs = _observed(trial, used)
         frames = _calibration_frames(obs, calibration_frames)
@@ -171,41 +163,89 @@ def fit_markers(
         cal = calibrate(
             skel, scale_model, vm, obs[frames], trial.times[frames], plan, ~vm.anatomical, start=first.q
         )
-        markers, static_q = cal.markers, None
+        markers = cal.markers
     t_cal = time.perf_counter()
 
     ik_names = [n for n in markers.names if n in in_trial]
     ik_markers = markers.subset(ik_names)
     observed = _observed(trial, ik_names)
     sol = solve_ik(skel, ik_markers, cal.scales, observed, trial.times, plan, max_iterations=max_iterations)
-    seconds = time.perf_counter() - t0
+    t_end = time.perf_counter()
+    report = _report(sol.q, sol.errors, observed, skel.ranges, cal.iterations + sol.iterations, t_end - t0)
+    extra = {
+        "marker_set": defn.name,
+        "calibration": "static" if static is not None else f"motion ({len(cal.q)} frames)",
+        "calibration_seconds": t_cal - t0,
+        "ik_seconds": t_end - t_cal,
+        "calibration_error_mm": DistanceStats.of(cal.errors).mean,
+        "marker_mean_error_mm": {
+            n: float(np.nanmean(sol.errors[:, i]) * 1000)
+            for i, n in enumerate(ik_names)
+            if np.isfinite(sol.errors[:, i]).any()
+        },
+        "unused_markers": sorted(in_trial - set(vm.names)),
+        "notes": notes,
+    }
+    return MarkerFit(
+        sol.q, sol.root, trial.times.copy(), cal.scales, markers, sol.errors,
+        cal.q[0] if static is not None else None, defn.name, list(skel.dof_names),
+        replace(report, extra=extra),
+    )  # fmt: skip
 
+
+def _calibrate_static(
+    skel: Skeleton,
+    scale_model: ScaleModel,
+    markers: VirtualMarkers,
+    frames: np.ndarray,
+    plan: DofPlan,
+    set_name: str,
+) -> tuple[Calibration, VirtualMarkers]:
+    """Scales and standing pose from the anatomical markers of a static trial (frames (K, M, 3), averaged),
+    then every marker it shows placed where it was seen (OpenSim's ScaleTool + MarkerPlacer)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # markers absent from the static trial
+        mean = np.nanmean(frames, axis=0)  # (M, 3)
+    seen = np.isfinite(mean).all(-1)
+    anat = markers.anatomical & seen
+    if anat.sum() < MIN_VISIBLE:
+        raise MarkerSetError(
+            f"the static trial shows {int(anat.sum())} anatomical markers of the {set_name} set; at least "
+            f"{MIN_VISIBLE} are needed to scale the subject (or calibrate from the motion: static=None)"
+        )
+    fit_markers_ = replace(markers, weights=np.where(anat, markers.weights, 0.0))
+    cal = calibrate(skel, scale_model, fit_markers_, mean[None], np.zeros(1), plan, np.zeros(len(seen), bool))
+    placed = place_markers(skel, markers, mean, cal.q[0], cal.root[0], cal.scales, seen)
+    return cal, placed
+
+
+def _report(
+    q: np.ndarray,
+    errors: np.ndarray,
+    observed: np.ndarray,
+    ranges: np.ndarray,
+    iterations: int,
+    seconds: float,
+) -> FitReport:
+    """The fit's error report. q: (T, n_dof); errors: (T, M) m; observed: (T, M, 3); ranges: (n_dof, 2)."""
+    reasons: list[str] = []
     visible = np.isfinite(observed).all(-1).sum(-1)
     if (visible < MIN_VISIBLE).any():
         reasons.append(f"{int((visible < MIN_VISIBLE).sum())} frames show fewer than {MIN_VISIBLE} markers")
-    mean_error = float(np.nanmean(sol.errors)) if np.isfinite(sol.errors).any() else float("nan")
+    mean_error = float(np.nanmean(errors)) if np.isfinite(errors).any() else float("nan")
     if not mean_error <= MAX_MEAN_ERROR:
-        reasons.append(f"mean marker error {mean_error * 1000:.1f} mm exceeds {MAX_MEAN_ERROR * 1000:.0f} mm")
-    unused = sorted({normalise_name(n) for n in trial.names} - set(vm.names))
-    per_marker = {n: float(np.nanmean(sol.errors[:, i]) * 1000) for i, n in enumerate(ik_names)}
-    report = FitReport(
-        distances=DistanceStats.of(sol.errors),
-        limit_violations=count_limit_violations(sol.q, skel.ranges),
-        iterations=cal.iterations + sol.iterations,
+        reasons.append(
+            f"mean marker error {mean_error * 1000:.1f} mm exceeds {MAX_MEAN_ERROR * 1000:.0f} mm: check "
+            "marker names and labelling, the static trial, or the lab-to-world rotation"
+        )
+    violations = count_limit_violations(q, ranges)
+    if violations:
+        reasons.append(f"{violations} coordinate values outside their joint limits")
+    return FitReport(
+        distances=DistanceStats.of(errors),
+        limit_violations=violations,
+        iterations=iterations,
         seconds=seconds,
-        confident=not reasons or (len(reasons) == 1 and reasons[0].startswith("markers not in")),
+        confident=not reasons,
         reasons=tuple(reasons),
-        extra={
-            "marker_set": defn.name,
-            "calibration": "static" if static is not None else f"motion ({len(cal.q)} frames)",
-            "calibration_seconds": t_cal - t0,
-            "ik_seconds": seconds - (t_cal - t0),
-            "calibration_error_mm": DistanceStats.of(cal.errors[np.isfinite(cal.errors)]).mean,
-            "marker_mean_error_mm": per_marker,
-            "unused_markers": unused,
-        },
     )
-    return MarkerFit(
-        sol.q, sol.root, trial.times.copy(), cal.scales, markers, sol.errors, static_q, defn.name,
-        list(skel.dof_names), report,
-    )  # fmt: skip

@@ -2,7 +2,9 @@
 
 Every reader returns a :class:`MarkerTrial`: marker names, positions ``(T, M, 3)`` in metres in *our*
 world frame (OpenSim ground: +Y up, +X forward, +Z right; see :mod:`bodyfit.models`), the frame rate and
-the frame times. Missing samples (empty TRC cells, C3D points with a negative residual) are NaN.
+the frame times. Missing samples are NaN: empty TRC cells, C3D points with a negative residual and, unless
+``zeros_missing=False``, samples at exactly (0, 0, 0), which many exporters write for a gap (the Hamner
+running trial of the OpenSim examples does).
 
 Frame assumption: the file's axes are taken as ours unless ``rotation`` says otherwise. That holds for
 TRC files written for OpenSim (they are Y up already). Many C3D files are Z up: pass
@@ -131,7 +133,17 @@ def _times(raw: np.ndarray, rate: float, n: int) -> np.ndarray:
     return np.arange(n) / rate
 
 
-def parse_trc(text: str, rotation: np.ndarray | None = None, source: str = "TRC") -> MarkerTrial:
+def _mask_zeros(positions: np.ndarray, zeros_missing: bool) -> np.ndarray:
+    """(T, M, 3) with exact (0, 0, 0) samples set to NaN when ``zeros_missing``."""
+    if zeros_missing:
+        positions = positions.copy()
+        positions[(positions == 0.0).all(-1)] = np.nan
+    return positions
+
+
+def parse_trc(
+    text: str, rotation: np.ndarray | None = None, source: str = "TRC", zeros_missing: bool = True
+) -> MarkerTrial:
     """Parse the text of a TRC file (tab separated; header keys DataRate, NumFrames, NumMarkers, Units).
 
     Empty cells are missing samples (NaN). Raises MocapFormatError naming what is wrong.
@@ -176,12 +188,14 @@ def parse_trc(text: str, rotation: np.ndarray | None = None, source: str = "TRC"
     if not rows:
         raise MocapFormatError(f"{source} holds no frames")
     data = np.asarray(rows, np.float64)
-    positions = data[:, 2:].reshape(len(rows), n_markers, 3) * UNITS[unit]
+    positions = _mask_zeros(data[:, 2:].reshape(len(rows), n_markers, 3), zeros_missing) * UNITS[unit]
     trial = MarkerTrial(tuple(names), positions, rate, _times(data[:, 1], rate, len(rows)), source)
     return trial if rotation is None else trial.rotated(rotation)
 
 
-def parse_c3d(data: bytes, rotation: np.ndarray | None = None, source: str = "C3D") -> MarkerTrial:
+def parse_c3d(
+    data: bytes, rotation: np.ndarray | None = None, source: str = "C3D", zeros_missing: bool = True
+) -> MarkerTrial:
     """Parse the bytes of a C3D file's point section (Intel, DEC or MIPS; integer or float data).
 
     Points with a negative residual are missing (NaN). Analog data are ignored.
@@ -194,7 +208,8 @@ def parse_c3d(data: bytes, rotation: np.ndarray | None = None, source: str = "C3
     if factor is None:
         raise MocapFormatError(f"{source}: unknown POINT:UNITS {unit!r}; expected one of {list(UNITS)}")
     names = _unique([n.strip() for n in labels])
-    trial = MarkerTrial(tuple(names), xyz * factor, rate, np.arange(len(xyz)) / rate, source)
+    xyz = _mask_zeros(xyz, zeros_missing) * factor
+    trial = MarkerTrial(tuple(names), xyz, rate, np.arange(len(xyz)) / rate, source)
     return trial if rotation is None else trial.rotated(rotation)
 
 
