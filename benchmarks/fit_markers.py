@@ -1,0 +1,268 @@
+"""Mocap markers -> coordinates: accuracy against OpenSim's reference IK and speed against OpenSim's
+InverseKinematicsTool, in one run.
+
+What is measured
+----------------
+* Trials (OpenSim example data, ``tests/data/opensim_gait/SOURCES.md``): gait2392 subject01 walk (151
+  frames at 60 Hz, calibrated from its static trial) and Hamner subject02 running (no static trial:
+  calibrated from 24 frames of the motion; the full 600-frame trial from ``../shared/data`` when present,
+  else the 181-frame copy in ``tests/data``; ``--quick`` always uses the copy).
+* Accuracy: RMSE in degrees of our coordinates against OpenSim's reference ``*_ik.mot`` (gait2392 /
+  Hamner2010 models) over the common time range, for every coordinate both have (knee sign flipped:
+  those models flex negative). Also the mean difference and the RMSE with the mean removed, because a
+  constant offset can come from differing marker definitions (see the README of the fitting module:
+  Hamner2010's generic toe marker sits 2.8 cm higher on the foot than gait2392's and ours).
+* Speed: on the gait2392 walk, our ``fit_markers`` IK stage (all frames, staged and batched, after
+  calibration; median of repeats) against ``opensim.InverseKinematicsTool`` run on our calibrated subject
+  exported with ``write_osim`` and its MarkerSet, with the same marker weights, the same locked DOFs and
+  our soft-DOF priors as IKCoordinateTasks (the same objective). ``ik_speed_ratio`` = OpenSim / ours.
+* Agreement: the objective (weighted squared marker error + priors) of both solutions per frame, and,
+  with the upper body locked in both, the lower-body coordinates of OpenSim's IK against ours.
+
+Usage::
+
+    python benchmarks/fit_markers.py [--quick] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from bodyfit.models.body.model import BodyModel
+from bodyfit.models.fitting.calibration import DofPlan
+from bodyfit.models.fitting.marker_sets import MARKER_SETS
+from bodyfit.models.fitting.marker_solve import marker_errors, solve_ik
+from bodyfit.models.fitting.markers import MarkerFit, _observed, fit_markers
+from bodyfit.models.fitting.mocap_io import MarkerTrial, read_trc, write_trc
+from bodyfit.models.skeleton.model import Skeleton
+from bodyfit.models.skeleton.opensim_export import read_mot
+
+ROOT = Path(__file__).resolve().parents[1]
+LOCAL = ROOT / "tests" / "data" / "opensim_gait"
+SHARED = ROOT.parent / "shared" / "data" / "opensim_gait"
+FLEXION = [f"{j}_{s}" for s in ("r", "l") for j in ("hip_flexion", "knee_angle", "ankle_angle")]
+ROOTS = ("pelvis_tx", "pelvis_ty", "pelvis_tz")
+LOWER_BODY = 17  # pelvis, legs: the first 17 DOFs of the skeleton
+LEGS = ("pelvis", "femur", "tibia", "talus", "calcn", "toes", "patella")  # their bodies
+
+
+def compare(fit: MarkerFit, skel: Skeleton, mot: Path) -> dict[str, dict[str, float]]:
+    """Per coordinate both files have: RMSE, mean difference and RMSE without it (degrees)."""
+    cols, data, _ = read_mot(mot)
+    sel = (data[:, 0] >= fit.times[0] - 1e-9) & (data[:, 0] <= fit.times[-1] + 1e-9)
+    out = {}
+    for name in cols[1:]:
+        if name not in skel.dof_names or np.ptp(data[sel, cols.index(name)]) < 1e-3:
+            continue  # locked in the reference (subtalar, mtp, wrists): nothing to compare
+        ours = np.degrees(np.interp(data[sel, 0], fit.times, fit.coordinates[:, skel.dof_index(name)]))
+        diff = ours - data[sel, cols.index(name)] * (-1.0 if name.startswith("knee") else 1.0)
+        out[name] = {
+            "rmse": float(np.sqrt(np.mean(diff**2))),
+            "mean": float(diff.mean()),
+            "rmse_offset_removed": float(diff.std()),
+        }
+    return out
+
+
+def _opensim_ik(
+    fit: MarkerFit, skel: Skeleton, trial: MarkerTrial, folder: Path, lower_only: bool
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """OpenSim's IK on our exported subject: (q (T', n_dof), root (T', 3), seconds)."""
+    import opensim
+
+    opensim.Logger.setLevelString("error")
+    plan = DofPlan.build(skel, MARKER_SETS[fit.marker_set])
+    name = "lower" if lower_only else "full"
+    model = opensim.Model(str(fit.write(folder, skel.spec, f"subject_{name}")["osim"]))
+    free = set(plan.free.tolist()) & (set(range(LOWER_BODY)) if lower_only else set(range(skel.n_dof)))
+    for i, dof in enumerate(skel.dof_names):  # start where ours starts (the first frame's solution)
+        coord = model.updCoordinateSet().get(dof)
+        coord.setDefaultValue(float(fit.coordinates[0, i] if i in free else plan.locked[i]))
+        coord.set_locked(i not in free)
+    for j, dof in enumerate(ROOTS):
+        model.updCoordinateSet().get(dof).setDefaultValue(float(fit.root[0, j]))
+    model.initSystem()
+    tasks = opensim.IKTaskSet()
+    for marker, weight, body in zip(fit.markers.names, fit.markers.weights, fit.markers.bodies):
+        if marker in trial.names and weight > 0 and (not lower_only or body.startswith(LEGS)):
+            task = opensim.IKMarkerTask()
+            task.setName(marker)
+            task.setWeight(float(weight))
+            tasks.cloneAndAppend(task)
+    for i in sorted(free):
+        if plan.soft[i] > 0:
+            ctask = opensim.IKCoordinateTask()
+            ctask.setName(skel.dof_names[i])
+            ctask.setWeight(float(plan.soft[i]))
+            ctask.setValueType(opensim.IKCoordinateTask.ManualValue)
+            ctask.setValue(0.0)
+            tasks.cloneAndAppend(ctask)
+    tool = opensim.InverseKinematicsTool()
+    tool.setModel(model)
+    tool.getIKTaskSet().assign(tasks)
+    trc = write_trc(folder / f"{name}.trc", trial)
+    tool.setMarkerDataFileName(str(trc))
+    tool.setStartTime(float(trial.times[0]))
+    tool.setEndTime(float(trial.times[-1]))
+    tool.setOutputMotionFileName(str(folder / f"{name}_ik.mot"))
+    tool.set_accuracy(1e-5)
+    start = time.perf_counter()
+    tool.run()
+    seconds = time.perf_counter() - start
+    cols, data, _ = read_mot(folder / f"{name}_ik.mot")
+    q = np.stack([np.radians(data[:, cols.index(d)]) for d in skel.dof_names], axis=1)
+    root = np.stack([data[:, cols.index(r)] for r in ROOTS], axis=1)
+    return q, root, seconds
+
+
+def _objective(
+    fit: MarkerFit, skel: Skeleton, trial: MarkerTrial, q: np.ndarray, root: np.ndarray
+) -> np.ndarray:
+    """(T,) weighted squared marker error plus the soft-DOF priors (the IK objective)."""
+    names = [n for n in fit.markers.names if n in trial.names]
+    markers = fit.markers.subset(names)
+    err = marker_errors(skel, markers, fit.scales, q, root, _observed(trial, names))
+    plan = DofPlan.build(skel, MARKER_SETS[fit.marker_set])
+    return np.nansum(markers.weights * err**2, axis=1) + (plan.soft * q**2).sum(axis=1)
+
+
+def time_our_ik(fit: MarkerFit, skel: Skeleton, trial: MarkerTrial, repeats: int) -> float:
+    """Median seconds of our IK stage (calibrated markers and scales, every frame of ``trial``)."""
+    names = [n for n in fit.markers.names if n in trial.names]
+    markers = fit.markers.subset(names)
+    observed = _observed(trial, names)
+    plan = DofPlan.build(skel, MARKER_SETS[fit.marker_set])
+    times = []
+    for _ in range(repeats + 1):
+        start = time.perf_counter()
+        solve_ik(skel, markers, fit.scales, observed, trial.times, plan)
+        times.append(time.perf_counter() - start)
+    return statistics.median(times[1:])
+
+
+def run(quick: bool) -> dict[str, Any]:
+    """The figures (see the module docstring); keys include ``ik_rmse_deg`` (trial -> coordinate ->
+    degrees), ``ik_rmse_deg_max_flexion``, ``ik_seconds``, ``opensim_ik_seconds``, ``ik_speed_ratio``."""
+    model = BodyModel.load()
+    skel = model.skeleton
+    walk = read_trc(LOCAL / "gait2392_subject01_walk1.trc")
+    static = read_trc(LOCAL / "gait2392_subject01_static.trc")
+    hamner_dir = LOCAL if quick or not (SHARED / "hamner_subject02_running.trc").is_file() else SHARED
+    run_trial = read_trc(hamner_dir / "hamner_subject02_running.trc")
+    fits = {
+        "gait2392_walk": (fit_markers(walk, static, model=model), LOCAL / "gait2392_subject01_walk1_ik.mot"),
+        "hamner_running": (
+            fit_markers(run_trial, model=model),
+            hamner_dir / "hamner_subject02_running_ik.mot",
+        ),
+    }
+    acc = {name: compare(fit, skel, mot) for name, (fit, mot) in fits.items()}
+    rmse = {name: {c: v["rmse"] for c, v in table.items()} for name, table in acc.items()}
+    out: dict[str, Any] = {
+        "ik_rmse_deg": rmse,
+        "ik_rmse_deg_max_flexion": max(rmse[t][c] for t in rmse for c in FLEXION),
+        "ik_rmse_deg_max_flexion_per_trial": {t: max(rmse[t][c] for c in FLEXION) for t in rmse},
+        "ik_mean_difference_deg": {t: {c: v["mean"] for c, v in a.items()} for t, a in acc.items()},
+        "ik_rmse_offset_removed_deg": {
+            t: {c: v["rmse_offset_removed"] for c, v in a.items()} for t, a in acc.items()
+        },
+        "frames": {name: len(fit.times) for name, (fit, _) in fits.items()},
+        "fit_seconds": {name: fit.report.seconds for name, (fit, _) in fits.items()},
+        "marker_error_mm": {name: fit.report.distances.mean for name, (fit, _) in fits.items()},
+        "limit_violations": {name: fit.report.limit_violations for name, (fit, _) in fits.items()},
+        "hamner_source": "full trial" if hamner_dir == SHARED else "tests/data copy (0-3 s)",
+    }
+    gait_fit = fits["gait2392_walk"][0]
+    timed = walk.between(0.0, 1.0) if quick else walk
+    out["ik_seconds"] = time_our_ik(gait_fit, skel, timed, repeats=1 if quick else 3)
+    out["ik_frames_timed"] = timed.n_frames
+    try:
+        import opensim  # noqa: F401
+    except ImportError:
+        out.update(opensim_ik_seconds=None, ik_speed_ratio=None, opensim="not installed")
+        return out | _machine()
+    sub = MarkerFit(
+        gait_fit.coordinates[: timed.n_frames], gait_fit.root[: timed.n_frames], timed.times, gait_fit.scales,
+        gait_fit.markers, gait_fit.marker_errors, gait_fit.static_coordinates, gait_fit.marker_set,
+        gait_fit.dof_names, gait_fit.report,
+    )  # fmt: skip
+    with tempfile.TemporaryDirectory() as tmp:
+        q_os, root_os, seconds = _opensim_ik(sub, skel, timed, Path(tmp), lower_only=False)
+        ours_cost = _objective(sub, skel, timed, sub.coordinates, sub.root)
+        their_cost = _objective(sub, skel, timed, q_os, root_os)
+        out["opensim_ik_seconds"] = seconds
+        out["ik_speed_ratio"] = seconds / out["ik_seconds"]
+        out["objective_ours_over_opensim"] = float(np.median(ours_cost / their_cost))
+        out["frames_where_opensim_objective_lower"] = int((their_cost < ours_cost - 1e-12).sum())
+        if not quick:
+            lower = fit_markers(walk, static, model=model, weights=_upper_body_off(gait_fit))
+            q_low, _, _ = _opensim_ik(lower, skel, walk, Path(tmp), lower_only=True)
+            diff = np.degrees(q_low[:, :LOWER_BODY] - lower.coordinates[:, :LOWER_BODY])
+            out["lower_body_agreement_rmse_deg"] = {
+                skel.dof_names[i]: float(np.sqrt(np.mean(diff[:, i] ** 2)))
+                for i in range(LOWER_BODY)
+                if "subtalar" not in skel.dof_names[i] and "mtp" not in skel.dof_names[i]
+            }
+    return out | _machine()
+
+
+def _upper_body_off(fit: MarkerFit) -> dict[str, float]:
+    """Weights that drop the markers above the pelvis and legs (for the lower-body agreement check)."""
+    return {n: 0.0 for n, b in zip(fit.markers.names, fit.markers.bodies) if not b.startswith(LEGS)}
+
+
+def _machine() -> dict[str, Any]:
+    return {
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "torch_version": torch.__version__,
+    }
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0] if __doc__ else None)
+    parser.add_argument("--quick", action="store_true", help="the 3 s running copy, 1 s of walking timed")
+    parser.add_argument("--json", action="store_true", help="print the figures as one JSON object last")
+    args = parser.parse_args(argv)
+    res = run(args.quick)
+    for trial, table in res["ik_rmse_deg"].items():
+        print(f"\n{trial}: RMSE vs OpenSim reference IK (deg)   [mean difference, RMSE offset removed]")
+        for coord, value in table.items():
+            mean = res["ik_mean_difference_deg"][trial][coord]
+            flat = res["ik_rmse_offset_removed_deg"][trial][coord]
+            mark = "  <- target 5" if coord in FLEXION else ""
+            print(f"  {coord:20s} {value:6.2f}   [{mean:+6.2f}, {flat:5.2f}]{mark}")
+    worst = res["ik_rmse_deg_max_flexion_per_trial"]
+    print(f"\nmax flexion RMSE: {res['ik_rmse_deg_max_flexion']:.2f} deg  {worst}")
+    print(f"marker error (mm): {res['marker_error_mm']}; limit violations: {res['limit_violations']}")
+    ratio = res.get("ik_speed_ratio") or float("nan")
+    theirs = res.get("opensim_ik_seconds") or float("nan")
+    print(
+        f"IK on {res['ik_frames_timed']} frames: ours {res['ik_seconds']:.3f} s, OpenSim {theirs:.3f} s, "
+        f"OpenSim / ours = {ratio:.1f}x"
+    )
+    if "objective_ours_over_opensim" in res:
+        print(
+            f"objective ours / OpenSim (median over frames): {res['objective_ours_over_opensim']:.3f}; "
+            f"frames where OpenSim's is lower: {res['frames_where_opensim_objective_lower']}"
+        )
+    if "lower_body_agreement_rmse_deg" in res:
+        print(f"lower body, OpenSim IK vs ours (deg RMSE): {res['lower_body_agreement_rmse_deg']}")
+    if args.json:
+        print(json.dumps(res))
+
+
+if __name__ == "__main__":
+    main()
