@@ -17,7 +17,8 @@ What is measured
   exported with ``write_osim`` and its MarkerSet, with the same marker weights, the same locked DOFs and
   our soft-DOF priors as IKCoordinateTasks (the same objective). ``ik_speed_ratio`` = OpenSim / ours.
 * Agreement: the objective (weighted squared marker error + priors) of both solutions per frame, and,
-  with the upper body locked in both, the lower-body coordinates of OpenSim's IK against ours.
+  with the upper body locked in both, the lower-body coordinates of OpenSim's IK (accuracy 1e-7) against
+  ours.
 
 Usage::
 
@@ -76,12 +77,14 @@ def compare(fit: MarkerFit, skel: Skeleton, mot: Path) -> dict[str, dict[str, fl
 
 
 def _opensim_ik(
-    fit: MarkerFit, skel: Skeleton, trial: MarkerTrial, folder: Path, lower_only: bool
+    fit: MarkerFit, skel: Skeleton, trial: MarkerTrial, folder: Path, lower_only: bool, accuracy: float = 1e-5
 ) -> tuple[np.ndarray, np.ndarray, float]:
-    """OpenSim's IK on our exported subject: (q (T', n_dof), root (T', 3), seconds)."""
+    """OpenSim's IK on our exported subject: (q (T', n_dof), root (T', 3), seconds). ``accuracy``: the
+    tool's convergence setting (1e-5 as in OpenSim's example setups)."""
     import opensim
 
     opensim.Logger.setLevelString("error")
+    opensim.Logger.removeFileSink()  # no opensim.log in the working directory
     plan = DofPlan.build(skel, MARKER_SETS[fit.marker_set])
     name = "lower" if lower_only else "full"
     model = opensim.Model(str(fit.write(folder, skel.spec, f"subject_{name}")["osim"]))
@@ -116,7 +119,9 @@ def _opensim_ik(
     tool.setStartTime(float(trial.times[0]))
     tool.setEndTime(float(trial.times[-1]))
     tool.setOutputMotionFileName(str(folder / f"{name}_ik.mot"))
-    tool.set_accuracy(1e-5)
+    tool.set_accuracy(accuracy)
+    tool.setResultsDir(str(folder))
+    tool.set_report_errors(False)
     start = time.perf_counter()
     tool.run()
     seconds = time.perf_counter() - start
@@ -207,7 +212,7 @@ def run(quick: bool) -> dict[str, Any]:
         out["frames_where_opensim_objective_lower"] = int((their_cost < ours_cost - 1e-12).sum())
         if not quick:
             lower = fit_markers(walk, static, model=model, weights=_upper_body_off(gait_fit))
-            q_low, _, _ = _opensim_ik(lower, skel, walk, Path(tmp), lower_only=True)
+            q_low, _, _ = _opensim_ik(lower, skel, walk, Path(tmp), lower_only=True, accuracy=1e-7)
             diff = np.degrees(q_low[:, :LOWER_BODY] - lower.coordinates[:, :LOWER_BODY])
             out["lower_body_agreement_rmse_deg"] = {
                 skel.dof_names[i]: float(np.sqrt(np.mean(diff[:, i] ** 2)))
