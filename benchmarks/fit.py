@@ -1,0 +1,56 @@
+"""The fitting benchmarks in one run: registered meshes against anny's AnnyInverter, mocap markers against
+OpenSim's inverse kinematics. Each part is its own script (see their docstrings for what is measured):
+
+* ``fit_registered.py``: ``registered_mm``, ``registered_ms``, ``anny_mm``, ``anny_ms``, ratio.
+* ``fit_markers.py``: ``ik_rmse_deg``, ``ik_seconds``, ``opensim_ik_seconds``, ``ik_speed_ratio``.
+
+Raw-scan and sequence fitting are not implemented yet; their keys (``scan_clean_mm``, ``scan_corrupt_mm``,
+``scan_s``, ``seq_fps``) are listed under ``not_measured`` rather than given made-up values.
+
+Usage::
+
+    python benchmarks/fit.py [--quick] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from typing import Any
+
+import fit_markers  # benchmarks/ is on sys.path when this script runs
+import fit_registered
+
+NOT_MEASURED = ("scan_clean_mm", "scan_corrupt_mm", "scan_s", "seq_fps")
+
+
+def run(quick: bool) -> dict[str, Any]:
+    start = time.perf_counter()
+    out: dict[str, Any] = {
+        "machine": {"cpu_count": os.cpu_count(), "python": platform.python_version(), "quick": quick},
+    }
+    out.update(fit_registered.run(quick))
+    out.update(fit_markers.run(quick))
+    out["not_measured"] = list(NOT_MEASURED)
+    out["seconds"] = round(time.perf_counter() - start, 1)
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description="fitting benchmarks: ours against anny and OpenSim")
+    parser.add_argument("--quick", action="store_true", help="small samples (a minute or two)")
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    args = parser.parse_args(argv)
+    r = run(args.quick)
+    if args.json:
+        print(json.dumps(r))
+        return
+    for key, value in r.items():
+        print(f"{key:>28}: {value}")
+
+
+if __name__ == "__main__":
+    main()
