@@ -3,6 +3,7 @@ anny bodies the model never saw, and every bad input."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -119,8 +120,10 @@ def test_not_a_body_is_not_confident(fitter: RegisteredFitter, model: BodyModel)
         (lambda V: np.full((1, V, 3), np.nan), NonFiniteError, "NaN"),
     ],
 )
-def test_bad_meshes_raise_clear_errors(fitter: RegisteredFitter, make, error, words) -> None:  # type: ignore[no-untyped-def]
-    with pytest.raises(error, match=None) as info:
+def test_bad_meshes_raise_clear_errors(
+    fitter: RegisteredFitter, make: Callable[[int], np.ndarray], error: type[Exception], words: str
+) -> None:
+    with pytest.raises(error) as info:
         fitter.fit(make(fitter.model.n_vertices))
     assert words in str(info.value)
 
