@@ -34,6 +34,7 @@ import platform
 import statistics
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +45,7 @@ from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting.calibration import DofPlan
 from bodyfit.models.fitting.marker_sets import MARKER_SETS
 from bodyfit.models.fitting.marker_solve import marker_errors, solve_ik
-from bodyfit.models.fitting.markers import MarkerFit, _observed, fit_markers
+from bodyfit.models.fitting.markers import MarkerFit, fit_markers, observed_positions
 from bodyfit.models.fitting.mocap_io import MarkerTrial, read_trc, write_trc
 from bodyfit.models.skeleton.model import Skeleton
 from bodyfit.models.skeleton.opensim_export import read_mot
@@ -137,7 +138,7 @@ def _objective(
     """(T,) weighted squared marker error plus the soft-DOF priors (the IK objective)."""
     names = [n for n in fit.markers.names if n in trial.names]
     markers = fit.markers.subset(names)
-    err = marker_errors(skel, markers, fit.scales, q, root, _observed(trial, names))
+    err = marker_errors(skel, markers, fit.scales, q, root, observed_positions(trial, names))
     plan = DofPlan.build(skel, MARKER_SETS[fit.marker_set])
     return np.nansum(markers.weights * err**2, axis=1) + (plan.soft * q**2).sum(axis=1)
 
@@ -146,7 +147,7 @@ def time_our_ik(fit: MarkerFit, skel: Skeleton, trial: MarkerTrial, repeats: int
     """Median seconds of our IK stage (calibrated markers and scales, every frame of ``trial``)."""
     names = [n for n in fit.markers.names if n in trial.names]
     markers = fit.markers.subset(names)
-    observed = _observed(trial, names)
+    observed = observed_positions(trial, names)
     plan = DofPlan.build(skel, MARKER_SETS[fit.marker_set])
     times = []
     for _ in range(repeats + 1):
@@ -197,11 +198,8 @@ def run(quick: bool) -> dict[str, Any]:
     except ImportError:
         out.update(opensim_ik_seconds=None, ik_speed_ratio=None, opensim="not installed")
         return out | _machine()
-    sub = MarkerFit(
-        gait_fit.coordinates[: timed.n_frames], gait_fit.root[: timed.n_frames], timed.times, gait_fit.scales,
-        gait_fit.markers, gait_fit.marker_errors, gait_fit.static_coordinates, gait_fit.marker_set,
-        gait_fit.dof_names, gait_fit.report,
-    )  # fmt: skip
+    n = timed.n_frames
+    sub = replace(gait_fit, coordinates=gait_fit.coordinates[:n], root=gait_fit.root[:n], times=timed.times)
     with tempfile.TemporaryDirectory() as tmp:
         q_os, root_os, seconds = _opensim_ik(sub, skel, timed, Path(tmp), lower_only=False)
         ours_cost = _objective(sub, skel, timed, sub.coordinates, sub.root)

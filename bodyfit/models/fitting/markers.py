@@ -82,8 +82,9 @@ class MarkerFit:
         return {"osim": osim, "mot": mot}
 
 
-def _observed(trial: MarkerTrial, names: list[str]) -> np.ndarray:
-    """(T, M) positions of the set's markers ``names`` in a trial (NaN for absent ones). -> (T, M, 3)."""
+def observed_positions(trial: MarkerTrial, names: list[str]) -> np.ndarray:
+    """Positions (T, M, 3) of the markers ``names`` (set names; trial names are matched after
+    :func:`~.marker_sets.normalise_name`) in a trial, NaN for markers it does not have."""
     index = {normalise_name(n): i for i, n in enumerate(trial.names)}
     out = np.full((trial.n_frames, len(names), 3), np.nan)
     for k, n in enumerate(names):
@@ -152,12 +153,16 @@ def fit_markers(
     notes: list[str] = []
     if static is not None:
         window = static if static_window is None else static.between(*static_window)
-        cal, markers = _calibrate_static(skel, scale_model, vm, _observed(window, used), plan, defn.name)
-        missing = [n for n in used if n in in_trial and not np.isfinite(_observed(window, [n])).any()]
+        cal, markers = _calibrate_static(
+            skel, scale_model, vm, observed_positions(window, used), plan, defn.name
+        )
+        missing = [
+            n for n in used if n in in_trial and not np.isfinite(observed_positions(window, [n])).any()
+        ]
         if missing:
             notes.append(f"not in the static trial, left at their default locations: {', '.join(missing)}")
     else:
-        obs = _observed(trial, used)
+        obs = observed_positions(trial, used)
         frames = _calibration_frames(obs, calibration_frames)
         first = solve_ik(skel, vm, scale_model.mean.numpy(), obs[frames], trial.times[frames], plan)
         cal = calibrate(
@@ -168,7 +173,7 @@ def fit_markers(
 
     ik_names = [n for n in markers.names if n in in_trial]
     ik_markers = markers.subset(ik_names)
-    observed = _observed(trial, ik_names)
+    observed = observed_positions(trial, ik_names)
     sol = solve_ik(skel, ik_markers, cal.scales, observed, trial.times, plan, max_iterations=max_iterations)
     t_end = time.perf_counter()
     report = _report(sol.q, sol.errors, observed, skel.ranges, cal.iterations + sol.iterations, t_end - t0)
