@@ -5,8 +5,9 @@ limits are never violated; see :func:`~.marker_ik.levenberg_marquardt` for why n
 and the root translation. Residuals: ``sqrt(w_m) (x_m - y_m)`` for every visible marker (missing
 ones are masked to zero) and ``sqrt(lambda_i) q_i`` for the soft DOFs. Frames are independent problems
 solved together by :func:`~.marker_ik.levenberg_marquardt` (one batched Jacobian per iteration). Warm
-start: the pelvis of every frame from its markers (Kabsch), the other DOFs from the static pose; a first
-pass on every ``stride``-th frame, then all frames start from the interpolated solution.
+start, the batched form of OpenSim's frame-to-frame warm start: the pelvis of every frame from its markers
+(Kabsch), the other DOFs neutral (or ``start``); a staged first pass on every ``stride``-th frame, then
+every frame starts from the solution interpolated between its neighbours in that pass.
 """
 
 from __future__ import annotations
