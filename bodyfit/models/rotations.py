@@ -77,3 +77,47 @@ def rotation_angle_between(Ra: torch.Tensor, Rb: torch.Tensor) -> torch.Tensor:
     )
     trace = rel[..., 0, 0] + rel[..., 1, 1] + rel[..., 2, 2]
     return torch.atan2(0.5 * torch.linalg.vector_norm(skew, dim=-1), 0.5 * (trace - 1.0))
+
+
+def zxy_angles(R: np.ndarray) -> np.ndarray:
+    """Angles ``(a, b, c)`` with ``R = Rz(a) Rx(b) Ry(c)`` (Rajagopal's pelvis: tilt, list, rotation).
+
+    Args:
+        R: (..., 3, 3).
+    Returns:
+        (..., 3) radians, b in [-pi/2, pi/2].
+    """
+    b = np.arcsin(np.clip(R[..., 2, 1], -1.0, 1.0))
+    a = np.arctan2(-R[..., 0, 1], R[..., 1, 1])
+    c = np.arctan2(-R[..., 2, 0], R[..., 2, 2])
+    return np.stack([a, b, c], axis=-1)
+
+
+def kabsch(source: np.ndarray, target: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted rigid alignment per row: R, t minimising sum_k w_k |R s_k + t - x_k|^2.
+
+    Non-finite target points are skipped; rows with fewer than 3 weighted finite points give NaN.
+
+    Args:
+        source: (K, 3); target: (B, K, 3); weights: (K,) or (B, K), non-negative.
+    Returns:
+        R (B, 3, 3) proper rotations; t (B, 3).
+    """
+    finite = np.isfinite(target).all(-1)
+    w = np.broadcast_to(weights, finite.shape) * finite
+    x = np.where(finite[..., None], target, 0.0)
+    valid = (w > 0).sum(axis=1) >= 3
+    w = np.where(valid[:, None], w, 1.0)
+    w = w / w.sum(axis=1, keepdims=True)
+    mu_s = w @ source
+    mu_t = np.einsum("bk,bkc->bc", w, x)
+    H = np.einsum("bk,bki,bkj->bij", w, source[None] - mu_s[:, None], x - mu_t[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    V, Ut = np.swapaxes(Vt, 1, 2), np.swapaxes(U, 1, 2)
+    D = np.zeros_like(H)
+    D[:, 0, 0] = D[:, 1, 1] = 1.0
+    D[:, 2, 2] = np.sign(np.linalg.det(V @ Ut))
+    R = V @ D @ Ut
+    t = mu_t - np.einsum("bij,bj->bi", R, mu_s)
+    R[~valid], t[~valid] = np.nan, np.nan
+    return R, t

@@ -14,7 +14,8 @@ from scipy.spatial.transform import Rotation
 from bodyfit.models.body.anny_posed import random_poses
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.errors import NonFiniteError, ShapeError
-from bodyfit.models.fitting.registered import BodyFit, RegisteredFitter, kabsch
+from bodyfit.models.fitting.registered import BodyFit, RegisteredFitter
+from bodyfit.models.rotations import kabsch
 
 
 @pytest.fixture(scope="module")

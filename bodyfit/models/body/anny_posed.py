@@ -18,9 +18,7 @@ from bodyfit.models.body.anny_source import AnnySource, Population
 from bodyfit.models.body.lbs import rigid_inverse
 from bodyfit.models.body.skeleton_fit import SkeletonFit, place_skeletons
 from bodyfit.models.body.skinning_fit import bone_transforms
-from bodyfit.models.skeleton.model import Skeleton
-
-PELVIS_ROTATIONS = ("pelvis_tilt", "pelvis_list", "pelvis_rotation")
+from bodyfit.models.skeleton.model import PELVIS_ROTATIONS, Skeleton
 
 
 def template_landmarks(src: AnnySource) -> tuple[np.ndarray, np.ndarray]:

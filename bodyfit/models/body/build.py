@@ -20,14 +20,14 @@ import numpy as np
 import torch
 
 from bodyfit.models.body import landmarks as lmk
-from bodyfit.models.body.anny_posed import PELVIS_ROTATIONS, pose_anny, random_poses, template_landmarks
+from bodyfit.models.body.anny_posed import pose_anny, random_poses, template_landmarks
 from bodyfit.models.body.anny_source import AnnySource, Population
 from bodyfit.models.body.lbs import linear_blend, skinning_transforms
 from bodyfit.models.body.model import ANATOMICAL_JOINTS, body_points, joint_anchors
 from bodyfit.models.body.shape_space import fit_correctives, fit_joint_regressor, fit_pca, vertex_errors
 from bodyfit.models.body.skeleton_fit import place_skeletons
 from bodyfit.models.body.skinning_fit import QuadraticSkinningLoss, refine_weights, support_mask
-from bodyfit.models.skeleton.model import Skeleton
+from bodyfit.models.skeleton.model import PELVIS_ROTATIONS, Skeleton
 
 
 @dataclass(frozen=True)

@@ -80,8 +80,8 @@ def body_points(
     """World positions of body-fixed points.
 
     Args:
-        frames: (B, n_body, 4, 4); scales: (B, n_seg, 3); body, segment: (P,) indices; local: (P, 3)
-            points in their body frames before scaling.
+        frames: (B, n_body, 4, 4); scales: (B, n_seg, 3); body, segment: (P,) indices; local: (P, 3) or
+            (B, P, 3) points in their body frames before scaling.
     Returns:
         (B, P, 3).
     """

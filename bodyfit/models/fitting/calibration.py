@@ -16,8 +16,9 @@ import numpy as np
 import torch
 
 from bodyfit.models.body.model import BodyModel
-from bodyfit.models.fitting.marker_ik import fill_gaps, kabsch, zxy_angles
+from bodyfit.models.fitting.marker_ik import fill_gaps
 from bodyfit.models.fitting.marker_sets import RAJAGOPAL_MARKERS, MarkerSetDef
+from bodyfit.models.rotations import kabsch, zxy_angles
 from bodyfit.models.skeleton.model import Skeleton, twin_name
 
 MARKER_SIGMA = 0.01  # m: a marker residual of this size costs 1 (times its weight)
@@ -149,13 +150,6 @@ class DofPlan:
         for name in defn.soft:
             soft[skel.dof_index(name)] = (MARKER_SIGMA / SOFT_SIGMA) ** 2
         return DofPlan(np.flatnonzero(~fixed), locked, soft)
-
-
-def inside(skel: Skeleton, q: np.ndarray, margin: float = RANGE_MARGIN) -> np.ndarray:
-    """Coordinates moved at least ``margin`` of their range inside the limits. q: (..., n_dof)."""
-    lo, hi = skel.ranges[:, 0], skel.ranges[:, 1]
-    pad = margin * (hi - lo)
-    return np.clip(q, lo + pad, hi - pad)
 
 
 def pelvis_start(

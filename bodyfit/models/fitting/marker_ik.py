@@ -92,12 +92,7 @@ def marker_positions(
     Returns:
         (B, M, 3).
     """
-    frames = fk(q, root, scales).frames
-    if local.ndim == 2:
-        return body_points(frames, scales, chain.body, chain.segment, local)
-    T = frames[:, chain.body]
-    p = local * scales[:, chain.segment]
-    return (T[..., :3, :3] @ p.unsqueeze(-1)).squeeze(-1) + T[..., :3, 3]
+    return body_points(fk(q, root, scales).frames, scales, chain.body, chain.segment, local)
 
 
 def table_with_slope(x: torch.Tensor, fk: SkeletonKinematics) -> tuple[torch.Tensor, torch.Tensor]:
@@ -311,46 +306,6 @@ def levenberg_marquardt(
         done = (ok & small) | (lam[rows] >= 1e9)
         active[rows[done]] = False
     return SolveResult(x, cost, iterations, evaluations / max(B, 1))
-
-
-def kabsch(model: np.ndarray, observed: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Best rigid transform ``observed ~ R @ model + t`` per frame (weighted; NaN observations skipped).
-
-    Args:
-        model: (K, 3) points in a body frame; observed: (T, K, 3); weights: (K,).
-    Returns:
-        R (T, 3, 3) and t (T, 3); frames with fewer than 3 valid points get NaN.
-    """
-    T = observed.shape[0]
-    R = np.full((T, 3, 3), np.nan)
-    t = np.full((T, 3), np.nan)
-    for k in range(T):
-        ok = np.isfinite(observed[k]).all(-1) & (weights > 0)
-        if ok.sum() < 3:
-            continue
-        w = weights[ok] / weights[ok].sum()
-        a, b = model[ok], observed[k, ok]
-        ca, cb = w @ a, w @ b
-        H = ((a - ca) * w[:, None]).T @ (b - cb)
-        U, _, Vt = np.linalg.svd(H)
-        D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-        R[k] = Vt.T @ D @ U.T
-        t[k] = cb - R[k] @ ca
-    return R, t
-
-
-def zxy_angles(R: np.ndarray) -> np.ndarray:
-    """Angles ``(a, b, c)`` with ``R = Rz(a) Rx(b) Ry(c)`` (Rajagopal's pelvis: tilt, list, rotation).
-
-    Args:
-        R: (..., 3, 3).
-    Returns:
-        (..., 3) radians.
-    """
-    b = np.arcsin(np.clip(R[..., 2, 1], -1.0, 1.0))
-    a = np.arctan2(-R[..., 0, 1], R[..., 1, 1])
-    c = np.arctan2(-R[..., 2, 0], R[..., 2, 2])
-    return np.stack([a, b, c], axis=-1)
 
 
 def fill_gaps(values: np.ndarray, times: np.ndarray) -> np.ndarray:

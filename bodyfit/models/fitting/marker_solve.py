@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from bodyfit.models.fitting.calibration import DofPlan, VirtualMarkers, inside, pelvis_start
+from bodyfit.models.fitting.calibration import RANGE_MARGIN, DofPlan, VirtualMarkers, pelvis_start
 from bodyfit.models.fitting.marker_ik import (
     MarkerChain,
     levenberg_marquardt,
@@ -190,7 +190,7 @@ def solve_ik(
     angles, root0 = pelvis_start(skel, markers, scales, observed, times)
     q0 = np.tile(plan.locked if start is None else start, (T, 1))
     q0[:, :3] = angles
-    q0 = inside(skel, q0)
+    q0 = skel.inside(q0, RANGE_MARGIN)
     coarse = np.unique(np.r_[np.arange(0, T, max(stride, 1)), T - 1])
     distal_b = distal_bodies(skel)
     is_distal = np.array([b in distal_b for b in markers.body_indices(skel)])

@@ -17,15 +17,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from scipy.spatial.transform import Rotation
 
 from bodyfit.models.body.model import BodyDecoder, BodyModel
 from bodyfit.models.errors import ShapeError
 from bodyfit.models.fitting.lbfgs import batched_lbfgs
 from bodyfit.models.fitting.report import DistanceStats, FitReport, count_limit_violations
-from bodyfit.models.skeleton.model import check_finite
+from bodyfit.models.rotations import kabsch, zxy_angles
+from bodyfit.models.skeleton.model import PELVIS_ROTATIONS, check_finite
 
-PELVIS_ROTATIONS = ("pelvis_tilt", "pelvis_list", "pelvis_rotation")  # intrinsic Z, X, Y (scipy "ZXY")
 TRUNK_BODIES = ("pelvis", "torso", "thoracic_link", "thorax")
 TRUNK_DOF_PREFIXES = ("pelvis_", "lumbar_", "thorax_")
 CONFIDENT_MEAN_MM = 10.0
@@ -96,27 +95,6 @@ def farthest_point_subset(points: np.ndarray, n: int) -> np.ndarray:
     return chosen
 
 
-def kabsch(source: np.ndarray, target: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted rigid alignment: R, t minimising sum_i w_i |R s_i + t - x_i|^2.
-
-    Args:
-        source: (V, 3); target: (B, V, 3); weights: (B, V) non-negative.
-    Returns:
-        R (B, 3, 3) proper rotations; t (B, 3).
-    """
-    w = weights / weights.sum(axis=1, keepdims=True)
-    mu_s = np.einsum("bv,vc->bc", w, source)
-    mu_t = np.einsum("bv,bvc->bc", w, target)
-    H = np.einsum("bv,bvi,bvj->bij", w, source[None] - mu_s[:, None], target - mu_t[:, None])
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(np.swapaxes(Vt, 1, 2) @ np.swapaxes(U, 1, 2)))
-    D = np.zeros_like(H)
-    D[:, 0, 0] = D[:, 1, 1] = 1.0
-    D[:, 2, 2] = d
-    R = np.swapaxes(Vt, 1, 2) @ D @ np.swapaxes(U, 1, 2)
-    return R, mu_t - np.einsum("bij,bj->bi", R, mu_s)
-
-
 class RegisteredFitter:
     """Fits :class:`BodyModel` to (B, V, 3) meshes in its topology. Reusable and stateless between calls."""
 
@@ -158,11 +136,10 @@ class RegisteredFitter:
             if len(own) >= MIN_PART_VERTICES:
                 self._part_bodies.append(j)
                 self._part_index.append(own)
-        scale_mean = torch.as_tensor(model.data["scale_mean"], dtype=torch.float64)[None]
-        bind_q = torch.as_tensor(model.bind_coordinates)[None]
-        self._bind_frames = skel.kinematics(torch.float64)(bind_q, None, scale_mean).frames[0].numpy()
+        base, delta = self._linear_bind()
+        self._bind_frames = base.numpy()  # (n_body, 4, 4) the mean body's bind pose, float64
+        self._bind_base, self._bind_delta = base.to(dtype), delta.to(dtype)
         self._scales = self._preconditioner()
-        self._bind_base, self._bind_delta = self._linear_bind()
 
     # -- input -----------------------------------------------------------------------------------------
     def validate(
@@ -188,22 +165,6 @@ class RegisteredFitter:
         return x, w
 
     # -- start -----------------------------------------------------------------------------------------
-    def rigid_start(self, x: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Coordinates (B, n_dof) and root (B, 3) from a Kabsch fit of the template's trunk.
-
-        The template is stored in the bind pose with the pelvis at the origin, so the trunk's rotation is
-        the pelvis orientation (intrinsic ZXY Euler angles = tilt, list, rotation) and its translation the
-        root.
-        """
-        idx = self.index["trunk"]
-        R, t = kabsch(self.model.data["vertices_mean"][idx], x[:, idx], w[:, idx] + 1e-12)
-        euler = Rotation.from_matrix(R).as_euler("ZXY")
-        ranges = self.model.skeleton.ranges[self.pelvis]
-        euler = np.clip(euler, ranges[:, 0] + 1e-3, ranges[:, 1] - 1e-3)
-        q = np.repeat(self.model.bind_coordinates[None], len(x), axis=0)
-        q[:, self.pelvis] = euler
-        return q, t
-
     def bone_start(self, x: np.ndarray, w: np.ndarray, iterations: int = 30) -> tuple[np.ndarray, np.ndarray]:
         """Coordinates (B, n_dof) and root (B, 3) from each body's own rigid motion.
 
@@ -226,9 +187,8 @@ class RegisteredFitter:
         pelvis = target[:, self._part_bodies.index(0)]
         lo, hi = skel.ranges[:, 0], skel.ranges[:, 1]
         q = np.repeat(self.model.bind_coordinates[None], B, axis=0)
-        q[:, self.pelvis] = Rotation.from_matrix(pelvis[:, :3, :3]).as_euler("ZXY")
-        margin = 0.1 * (hi - lo)
-        q = np.clip(q, lo + margin, hi - margin)
+        q[:, self.pelvis] = zxy_angles(pelvis[:, :3, :3])
+        q = skel.inside(q, 0.1)
         q[:, self.pelvis] = np.clip(q[:, self.pelvis], lo[self.pelvis] + 1e-3, hi[self.pelvis] - 1e-3)
         root = torch.as_tensor(pelvis[:, :3, 3], dtype=dtype)
         free = torch.ones(skel.n_dof, dtype=dtype)
@@ -281,9 +241,7 @@ class RegisteredFitter:
             c0 = np.zeros((B, self.model.n_shape))
         else:
             q0, r0, c0 = init.coordinates, init.root, init.shape
-        lo, hi = skel.ranges[:, 0], skel.ranges[:, 1]
-        margin = 1e-3 * (hi - lo)
-        q0t = torch.as_tensor(np.clip(q0, lo + margin, hi - margin), dtype=dtype)
+        q0t = torch.as_tensor(skel.inside(q0, 1e-3), dtype=dtype)
         c_init = c0.mean(0, keepdims=True) if shared_shape else c0
         # Optimised in preconditioned units (see _preconditioner): u = z_u s_u, root = z_r s_r, c = z_c s_c.
         s_u, s_r, s_c = self._scales
@@ -320,8 +278,7 @@ class RegisteredFitter:
         in curvature by orders of magnitude and it converges slowly."""
         skel = self.model.skeleton
         dtype = self.config.dtype
-        lo, hi = skel.ranges[:, 0], skel.ranges[:, 1]
-        q = np.clip(self.model.bind_coordinates, lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo))
+        q = skel.inside(self.model.bind_coordinates, 0.1)
         n_dof, ns = skel.n_dof, self.model.n_shape
         p0 = torch.cat([
             skel.to_unbounded(torch.as_tensor(q[None], dtype=dtype)), torch.zeros(1, 3 + ns, dtype=dtype)
@@ -348,7 +305,8 @@ class RegisteredFitter:
         forward kinematics for the pose only. Checked against forward kinematics here.
 
         Returns:
-            base (n_body, 4, 4) frames at c_b = 0; delta (n_bone, n_body, 3) origin change per coefficient.
+            base (n_body, 4, 4) frames at c_b = 0; delta (n_bone, n_body, 3) origin change per coefficient;
+            float64.
         """
         skel, nb = self.model.skeleton, self.model.n_bone
         fk = skel.kinematics(torch.float64)
@@ -368,8 +326,7 @@ class RegisteredFitter:
             exact[..., :3, :3], base[:, :3, :3].expand_as(exact[..., :3, :3])
         ):
             raise AssertionError("bind-pose frames are not affine in the bone coefficients")
-        dtype = self.config.dtype
-        return base.to(dtype), delta.to(dtype)
+        return base, delta
 
     def _bind(self, c: torch.Tensor) -> torch.Tensor:
         """(B, n_body, 4, 4) bind-pose frames for shape coefficients c (B, n_shape)."""

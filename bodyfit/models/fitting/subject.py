@@ -27,11 +27,11 @@ import torch
 
 from bodyfit.models.fitting.calibration import (
     MARKER_SIGMA,
+    RANGE_MARGIN,
     SCALE_SIGMA,
     DofPlan,
     ScaleModel,
     VirtualMarkers,
-    inside,
     pelvis_start,
 )
 from bodyfit.models.fitting.marker_ik import MarkerChain, marker_jacobian, marker_positions
@@ -216,7 +216,7 @@ def calibrate(
     q0 = np.tile(plan.locked, (len(times), 1)) if start is None else start.copy()
     if start is None:
         q0[:, :3] = angles
-    q0 = inside(skel, q0)
+    q0 = skel.inside(q0, RANGE_MARGIN)
     x = torch.cat([torch.as_tensor(q0[:, plan.free]), torch.as_tensor(root0)], dim=1)
     z = torch.cat(
         [torch.zeros(problem.n_b + problem.n_r, dtype=torch.float64), problem.l0[problem.place].flatten()]

@@ -17,6 +17,8 @@ from bodyfit.models.skeleton.kinematics import Pose, SkeletonKinematics
 from bodyfit.models.skeleton.spec import SkeletonSpec
 
 SKELETON_ASSET = "skeleton.json"
+# The pelvis orientation: R = Rz(tilt) Rx(list) Ry(rotation) (see rotations.zxy_angles).
+PELVIS_ROTATIONS = ("pelvis_tilt", "pelvis_list", "pelvis_rotation")
 # Midline DOFs whose sign flips in a left-right mirror image (the rest swap sides, sign kept).
 LATERAL_DOFS = frozenset({
     "pelvis_list", "pelvis_rotation", "lumbar_bending", "lumbar_rotation",
@@ -31,6 +33,8 @@ def twin_name(name: str) -> str:
     if name.endswith("_l"):
         return name[:-2] + "_r"
     return name
+
+
 RANGE_TOLERANCE = 1e-9
 
 
@@ -179,6 +183,13 @@ class Skeleton:
                 "coordinates outside their joint limits: " + "; ".join(parts) + ". Clamp them yourself or "
                 "pass unconstrained values through Skeleton.from_unbounded."
             )
+
+    def inside(self, q: np.ndarray, margin: float) -> np.ndarray:
+        """Coordinates moved at least ``margin`` (a fraction of each range) inside the limits: a start
+        point for fitting through :meth:`to_unbounded`. q: (..., n_dof) -> (..., n_dof)."""
+        lo, hi = self.ranges[:, 0], self.ranges[:, 1]
+        pad = margin * (hi - lo)
+        return np.clip(q, lo + pad, hi - pad)
 
     # -- bounded parameterisation -------------------------------------------------------------------------
     def from_unbounded(self, u: torch.Tensor) -> torch.Tensor:
