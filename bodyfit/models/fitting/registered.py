@@ -13,6 +13,7 @@ returns respects the joint limits. The model holds buffers only; the optimisatio
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,6 +31,9 @@ TRUNK_DOF_PREFIXES = ("pelvis_", "lumbar_", "thorax_")
 CONFIDENT_MEAN_MM = 10.0
 MIN_PART_WEIGHT = 0.7  # a vertex belongs to a body's rigid part above this skinning weight
 MIN_PART_VERTICES = 20
+
+State = tuple[torch.Tensor, torch.Tensor, torch.Tensor]  # preconditioned (u, root, shape), see start_state
+DataTerm = Callable[[torch.Tensor], torch.Tensor]
 
 
 @dataclass(frozen=True)
@@ -81,6 +85,16 @@ class BodyFit:
     vertices: np.ndarray
     joints: np.ndarray
     reports: list[FitReport] = field(default_factory=list)
+
+
+def vertex_term(targets_mm: torch.Tensor, weights: torch.Tensor) -> DataTerm:
+    """The registered data term: weighted mean squared vertex distance (B,) in mm^2, for targets (B, V', 3)
+    in mm and weights (B, V') (mean one)."""
+
+    def term(verts_mm: torch.Tensor) -> torch.Tensor:
+        return (((verts_mm - targets_mm) ** 2).sum(-1) * weights).mean(1)
+
+    return term
 
 
 def farthest_point_subset(points: np.ndarray, n: int) -> np.ndarray:
@@ -235,41 +249,54 @@ class RegisteredFitter:
         x, w = self.validate(targets, weights)
         B = len(x)
         dtype = self.config.dtype
-        skel = self.model.skeleton
         if init is None:
             q0, r0 = self.bone_start(x, w)
             c0 = np.zeros((B, self.model.n_shape))
         else:
             q0, r0, c0 = init.coordinates, init.root, init.shape
-        q0t = torch.as_tensor(skel.inside(q0, 1e-3), dtype=dtype)
-        c_init = c0.mean(0, keepdims=True) if shared_shape else c0
-        # Optimised in preconditioned units (see _preconditioner): u = z_u s_u, root = z_r s_r, c = z_c s_c.
-        s_u, s_r, s_c = self._scales
-        z_u = (skel.to_unbounded(q0t) / s_u).detach()
-        z_r = torch.as_tensor(r0, dtype=dtype) / s_r
-        z_c = torch.as_tensor(c_init, dtype=dtype) / s_c
+        z = self.start_state(q0, r0, c0.mean(0, keepdims=True) if shared_shape else c0)
         xt = torch.as_tensor(x, dtype=dtype)
         wt = torch.as_tensor(w / w.mean(axis=1, keepdims=True), dtype=dtype)
         iterations = 0
         losses: dict[str, float] = {}
         for stage in self.config.stages:
-            n_iter, loss = self._run_stage(stage, (z_u, z_r, z_c), xt, wt)
+            idx = torch.as_tensor(self.index[stage.vertices])
+            n_iter, loss = self.optimise(stage, z, vertex_term(xt[:, idx] * 1000.0, wt[:, idx]))
             iterations += n_iter
             losses[stage.name] = loss
+        c, q, root = self.parameters(z)
         with torch.no_grad():
-            # In float64: float32 tanh saturates to exactly +-1, which rounds onto (or past) a bound.
-            q = skel.from_unbounded((z_u * s_u).double())
-            root = z_r * s_r
-            c = (z_c * s_c).expand(B, -1)
-            verts, joints, _, _ = self.decoder(c, q.to(dtype), root)
+            verts, joints, _, _ = self.decoder(c.to(dtype), q.to(dtype), root.to(dtype))
         seconds = time.perf_counter() - start
         v_np = verts.double().numpy()
         q_np = q.numpy()
         dist = np.linalg.norm(v_np - x, axis=-1)
         reports = [self._report(dist[b], w[b], q_np[b], iterations, seconds / B, losses) for b in range(B)]
-        return BodyFit(
-            c.double().numpy(), q_np, root.double().numpy(), v_np, joints.double().numpy(), reports
-        )
+        return BodyFit(c.numpy(), q_np, root.numpy(), v_np, joints.double().numpy(), reports)
+
+    # -- optimisation state ----------------------------------------------------------------------------
+    def start_state(self, q0: np.ndarray, r0: np.ndarray, c0: np.ndarray) -> State:
+        """The optimisation state for coordinates q0 (B, n_dof) (moved inside the limits), root r0 (B, 3) and
+        shape c0 (B or 1, n_shape) (one row: a shape shared by the batch)."""
+        dtype = self.config.dtype
+        skel = self.model.skeleton
+        s_u, s_r, s_c = self._scales
+        q0t = torch.as_tensor(skel.inside(np.asarray(q0, np.float64), 1e-3), dtype=dtype)
+        z_u = (skel.to_unbounded(q0t) / s_u).detach()
+        z_r = torch.as_tensor(np.asarray(r0), dtype=dtype) / s_r
+        z_c = torch.as_tensor(np.asarray(c0), dtype=dtype) / s_c
+        return z_u, z_r, z_c
+
+    def parameters(self, z: State) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Shape (B, n_shape), coordinates (B, n_dof) within the limits and root (B, 3), float64."""
+        z_u, z_r, z_c = z
+        s_u, s_r, s_c = self._scales
+        with torch.no_grad():
+            # In float64: float32 tanh saturates to exactly +-1, which rounds onto (or past) a bound.
+            q = self.model.skeleton.from_unbounded((z_u * s_u).double())
+            root = (z_r * s_r).double()
+            c = (z_c * s_c).double().expand(len(q), -1)
+        return c, q, root
 
     def _preconditioner(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Per-parameter units (u: (n_dof,), root: (3,), c: (n_shape,)) in which one unit moves the subset's
@@ -336,23 +363,23 @@ class RegisteredFitter:
         base = self._bind_base.expand(len(c), -1, -1, -1)
         return torch.cat([torch.cat([base[..., :3, :3], t.unsqueeze(-1)], -1), base[..., 3:, :]], -2)
 
-    def _run_stage(
-        self,
-        stage: Stage,
-        z: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
-        x: torch.Tensor,
-        w: torch.Tensor,
-    ) -> tuple[int, float]:
-        """One stage by :func:`batched_lbfgs`: one problem per mesh, or one problem for the whole batch when
-        the shape is shared. Updates ``z`` (u: (B, n_dof), root: (B, 3), c: (1 or B, n_shape)) in place."""
+    def optimise(self, stage: Stage, z: State, data_term: DataTerm) -> tuple[int, float]:
+        """Minimise ``data_term`` + shape prior over the stage's parameters by :func:`batched_lbfgs`: one
+        problem per mesh, or one for the whole batch when the shape is shared. Updates ``z`` (u: (B, n_dof),
+        root: (B, 3), c: (1 or B, n_shape), from :meth:`start_state`) in place.
+
+        Args:
+            data_term: maps the model's vertices ``self.index[stage.vertices]`` (B, V_stage, 3) in mm to a
+                (B,) loss in mm^2.
+        Returns:
+            iterations run and the final loss per mesh.
+        """
         z_u, z_r, z_c = z
         s_u, s_r, s_c = self._scales
-        B = x.shape[0]
+        B = z_u.shape[0]
         rows = z_c.shape[0]
         per_row = B // rows
         decoder = self.decoders[stage.vertices]
-        idx = torch.as_tensor(self.index[stage.vertices])
-        xs, ws = x[:, idx] * 1000.0, w[:, idx]
         fd = torch.nonzero(self.dof_mask[stage.coordinates]).flatten()
         fs = torch.nonzero(self.shape_mask[stage.shape]).flatten()
         n_pose = per_row * (len(fd) + 3)
@@ -370,7 +397,7 @@ class RegisteredFitter:
             c_full = c * s_c
             c_mesh = c_full.repeat_interleave(per_row, 0)
             verts = decoder(c_mesh, skel.from_unbounded(u * s_u), r * s_r, self._bind(c_mesh))[0]
-            err = (((verts * 1000.0 - xs) ** 2).sum(-1) * ws).mean(1)  # (B,)
+            err = data_term(verts * 1000.0)  # (B,)
             return err.reshape(rows, per_row).sum(1) + prior * (c_full**2).sum(1)
 
         Z0 = torch.cat([torch.cat([z_u[:, fd], z_r], 1).reshape(rows, n_pose), z_c[:, fs]], 1)
