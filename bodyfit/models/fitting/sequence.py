@@ -1,0 +1,336 @@
+"""Fit a registered-mesh sequence of one person: one shape, a pose per frame, continuous angles.
+
+How (:class:`SequenceFitter`):
+
+1. Heading. Each frame's pelvis is aligned rigidly (Kabsch on the pelvis's own skin) and the frame is turned
+   about the vertical and moved so that its pelvis faces +X at the origin. Fitting happens in these
+   frames, where the pelvis coordinates stay near zero (far from the +-180 degree ends of
+   ``pelvis_rotation``), and every result is turned back. The headings are unwrapped over time.
+2. Shape. :class:`RegisteredFitter`'s full fit, with one shape shared by ``keyframes`` frames spread over
+   the sequence; the shape is then frozen for every frame.
+3. Pose keyframes every ``stride`` frames: the fitter's rigid start (per-body Kabsch and inverse kinematics)
+   and a pose-only fit with the frozen shape.
+4. Every frame starts from the linear interpolation of its two neighbouring keyframes (a warm start within
+   ``stride / 2`` frames of a fitted pose) and gets a short pose-only fit. Frames are independent problems
+   given the shape and the keyframes, so splitting them into chunks (memory) changes nothing: there are no
+   seams between chunks.
+5. Back in the world frame the pelvis angles are recomputed from the pelvis orientation and unwrapped over
+   time, so ``pelvis_rotation`` is continuous even when the subject turns round (it may then leave
+   [-pi, pi]; :meth:`SequenceFit.coordinates_in_range` folds it back).
+
+Temporal smoothness comes from the data term and the warm starts: nothing filters the result, so it cannot
+lag real motion. :class:`SequenceStats` measures the frame-to-frame jitter of the fit against the input's.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+
+from bodyfit.models.body.model import BodyModel
+from bodyfit.models.errors import ShapeError
+from bodyfit.models.fitting.registered import RegisteredFitConfig, RegisteredFitter, Stage, vertex_term
+from bodyfit.models.fitting.report import DistanceStats, FitReport, count_limit_violations
+from bodyfit.models.fitting.retarget import unwrap_pelvis, wrap_pelvis
+from bodyfit.models.rotations import kabsch, zxy_angles
+from bodyfit.models.skeleton.model import PELVIS_ROTATIONS
+
+KEY_STAGES = (Stage("key_pose", "all", "none", "subset", 40),)
+FRAME_STAGES = (Stage("pose", "all", "none", "subset", 12),)
+PELVIS_WEIGHT = 0.5  # skinning weight above which a vertex belongs to the pelvis, for the heading
+
+
+@dataclass(frozen=True)
+class SequenceConfig:
+    """keyframes: frames (spread evenly) the shape is fitted on; stride: frames between pose keyframes;
+    chunk: frames fitted together (memory only: frames are independent given the keyframes);
+    pose_subset: vertices of the farthest-point subset the pose stages ("subset") fit;
+    key_stages / frame_stages: pose-only stages (shape "none") for pose keyframes and for every frame."""
+
+    keyframes: int = 8
+    stride: int = 8
+    chunk: int = 256
+    pose_subset: int = 400
+    key_stages: tuple[Stage, ...] = KEY_STAGES
+    frame_stages: tuple[Stage, ...] = FRAME_STAGES
+
+
+@dataclass(frozen=True)
+class SequenceStats:
+    """Sequence-level numbers.
+
+    frames; seconds (wall, whole fit); fps = frames / seconds; mean_mm: mean per-vertex distance over all
+    frames; jitter_input_mm / jitter_fit_mm: mean over frames and vertices of the second difference in
+    time ``|x[t+1] - 2 x[t] + x[t-1]|`` (mm); jitter_ratio: fit over input (1 = as smooth as the input);
+    shape_keyframes: the frames the shape was fitted on.
+    """
+
+    frames: int
+    seconds: float
+    fps: float
+    mean_mm: float
+    jitter_input_mm: float
+    jitter_fit_mm: float
+    jitter_ratio: float
+    shape_keyframes: tuple[int, ...]
+
+    def to_dict(self) -> dict[str, object]:
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
+
+
+@dataclass(frozen=True)
+class SequenceFit:
+    """One person over T frames.
+
+    shape: (n_shape,) for every frame; coordinates: (T, n_dof), the pelvis angles unwrapped over time (see
+    :meth:`coordinates_in_range`); root: (T, 3); vertices: (T, V, 3) float32, the registration; joints:
+    (T, J, 3); reports: one :class:`FitReport` per frame; stats: :class:`SequenceStats`.
+    """
+
+    shape: np.ndarray
+    coordinates: np.ndarray
+    root: np.ndarray
+    vertices: np.ndarray
+    joints: np.ndarray
+    reports: list[FitReport]
+    stats: SequenceStats
+    dof_names: tuple[str, ...] = field(default=(), repr=False)
+    _in_range: np.ndarray | None = field(default=None, repr=False)
+
+    def coordinates_in_range(self) -> np.ndarray:
+        """(T, n_dof) with the pelvis angles folded into [-pi, pi]: valid input to :meth:`BodyModel.forward`
+        (the same poses)."""
+        assert self._in_range is not None
+        return self._in_range
+
+
+def jitter(x: np.ndarray, weights: np.ndarray | None = None) -> float:
+    """Mean second difference in time of trajectories x (T, N, 3) metres, in mm; over points with positive
+    weight (T, N) in all three frames; NaN for fewer than 3 frames."""
+    if len(x) < 3:
+        return float("nan")
+    acc = np.linalg.norm(x[2:] - 2.0 * x[1:-1] + x[:-2], axis=-1)
+    if weights is not None:
+        ok = (weights[2:] > 0) & (weights[1:-1] > 0) & (weights[:-2] > 0)
+        return float(acc[ok].mean() * 1000.0) if ok.any() else float("nan")
+    return float(acc.mean() * 1000.0)
+
+
+def _yaw(angle: np.ndarray) -> np.ndarray:
+    """(T, 3, 3) rotations about +Y by angle (T,)."""
+    c, s = np.cos(angle), np.sin(angle)
+    R = np.zeros((len(angle), 3, 3))
+    R[:, 0, 0], R[:, 0, 2], R[:, 1, 1], R[:, 2, 0], R[:, 2, 2] = c, s, 1.0, -s, c
+    return R
+
+
+def _zxy_matrix(a: np.ndarray) -> np.ndarray:
+    """(T, 3, 3) ``Rz(a0) Rx(a1) Ry(a2)``."""
+    cz, sz = np.cos(a[:, 0]), np.sin(a[:, 0])
+    cx, sx = np.cos(a[:, 1]), np.sin(a[:, 1])
+    one, zero = np.ones_like(cz), np.zeros_like(cz)
+    Rz = np.stack([cz, -sz, zero, sz, cz, zero, zero, zero, one], -1).reshape(-1, 3, 3)
+    Rx = np.stack([one, zero, zero, zero, cx, -sx, zero, sx, cx], -1).reshape(-1, 3, 3)
+    return Rz @ Rx @ _yaw(a[:, 2])
+
+
+class SequenceFitter:
+    """Fits (T, V, 3) registered-mesh sequences of one person. Build once, reuse; holds no per-fit state.
+
+    Args:
+        fitter: the :class:`RegisteredFitter` (or the :class:`BodyModel`, for default settings) whose full
+            fit gives the shape; its subset, preconditioning and dtype serve the pose fits too.
+        config: :class:`SequenceConfig`.
+    """
+
+    def __init__(self, fitter: RegisteredFitter | BodyModel, config: SequenceConfig | None = None) -> None:
+        self.fitter = fitter if isinstance(fitter, RegisteredFitter) else RegisteredFitter(fitter)
+        self.config = config or SequenceConfig()
+        for stage in (*self.config.key_stages, *self.config.frame_stages):
+            if stage.shape != "none":
+                raise ValueError(f"sequence pose stages keep the shape frozen; stage {stage.name!r} fits it")
+        if self.config.stride < 1 or self.config.keyframes < 1 or self.config.chunk < 1:
+            raise ValueError("keyframes, stride and chunk must be at least 1")
+        base: RegisteredFitConfig = self.fitter.config
+        # Pose fits run on their own (smaller) vertex subset; the shape fit keeps the given fitter's.
+        self.pose_fitter = RegisteredFitter(self.model, replace(base, subset_size=self.config.pose_subset))
+        skel = self.model.skeleton
+        self.pelvis_dofs = [skel.dof_index(n) for n in PELVIS_ROTATIONS]
+        self.pelvis_vertices = np.flatnonzero(self.model.data["weights"][:, 0] > PELVIS_WEIGHT)
+        fk = skel.kinematics(torch.float64)
+        scales = torch.as_tensor(self.model.data["scale_mean"], dtype=torch.float64)[None]
+        bind = (
+            fk(torch.as_tensor(self.model.bind_coordinates, dtype=torch.float64)[None], None, scales)
+            .frames[0, 0]
+            .numpy()
+        )
+        self._pelvis_bind = bind  # (4, 4) the mean body's pelvis frame in the template's pose
+
+    @property
+    def model(self) -> BodyModel:
+        return self.fitter.model
+
+    # -- frames ----------------------------------------------------------------------------------------
+    def headings(self, x: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per-frame heading (T,) radians about +Y, unwrapped over time, and pelvis origin (T, 3), from a
+        rigid fit of the pelvis's skin."""
+        idx = self.pelvis_vertices
+        template = self.model.data["vertices_mean"][idx]
+        R, t = kabsch(template, x[:, idx], w[:, idx] + 1e-12)
+        bind = self._pelvis_bind
+        forward = R @ bind[:3, 0]  # the pelvis's +X in the world
+        origin = np.einsum("tij,j->ti", R, bind[:3, 3]) + t
+        return np.unwrap(np.arctan2(-forward[:, 2], forward[:, 0])), origin
+
+    # -- fit -------------------------------------------------------------------------------------------
+    def fit(
+        self,
+        frames: np.ndarray | torch.Tensor,
+        weights: np.ndarray | None = None,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> SequenceFit:
+        """Fit a sequence.
+
+        Args:
+            frames: (T, V, 3) meshes in our template's vertex order, metres, T >= 1, in time order.
+            weights: (T, V) per-vertex confidence (0 = missing), default ones.
+            progress: called as ``progress(frames_done, T)`` after each chunk of the last pass.
+        Returns:
+            :class:`SequenceFit`.
+        Raises:
+            ShapeError / NonFiniteError: bad input (wrong shape, no frames, NaN, bad weights).
+        """
+        start = time.perf_counter()
+        x_in = np.asarray(frames)
+        if x_in.ndim != 3 or len(x_in) == 0:
+            raise ShapeError(
+                f"a sequence must have shape (T, {self.model.n_vertices}, 3) with T >= 1 frames; "
+                f"got {x_in.shape}"
+            )
+        x, w = self.fitter.validate(x_in, weights)
+        T = len(x)
+        cfg = self.config
+        heading, origin = self.headings(x, w)
+        G = _yaw(-heading)  # world -> canonical
+        xc = np.einsum("tij,tvj->tvi", G, x - origin[:, None])
+
+        # Shape on keyframes spread over the sequence, then frozen.
+        shape_keys = np.unique(np.linspace(0, T - 1, min(cfg.keyframes, T)).round().astype(np.int64))
+        shape_fit = self.fitter.fit(xc[shape_keys], w[shape_keys], shared_shape=True)
+        c = shape_fit.shape[:1]
+
+        # Pose keyframes with the frozen shape, then every frame from their interpolation.
+        keys = np.unique(np.r_[np.arange(0, T, cfg.stride), T - 1])
+        q_key, r_key = np.empty((len(keys), self.model.skeleton.n_dof)), np.empty((len(keys), 3))
+        for lo in range(0, len(keys), cfg.chunk):
+            k = keys[lo : lo + cfg.chunk]
+            q0, r0 = self.fitter.bone_start(xc[k], w[k])
+            q_key[lo : lo + len(k)], r_key[lo : lo + len(k)] = self._pose(
+                xc[k], w[k], c, q0, r0, cfg.key_stages
+            )
+        q_init = np.stack([np.interp(np.arange(T), keys, q_key[:, j]) for j in range(q_key.shape[1])], 1)
+        r_init = np.stack([np.interp(np.arange(T), keys, r_key[:, j]) for j in range(3)], 1)
+
+        q_c = np.empty_like(q_init)
+        root_c = np.empty((T, 3))
+        verts = np.empty((T, self.model.n_vertices, 3), np.float32)
+        joints = np.empty((T, len(self.model.joint_names), 3))
+        decoder = self.pose_fitter.decoder
+        dtype = self.pose_fitter.config.dtype
+        ct = torch.as_tensor(c, dtype=dtype)
+        for lo in range(0, T, cfg.chunk):
+            hi = min(T, lo + cfg.chunk)
+            q_c[lo:hi], root_c[lo:hi] = self._pose(
+                xc[lo:hi], w[lo:hi], c, q_init[lo:hi], r_init[lo:hi], cfg.frame_stages
+            )
+            with torch.no_grad():
+                v, j, _, _ = decoder(
+                    ct.expand(hi - lo, -1),
+                    torch.as_tensor(q_c[lo:hi], dtype=dtype),
+                    torch.as_tensor(root_c[lo:hi], dtype=dtype),
+                )
+            # World = G^T canonical + origin, on row vectors: v @ G + origin.
+            Gk = torch.as_tensor(G[lo:hi], dtype=dtype)
+            o = torch.as_tensor(origin[lo:hi, None], dtype=dtype)
+            verts[lo:hi] = (v @ Gk + o).numpy()
+            joints[lo:hi] = (j @ Gk + o).double().numpy()
+            if progress is not None:
+                progress(hi, T)
+        iterations = sum(st.iterations for st in cfg.frame_stages)
+
+        # Back to the world: root and pelvis orientation turned back, pelvis angles unwrapped.
+        Gt = np.swapaxes(G, -1, -2)
+        root = np.einsum("tij,tj->ti", Gt, root_c) + origin
+        q = q_c.copy()
+        q[:, self.pelvis_dofs] = zxy_angles(Gt @ _zxy_matrix(q_c[:, self.pelvis_dofs]))
+        q = unwrap_pelvis(q, self.model.skeleton)
+        seconds = time.perf_counter() - start
+
+        dist = np.linalg.norm(verts - x.astype(np.float32), axis=-1).astype(np.float64)
+        q_range = wrap_pelvis(q, self.model.skeleton)
+        reports = [self._report(dist[t], w[t], q_range[t], iterations, seconds / T) for t in range(T)]
+        used = dist[w > 0]
+        j_in, j_fit = jitter(x, w), jitter(verts, w)
+        stats = SequenceStats(
+            frames=T,
+            seconds=seconds,
+            fps=T / seconds,
+            mean_mm=float(used.mean() * 1000.0),
+            jitter_input_mm=j_in,
+            jitter_fit_mm=j_fit,
+            jitter_ratio=j_fit / j_in if j_in > 0 else float("nan"),
+            shape_keyframes=tuple(int(k) for k in shape_keys),
+        )
+        return SequenceFit(c[0], q, root, verts, joints, reports, stats, tuple(self.model.dof_names), q_range)
+
+    def _pose(
+        self,
+        x: np.ndarray,
+        w: np.ndarray,
+        c: np.ndarray,
+        q0: np.ndarray,
+        r0: np.ndarray,
+        stages: tuple[Stage, ...],
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Pose-only fit of frames x (B, V, 3) with the shape c (1, n_shape) frozen, from q0 (B, n_dof) and
+        r0 (B, 3): one problem per frame. Returns coordinates (B, n_dof) and root (B, 3)."""
+        fitter = self.pose_fitter
+        dtype = fitter.config.dtype
+        z = fitter.start_state(q0, r0, np.repeat(c, len(x), axis=0))
+        for stage in stages:
+            idx = fitter.index[stage.vertices]
+            xt = torch.as_tensor(x[:, idx] * 1000.0, dtype=dtype)
+            wt = torch.as_tensor(w[:, idx] / w.mean(axis=1, keepdims=True), dtype=dtype)
+            fitter.optimise(stage, z, vertex_term(xt, wt))
+        _, q, root = fitter.parameters(z)
+        return q.numpy(), root.numpy()
+
+    def _report(
+        self, dist: np.ndarray, w: np.ndarray, q: np.ndarray, iterations: int, seconds: float
+    ) -> FitReport:
+        stats = DistanceStats.of(dist[w > 0])
+        violations = count_limit_violations(q, self.model.skeleton.ranges)
+        reasons = []
+        if stats.mean > 10.0:
+            reasons.append(
+                f"mean vertex error {stats.mean:.1f} mm exceeds 10 mm: the frame may not be this body"
+            )
+        if violations:
+            reasons.append(f"{violations} coordinates outside their joint limits")
+        return FitReport(stats, violations, iterations, seconds, not reasons, tuple(reasons))
+
+
+def fit_sequence(
+    fitter: RegisteredFitter | BodyModel,
+    frames: np.ndarray | torch.Tensor,
+    weights: np.ndarray | None = None,
+    config: SequenceConfig | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> SequenceFit:
+    """Fit one person's registered-mesh sequence (T, V, 3). See :class:`SequenceFitter` (build that once
+    to fit many sequences)."""
+    return SequenceFitter(fitter, config).fit(frames, weights, progress)
