@@ -290,16 +290,15 @@ def retarget(
     d_rest = unit(pos0[0, b] - pos0[0, a])  # our axes; the pelvis is upright and faces +X at rest
     # Bodies without an origin pair carry their rest direction in their own frame at q_ref (found below).
     n_free = len(chain.free)
-    q_ref = torch.zeros(1, n_free, dtype=torch.float64)
+    # Directions without an origin pair (the head's) are ignored here (zero local vector), then carried by
+    # their body from q_ref on.
     local = torch.zeros(len(a), 3, dtype=torch.float64)
-    for _ in range(2):  # the local head direction depends on q_ref, which barely depends on it
-        F_ref = chain.frames(q_ref)
-        for k, pair in enumerate(chain.dir_ours):
-            if pair is None:
-                Rb = F_ref[0, chain.dir_body_index[k], :3, :3]
-                local[k] = Rb.T @ torch.as_tensor(d_rest[k])
-        q_ref = _solve(chain, torch.zeros(1, n_free, dtype=torch.float64),
-                       torch.as_tensor(d_rest[None]), None, local, 200)  # fmt: skip
+    zero = torch.zeros(1, n_free, dtype=torch.float64)
+    q_ref = _solve(chain, zero, torch.as_tensor(d_rest[None]), None, local, 150)
+    F_ref = chain.frames(q_ref)
+    for k, pair in enumerate(chain.dir_ours):
+        if pair is None:
+            local[k] = F_ref[0, chain.dir_body_index[k], :3, :3].T @ torch.as_tensor(d_rest[k])
     R_ref = chain.frames(q_ref)[0, chain.rot_bodies, :3, :3].numpy()
     C = np.einsum("ji,bjk->bik", M, R_ref)  # (n_rot, 3, 3) M^T R_b(q_ref)
 

@@ -148,13 +148,13 @@ class SequenceFitter:
     """
 
     def __init__(self, fitter: RegisteredFitter | BodyModel, config: SequenceConfig | None = None) -> None:
-        self.fitter = fitter if isinstance(fitter, RegisteredFitter) else RegisteredFitter(fitter)
         self.config = config or SequenceConfig()
         for stage in (*self.config.key_stages, *self.config.frame_stages):
             if stage.shape != "none":
                 raise ValueError(f"sequence pose stages keep the shape frozen; stage {stage.name!r} fits it")
         if self.config.stride < 1 or self.config.keyframes < 1 or self.config.chunk < 1:
             raise ValueError("keyframes, stride and chunk must be at least 1")
+        self.fitter = fitter if isinstance(fitter, RegisteredFitter) else RegisteredFitter(fitter)
         base: RegisteredFitConfig = self.fitter.config
         # Pose fits run on their own (smaller) vertex subset; the shape fit keeps the given fitter's.
         self.pose_fitter = RegisteredFitter(self.model, replace(base, subset_size=self.config.pose_subset))

@@ -1,0 +1,223 @@
+"""Sequences: retargeting real motion (CMU subject 131) onto our skeleton, and fitting registered-mesh
+sequences of one person: accuracy on held-out anny bodies, one shape, no seams between chunks, continuous
+(unwrapped) pelvis angles through a full turn, no lag, jitter against the input's, and bad input."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from bodyfit.models.body.model import BodyModel
+from bodyfit.models.errors import NonFiniteError, ShapeError
+from bodyfit.models.fitting.bvh import CMU_UNITS, BvhMotion, read_bvh
+from bodyfit.models.fitting.mocap_io import MocapFormatError
+from bodyfit.models.fitting.registered import RegisteredFitter, Stage
+from bodyfit.models.fitting.retarget import Retargeted, retarget, wrap_pelvis
+from bodyfit.models.fitting.sequence import SequenceConfig, SequenceFit, SequenceFitter, jitter
+
+CLIP = Path(__file__).resolve().parents[1] / "data" / "cmu_bvh" / "cmu_131_01_clip.bvh"
+LEGS_AND_TRUNK = ("pelvis_", "hip_", "knee_", "lumbar_", "thorax_")
+CHUNK = 64
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _one_thread() -> Iterator[None]:
+    """One torch thread here: these tests make many small batched calls, which a second thread slows down
+    several times over when the other core is busy (the suite runs two workers)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def model() -> BodyModel:
+    return BodyModel.load()
+
+
+@pytest.fixture(scope="module")
+def motion() -> BvhMotion:
+    return read_bvh(CLIP, CMU_UNITS)
+
+
+@pytest.fixture(scope="module")
+def moved(model: BodyModel, motion: BvhMotion) -> Retargeted:
+    return retarget(motion, model.skeleton)
+
+
+@pytest.fixture(scope="module")
+def seq_fitter(model: BodyModel) -> SequenceFitter:
+    return SequenceFitter(RegisteredFitter(model), SequenceConfig(chunk=CHUNK))
+
+
+@pytest.fixture(scope="module")
+def held_out(model: BodyModel, motion: BvhMotion) -> dict[str, np.ndarray]:
+    """The clip turned through three quarters of a turn (the pelvis passes 180 degrees), retargeted onto a
+    held-out anny body and skinned by anny's own rig: not in our model's span."""
+    pytest.importorskip("anny")
+    from benchmarks.fit_sequences import held_out_motion, turning
+
+    data = held_out_motion(model, turning(motion, 0.75), seed=777)
+    return {"vertices": data.vertices, "q": data.q, "root": data.root}
+
+
+@pytest.fixture(scope="module")
+def held_out_fit(seq_fitter: SequenceFitter, held_out: dict[str, np.ndarray]) -> SequenceFit:
+    return seq_fitter.fit(held_out["vertices"])
+
+
+# -- retargeting ---------------------------------------------------------------------------------------
+def test_retarget_is_in_range_continuous_and_close(model: BodyModel, moved: Retargeted) -> None:
+    skel = model.skeleton
+    q = moved.coordinates
+    assert q.shape == (240, skel.n_dof) and moved.root.shape == (240, 3) and abs(moved.rate - 120) < 0.01
+    lo, hi = skel.ranges.T
+    q_in = moved.in_range(skel)
+    assert ((q_in >= lo) & (q_in <= hi)).all()
+    step = np.degrees(np.abs(np.diff(q, axis=0)))
+    legs = [k for k, n in enumerate(skel.dof_names) if n.startswith(LEGS_AND_TRUNK)]
+    assert step[:, legs].max() < 12.0, step[:, legs].max()  # degrees per frame at 120 fps
+    assert np.percentile(step, 99) < 10.0
+    assert moved.residual_deg.mean() < 8.0  # RMS bone-direction mismatch, degrees
+    # Walking: the knees bend and straighten, the root moves forward at walking speed.
+    knee = q[:, skel.dof_index("knee_angle_r")]
+    assert np.degrees(np.ptp(knee)) > 40
+    speed = np.linalg.norm(moved.root[-1, [0, 2]] - moved.root[0, [0, 2]]) / 2.0
+    assert 0.4 < speed < 2.0
+
+
+def test_retarget_unwraps_a_full_turn(model: BodyModel, motion: BvhMotion) -> None:
+    from benchmarks.fit_sequences import turning
+
+    clip = BvhMotion(motion.joints, motion.values[:120], motion.frame_time, motion.units, motion.rotation)
+    moved = retarget(turning(clip, 1.25), model.skeleton, iterations=20)
+    rot = moved.coordinates[:, model.skeleton.dof_index("pelvis_rotation")]
+    assert np.ptp(rot) > np.radians(400)  # beyond [-pi, pi]: unwrapped
+    assert np.degrees(np.abs(np.diff(rot))).max() < 8.0
+    wrapped = moved.in_range(model.skeleton)[:, model.skeleton.dof_index("pelvis_rotation")]
+    assert np.abs(wrapped).max() <= np.pi
+    np.testing.assert_allclose(np.cos(wrapped - rot), 1.0, atol=1e-12)
+
+
+def test_retarget_needs_the_mapped_joints(model: BodyModel, motion: BvhMotion) -> None:
+    empty = BvhMotion(motion.joints, motion.values[:0], motion.frame_time)
+    with pytest.raises(MocapFormatError, match="no frames"):
+        retarget(empty, model.skeleton)
+    renamed = tuple(replace(j, name="Pelvis") if j.name == "Hips" else j for j in motion.joints)
+    with pytest.raises(MocapFormatError, match="lacks joints the retarget map needs: Hips"):
+        retarget(BvhMotion(renamed, motion.values[:2], motion.frame_time), model.skeleton)
+    with pytest.raises(ShapeError, match="scales must have shape"):
+        retarget(motion, model.skeleton, scales=np.ones((3, 3)))
+
+
+# -- sequence fitting ------------------------------------------------------------------------------------
+def test_held_out_sequence_fits_within_three_millimetres(
+    held_out_fit: SequenceFit, held_out: dict[str, np.ndarray]
+) -> None:
+    fit, x = held_out_fit, held_out["vertices"]
+    T = len(x)
+    assert fit.vertices.shape == x.shape and len(fit.reports) == T
+    errors = np.array([r.distances.mean for r in fit.reports])
+    assert fit.stats.mean_mm <= 3.0 and errors.max() < 10.0, (fit.stats.mean_mm, errors.max())
+    np.testing.assert_allclose(errors.mean(), fit.stats.mean_mm, rtol=1e-6)
+    assert all(r.limit_violations == 0 for r in fit.reports)
+    # Frame-to-frame jitter no larger than the input's (within 10%), and no lag: each fitted frame is
+    # closest to its own input frame, not to a neighbour.
+    assert fit.stats.jitter_ratio < 1.1, fit.stats
+    d0 = np.linalg.norm(fit.vertices[1:-1] - x[1:-1], axis=-1).mean()
+    for shift in (-1, 1):
+        assert d0 < np.linalg.norm(fit.vertices[1:-1] - x[1 + shift : T - 1 + shift], axis=-1).mean()
+
+
+def test_one_shape_for_the_whole_sequence(model: BodyModel, held_out_fit: SequenceFit) -> None:
+    fit = held_out_fit
+    assert fit.shape.shape == (model.n_shape,)
+    T = len(fit.coordinates)
+    out = model.forward(
+        np.repeat(fit.shape[None], T, axis=0), fit.coordinates_in_range(), fit.root, dtype=torch.float64
+    )
+    # The registration is the model at the returned parameters, with that one shape in every frame.
+    assert np.abs(out.vertices.numpy() - fit.vertices).max() < 2e-4
+    assert np.abs(out.joints.numpy() - fit.joints).max() < 2e-4
+
+
+def test_pelvis_is_unwrapped_through_a_turn(
+    model: BodyModel, held_out_fit: SequenceFit, held_out: dict[str, np.ndarray]
+) -> None:
+    k = model.skeleton.dof_index("pelvis_rotation")
+    rot, truth = held_out_fit.coordinates[:, k], held_out["q"][:, k]
+    assert np.ptp(truth) > np.radians(200) and np.abs(truth).max() > np.pi  # the subject turns past 180
+    assert np.degrees(np.abs(np.diff(rot))).max() < 8.0  # no 2 pi jumps
+    assert np.degrees(np.abs(rot - truth)).max() < 6.0
+    wrapped = held_out_fit.coordinates_in_range()[:, k]
+    np.testing.assert_allclose(wrapped, wrap_pelvis(held_out_fit.coordinates, model.skeleton)[:, k])
+
+
+def test_no_seams_between_chunks(
+    seq_fitter: SequenceFitter, held_out_fit: SequenceFit, held_out: dict[str, np.ndarray]
+) -> None:
+    fit, x = held_out_fit, held_out["vertices"]
+    T = len(x)
+    errors = np.array([r.distances.mean for r in fit.reports])
+    seams = np.arange(CHUNK, T, CHUNK)
+    at_seams = np.r_[seams - 1, seams]
+    assert errors[at_seams].max() < 2.0 * np.median(errors) + 1.0, errors[at_seams]
+    acc = np.linalg.norm(fit.vertices[2:] - 2 * fit.vertices[1:-1] + fit.vertices[:-2], axis=-1).mean(1)
+    acc_in = np.linalg.norm(x[2:] - 2 * x[1:-1] + x[:-2], axis=-1).mean(1)
+    # Second difference centred on each seam frame (index t - 1 in acc): no larger than the input's there
+    # beyond what frames away from the seams show.
+    excess = acc - acc_in
+    assert excess[at_seams - 1].max() <= np.percentile(excess, 95) + 0.5, excess[at_seams - 1]
+    # Chunks only split the work: one chunk for the whole clip gives the same fit.
+    whole = SequenceFitter(seq_fitter.fitter, SequenceConfig(chunk=T)).fit(x[:100])
+    chunked = seq_fitter.fit(x[:100])
+    assert np.abs(whole.vertices - chunked.vertices).max() < 1e-4
+
+
+def test_model_sequence_and_progress(model: BodyModel, moved: Retargeted, seq_fitter: SequenceFitter) -> None:
+    """A sequence of our own model (in its span, no anny needed) is recovered closely, with one shape."""
+    rng = np.random.default_rng(5)
+    T = 72
+    shape = rng.normal(size=(1, model.n_shape)) * 0.7
+    q = moved.in_range(model.skeleton)[:T]
+    x = model.forward(np.repeat(shape, T, axis=0), q, moved.root[:T], dtype=torch.float64).vertices.numpy()
+    calls: list[tuple[int, int]] = []
+    fit = seq_fitter.fit(x, progress=lambda done, total: calls.append((done, total)))
+    assert calls == [(64, T), (T, T)]
+    assert fit.stats.mean_mm < 1.5, fit.stats
+    assert fit.stats.jitter_ratio < 1.1
+    assert fit.stats.fps > 0 and fit.stats.frames == T and len(fit.stats.shape_keyframes) == 8
+    assert np.degrees(np.abs(fit.coordinates - moved.coordinates[:T])[:, :3]).max() < 3.0
+
+
+def test_jitter_definition() -> None:
+    t = np.arange(5.0)
+    x = np.zeros((5, 2, 3))
+    x[:, 0, 0] = t**2 / 1000.0  # constant acceleration: second difference 2 mm
+    assert jitter(x) == pytest.approx(1.0)  # mean over the two points: (2 + 0) / 2
+    assert np.isnan(jitter(x[:2]))
+
+
+def test_bad_sequences_raise(model: BodyModel, seq_fitter: SequenceFitter) -> None:
+    V = model.n_vertices
+    with pytest.raises(ShapeError, match="T >= 1"):
+        seq_fitter.fit(np.zeros((0, V, 3)))
+    with pytest.raises(ShapeError, match=f"\\(T, {V}, 3\\)"):
+        seq_fitter.fit(np.zeros((V, 3)))
+    with pytest.raises(ShapeError, match="our template's vertices"):
+        seq_fitter.fit(np.zeros((3, V - 1, 3)))
+    bad = np.zeros((3, V, 3))
+    bad[1, 5, 2] = np.nan
+    with pytest.raises(NonFiniteError):
+        seq_fitter.fit(bad)
+    with pytest.raises(ShapeError, match="vertex weights"):
+        seq_fitter.fit(np.zeros((3, V, 3)), weights=np.ones((2, V)))
+    with pytest.raises(ValueError, match="keep the shape frozen"):
+        SequenceFitter(model, SequenceConfig(frame_stages=(Stage("x", "all", "all", "subset", 5),)))
+    with pytest.raises(ValueError, match="at least 1"):
+        SequenceFitter(model, SequenceConfig(stride=0))
