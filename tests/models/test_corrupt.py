@@ -18,9 +18,9 @@ from bodyfit.models.fitting.corrupt import (
     depth_camera_view,
     random_rigid,
     remove_patches,
-    vertex_normals,
 )
 from bodyfit.models.fitting.scan_io import sample_surface
+from bodyfit.models.fitting.surface import vertex_normals
 
 
 @pytest.fixture(scope="module")

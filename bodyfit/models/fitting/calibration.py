@@ -18,6 +18,7 @@ import torch
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting.marker_ik import fill_gaps
 from bodyfit.models.fitting.marker_sets import RAJAGOPAL_MARKERS, MarkerSetDef
+from bodyfit.models.fitting.surface import vertex_normals
 from bodyfit.models.rotations import kabsch, zxy_angles
 from bodyfit.models.skeleton.model import Skeleton, twin_name
 
@@ -55,17 +56,6 @@ class VirtualMarkers:
 
     def body_indices(self, skeleton: Skeleton) -> list[int]:
         return [skeleton.body_names.index(b) for b in self.bodies]
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals. vertices (V, 3), faces (F, 3) -> (V, 3)."""
-    fn = np.cross(
-        vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]]
-    )
-    n = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(n, faces[:, k], fn)
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
 
 
 def virtual_markers(defn: MarkerSetDef, model: BodyModel) -> VirtualMarkers:

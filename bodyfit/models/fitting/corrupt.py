@@ -18,6 +18,8 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
+from bodyfit.models.fitting.surface import vertex_normals
+
 _NEAR = 1e-3  # m: triangles closer to the camera plane than this are dropped
 _CHUNK = 2_000_000  # candidate pixel tests per vectorised block
 
@@ -222,17 +224,6 @@ def clothing_offset(
     field = np.exp(-0.5 * d2 / length_scale**2) @ weights
     offset = max_offset * field / field.max()
     return v + offset[:, None] * normals, offset
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals (V, 3) of a (V, 3) / (F, 3) mesh; zero for unused vertices."""
-    tri = vertices[faces]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    acc = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(acc, faces[:, k], cross)
-    norm = np.linalg.norm(acc, axis=1, keepdims=True)
-    return np.divide(acc, norm, out=np.zeros_like(acc), where=norm > 0)
 
 
 def random_rigid(

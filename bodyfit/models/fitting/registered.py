@@ -41,8 +41,8 @@ class Stage:
     """One fitting stage.
 
     coordinates: "trunk" (pelvis, lumbar, thoracic DOFs) or "all"; shape: "none", "bone" or "all";
-    vertices: "trunk", "subset" (farthest-point subset of the whole body) or "all"; iterations: L-BFGS
-    iterations.
+    vertices: "trunk", "subset" or "coarse" (farthest-point subsets of the whole body) or "all";
+    iterations: L-BFGS iterations.
     """
 
     name: str
@@ -62,11 +62,13 @@ DEFAULT_STAGES = (
 
 @dataclass(frozen=True)
 class RegisteredFitConfig:
-    """stages: run in order; subset_size: vertices of the farthest-point subset; shape_prior: weight of
+    """stages: run in order; subset_size, coarse_size: vertices of the farthest-point subsets "subset" and
+    "coarse" (the first ``coarse_size`` of the same sample); shape_prior: weight of
     |c|^2 (coefficients are in population standard deviations) against the loss in mm^2."""
 
     stages: tuple[Stage, ...] = DEFAULT_STAGES
     subset_size: int = 1000
+    coarse_size: int = 200
     shape_prior: float = 1e-2
     dtype: torch.dtype = torch.float32
 
@@ -121,9 +123,11 @@ class RegisteredFitter:
         template = model.data["vertices_mean"]
         body_of_vertex = np.argmax(model.data["weights"], axis=1)
         trunk_ids = [skel.body_names.index(b) for b in TRUNK_BODIES]
+        spread = farthest_point_subset(template, max(self.config.subset_size, self.config.coarse_size))
         self.index = {
             "trunk": np.flatnonzero(np.isin(body_of_vertex, trunk_ids)),
-            "subset": np.sort(farthest_point_subset(template, self.config.subset_size)),
+            "subset": np.sort(spread[: self.config.subset_size]),
+            "coarse": np.sort(spread[: self.config.coarse_size]),
             "all": np.arange(model.n_vertices),
         }
         self.decoders: dict[str, BodyDecoder] = {

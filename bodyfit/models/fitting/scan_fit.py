@@ -1,0 +1,451 @@
+"""Fit the body model to a raw scan: any topology, orientation and placement, no landmarks.
+
+1. Clean: thin to a voxel grid and drop isolated points (statistical outlier removal).
+2. Orientation: the scan's principal axes give 24 candidate body frames (each signed axis as "up", four
+   headings about it). All are fitted at once, coarsely (trunk pose and bone lengths on a vertex subset),
+   and the best few by robust Chamfer score go on; after the limbs are posed the best one is kept.
+3. Coarse to fine (DESIGN.md section 6): iterated closest points in both directions (scan point -> nearest
+   model vertex, point-to-plane; model vertex -> nearest scan point), Geman-McClure weights with a shrinking
+   scale, each round minimised by the staged L-BFGS of :class:`RegisteredFitter` (joint limits kept by the
+   tanh mapping): the limbs, then the identity shape on a vertex subset, then all vertices.
+4. Non-rigid refinement (:mod:`.nonrigid`): per-vertex offsets for detail beyond the shape space.
+
+The fitted parameters are expressed in the scan's own frame when the pelvis angles can hold the scan's
+orientation (an upright-ish body); otherwise they stay in the body frame and ``scan_to_body`` maps between.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from bodyfit.models.body.model import BodyModel
+from bodyfit.models.fitting.nonrigid import NonRigidConfig, refine_nonrigid
+from bodyfit.models.fitting.registered import DataTerm, RegisteredFitter, Stage, State
+from bodyfit.models.fitting.report import DistanceStats, FitReport, count_limit_violations
+from bodyfit.models.fitting.scan_io import MIN_POINTS, Scan, ScanError
+from bodyfit.models.fitting.surface import point_to_surface, vertex_normals
+from bodyfit.models.rotations import zxy_angles
+from bodyfit.models.skeleton.model import PELVIS_ROTATIONS
+
+CONFIDENT_MEAN_MM = 10.0
+MIN_INLIER_FRACTION = 0.85
+MIN_COVERAGE = 0.15
+INLIER_MM = 30.0  # scan points further than this from the registration count as outliers
+COVERED_MM = 20.0  # a model vertex is covered when a scan point lies this close
+
+
+@dataclass(frozen=True)
+class ScanPhase:
+    """``stage.iterations`` L-BFGS iterations of ``stage`` on the robust two-way Chamfer loss.
+
+    sigma_mm: Geman-McClure scale; keep: orientation candidates kept after the phase; scan_points: scan
+    points used (a random subset of the cleaned scan); plane: point-to-plane distances (model normals) for
+    the scan -> model term instead of point-to-point; two_way: False keeps the model -> scan term only (a
+    part of the body fitted inside the whole scan); search_limbs: a grid search of the limbs' poses
+    (:data:`LIMB_SEARCH`) before the phase.
+    """
+
+    stage: Stage
+    sigma_mm: float
+    keep: int
+    scan_points: int
+    plane: bool = False
+    two_way: bool = True
+    search_limbs: bool = False
+
+
+DEFAULT_PHASES = (
+    ScanPhase(Stage("orient", "trunk", "none", "coarse", 25), 150.0, 4, 500),
+    ScanPhase(Stage("pose", "all", "bone", "subset", 30), 60.0, 2, 1500, search_limbs=True),
+    ScanPhase(Stage("shape", "all", "all", "subset", 30), 25.0, 1, 3000),
+    ScanPhase(Stage("limbs", "all", "all", "subset", 20), 25.0, 1, 3000, search_limbs=True),
+    ScanPhase(Stage("fine", "all", "all", "all", 15), 10.0, 1, 4000, plane=True),
+)
+
+# Limb chains searched on a grid before the continuous fit: the chain's bodies and the DOFs sampled (values
+# per DOF, spread over the range). A limb's candidates are scored by how close its vertices lie to the scan.
+LIMB_SEARCH = tuple(
+    (bodies, grid)
+    for s in ("r", "l")
+    for bodies, grid in (
+        (
+            (f"femur_{s}", f"tibia_{s}", f"patella_{s}", f"talus_{s}", f"calcn_{s}", f"toes_{s}"),
+            {f"hip_flexion_{s}": 7, f"hip_adduction_{s}": 4, f"knee_angle_{s}": 4},
+        ),
+        (
+            (f"humerus_{s}", f"ulna_{s}", f"radius_{s}", f"hand_{s}"),
+            {f"arm_flex_{s}": 7, f"arm_add_{s}": 7, f"elbow_flex_{s}": 4},
+        ),
+    )
+)
+LIMB_TRUNCATION_M = 0.05
+LIMB_SIDES = ("r", "r", "l", "l")  # of LIMB_SEARCH's entries
+LOOSE_POINTS = 200  # scan points, at most, that a limb candidate is asked to reach
+
+
+@dataclass(frozen=True)
+class ScanFitConfig:
+    """voxel: cleaning grid (m); neighbours, outlier_cutoff: a point is dropped when its mean distance to
+    its neighbours exceeds the median by ``outlier_cutoff`` robust standard deviations; tangential: weight
+    of the in-plane part of point-to-plane distances; nonrigid: None skips the refinement."""
+
+    phases: tuple[ScanPhase, ...] = DEFAULT_PHASES
+    voxel: float = 0.01
+    neighbours: int = 8
+    outlier_cutoff: float = 3.0
+    tangential: float = 0.1
+    nonrigid: NonRigidConfig | None = field(default_factory=NonRigidConfig)
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class ScanFit:
+    """A fitted scan.
+
+    shape (n_shape,), coordinates (n_dof,) in range, root (3,): the parameters, in the scan's frame unless
+    ``scan_to_body`` is not the identity (then in the body frame ``body = scan_to_body @ scan``).
+    vertices (V, 3): the parametric body in the scan's frame (metres); registration (V, 3): the non-rigid
+    registration in our topology (equal to ``vertices`` without refinement); joints (J, 3) in the scan's
+    frame. point_distances (N,): every scan point's distance to the registration surface (m).
+    """
+
+    shape: np.ndarray
+    coordinates: np.ndarray
+    root: np.ndarray
+    vertices: np.ndarray
+    registration: np.ndarray
+    joints: np.ndarray
+    scan_to_body: np.ndarray
+    point_distances: np.ndarray
+    report: FitReport
+
+
+def clean_points(points: np.ndarray, voxel: float, neighbours: int, cutoff: float) -> np.ndarray:
+    """Points (M, 3): one per occupied ``voxel`` cell, minus isolated ones (mean distance to ``neighbours``
+    nearest above median + cutoff * 1.4826 MAD)."""
+    keys = np.floor(points / voxel).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    thin = points[np.sort(first)]
+    if len(thin) <= neighbours + 1:
+        return thin
+    d, _ = cKDTree(thin).query(thin, k=neighbours + 1, workers=-1)
+    spread = d[:, 1:].mean(axis=1)
+    median = np.median(spread)
+    mad = np.median(np.abs(spread - median))
+    return thin[spread <= median + cutoff * 1.4826 * mad + 1e-12]
+
+
+def orientation_candidates(points: np.ndarray) -> np.ndarray:
+    """(24, 3, 3) rotations from scan axes to body axes (+X forward, +Y up, +Z right): every signed
+    principal axis as up, and four headings (the other principal axes, both signs) about it."""
+    _, _, axes = np.linalg.svd(points - points.mean(0), full_matrices=False)
+    out = []
+    for i in range(3):
+        others = [axes[k] for k in range(3) if k != i]
+        for up in (axes[i], -axes[i]):
+            for forward in (others[0], -others[0], others[1], -others[1]):
+                out.append(np.stack([forward, up, np.cross(forward, up)]))
+    return np.array(out)
+
+
+@dataclass
+class _Hypotheses:
+    """Candidate body frames and their optimisation state: rotation (H, 3, 3), the scan's centre (3,), the
+    fit points in each body frame (H, N, 3) metres, state (see RegisteredFitter.start_state)."""
+
+    rotation: np.ndarray
+    centre: np.ndarray
+    points: np.ndarray
+    state: State
+
+    def keep(self, rows: np.ndarray) -> None:
+        self.rotation, self.points = self.rotation[rows], self.points[rows]
+        r = torch.as_tensor(rows)
+        self.state = (self.state[0][r], self.state[1][r], self.state[2][r])
+
+
+class ScanFitter:
+    """Fits :class:`BodyModel` to raw scans (one at a time; each scan's hypotheses are batched)."""
+
+    def __init__(self, model: BodyModel, config: ScanFitConfig | None = None) -> None:
+        self.model = model
+        self.config = config or ScanFitConfig()
+        self.fitter = RegisteredFitter(model)
+        self.faces = np.asarray(model.data["faces"], np.int64)
+        self.pelvis = [model.skeleton.dof_index(n) for n in PELVIS_ROTATIONS]
+        owner = np.argmax(model.data["weights"], axis=1)[self.fitter.index["subset"]]
+        names = model.skeleton.body_names
+        self._limb_vertices = [
+            np.flatnonzero(np.isin(owner, [names.index(b) for b in bodies])) for bodies, _ in LIMB_SEARCH
+        ]
+        self._non_limb = np.setdiff1d(np.arange(len(owner)), np.concatenate(self._limb_vertices))
+
+    def fit(
+        self,
+        scan: Scan | np.ndarray,
+        progress: Callable[[str], None] | None = None,
+        orientation: np.ndarray | None = None,
+        start: np.ndarray | None = None,
+    ) -> ScanFit:
+        """Fit one scan.
+
+        Args:
+            scan: a :class:`Scan` from ``load_scan``, or (N, 3) points in metres.
+            progress: called with a line after each phase.
+            orientation: (3, 3) rotation from the scan's axes to the body's (+X forward, +Y up, +Z right)
+                when it is known (e.g. a dataset's convention); default: searched.
+            start: (n_dof,) coordinates to start from (e.g. a T-pose); default: the bind pose.
+        """
+        began = time.perf_counter()
+        points = scan.points if isinstance(scan, Scan) else np.asarray(scan, np.float64)
+        if points.ndim != 2 or points.shape[1] != 3 or not np.isfinite(points).all():
+            raise ScanError(f"scan points must be a finite (N, 3) array in metres; got shape {points.shape}")
+        cfg = self.config
+        cleaned = clean_points(points, cfg.voxel, cfg.neighbours, cfg.outlier_cutoff)
+        if len(cleaned) < MIN_POINTS:
+            raise ScanError(
+                f"only {len(cleaned)} points are left after thinning to a {cfg.voxel * 100:.0f} cm grid and "
+                f"dropping isolated points; a body needs at least {MIN_POINTS}: send a denser scan"
+            )
+        rng = np.random.default_rng(cfg.seed)
+        order = rng.permutation(len(cleaned))
+        hyp = self._candidates(cleaned, orientation, start)
+        tree = cKDTree(cleaned)
+        iterations, losses = 0, {}
+        for phase in cfg.phases:
+            hyp.points = np.einsum(
+                "hij,nj->hni", hyp.rotation, cleaned[order[: phase.scan_points]] - hyp.centre
+            )
+            if phase.search_limbs:
+                self._search_limbs(hyp, tree)
+            term = self._chamfer(hyp, phase, tree, cleaned)
+            n_iter, _ = self.fitter.optimise(phase.stage, hyp.state, term)
+            iterations += n_iter
+            score = self._score(hyp, phase, tree)
+            losses[phase.stage.name] = float(score.min())
+            if phase.keep < len(hyp.rotation):
+                hyp.keep(np.argsort(score)[: phase.keep])
+            if progress is not None:
+                progress(f"{phase.stage.name}: robust score {score.min():.3f}")
+        return self._result(hyp, points, cleaned, tree, iterations, losses, began)
+
+    # -- steps -----------------------------------------------------------------------------------------
+    def _candidates(
+        self, points: np.ndarray, orientation: np.ndarray | None, start: np.ndarray | None
+    ) -> _Hypotheses:
+        rotation = orientation_candidates(points) if orientation is None else np.asarray(orientation)[None]
+        H = len(rotation)
+        model = self.model
+        q_start = model.bind_coordinates if start is None else np.asarray(start, np.float64)
+        q0 = np.repeat(model.skeleton.inside(q_start, 0.1)[None], H, axis=0)
+        tri = model.data["vertices_mean"][self.faces]
+        area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        centre_offset = (tri.mean(1) * area[:, None]).sum(0) / area.sum()  # the surface's centroid
+        r0 = np.repeat(-centre_offset[None], H, axis=0)
+        state = self.fitter.start_state(q0, r0, np.zeros((H, model.n_shape)))
+        return _Hypotheses(rotation, points.mean(0), np.zeros((H, 0, 3)), state)
+
+    def _vertices(self, state: State) -> np.ndarray:
+        """(H, V, 3) model vertices (body frames, metres) of the current state."""
+        c, q, root = self.fitter.parameters(state)
+        dtype = self.fitter.config.dtype
+        with torch.no_grad():
+            v = self.fitter.decoder(c.to(dtype), q.to(dtype), root.to(dtype))[0]
+        return v.double().numpy()
+
+    def _chamfer(self, hyp: _Hypotheses, phase: ScanPhase, tree: cKDTree, cleaned: np.ndarray) -> DataTerm:
+        """The robust two-way Chamfer loss of every hypothesis on the stage's vertices (H, V', 3) in mm:
+
+            mean_i rho(|v_j(i) - p_i|) + 0.5 mean_j rho(|v_j - s(j)|),  rho(d) = d^2 s^2 / (d^2 + s^2)
+
+        with p_i the fit points, j(i) the vertex nearest p_i, s(j) the cleaned scan point nearest v_j (found
+        again at every evaluation), and the scan -> model distance point-to-plane when ``phase.plane``."""
+        dtype = self.fitter.config.dtype
+        idx = self.fitter.index[phase.stage.vertices]
+        P = torch.as_tensor(hyp.points * 1000.0, dtype=dtype)
+        fit_points = hyp.points
+        s2 = phase.sigma_mm**2
+        tangential = self.config.tangential
+        faces = self.faces if phase.plane else None
+        if faces is not None and len(idx) != self.model.n_vertices:
+            raise ValueError("point-to-plane Chamfer needs the stage to use all vertices")
+
+        def rho(d2: torch.Tensor) -> torch.Tensor:
+            return d2 * s2 / (d2 + s2)
+
+        def term(verts_mm: torch.Tensor) -> torch.Tensor:
+            v = verts_mm.detach().double().numpy() / 1000.0
+            H = len(v)
+            pairs = np.empty(fit_points.shape[:2], np.int64)
+            targets = np.empty(v.shape)
+            for h in range(H):
+                pairs[h] = cKDTree(v[h]).query(fit_points[h], workers=-1)[1]
+                near = tree.query(v[h] @ hyp.rotation[h] + hyp.centre, workers=-1)[1]
+                targets[h] = (cleaned[near] - hyp.centre) @ hyp.rotation[h].T
+            J = torch.as_tensor(pairs).unsqueeze(-1).expand(-1, -1, 3)
+            r = torch.gather(verts_mm, 1, J) - P  # (H, N, 3)
+            d2 = (r**2).sum(-1)
+            if faces is not None:
+                n = np.stack([vertex_normals(v[h], faces) for h in range(H)])
+                along = (r * torch.as_tensor(np.take_along_axis(n, pairs[..., None], 1), dtype=dtype)).sum(-1)
+                d2 = along**2 + tangential * (d2 - along**2)
+            m2s = ((verts_mm - torch.as_tensor(targets * 1000.0, dtype=dtype)) ** 2).sum(-1)
+            return (rho(d2).mean(1) if phase.two_way else 0.0) + 0.5 * rho(m2s).mean(1)
+
+        return term
+
+    def _limb_grids(self) -> list[tuple[list[int], np.ndarray]]:
+        """Per limb of :data:`LIMB_SEARCH`: the DOFs searched and their candidate values (K_limb, n), spread
+        over each range (10% in from the limits)."""
+        skel = self.model.skeleton
+        lo, hi = skel.ranges[:, 0], skel.ranges[:, 1]
+        pad = 0.1 * (hi - lo)
+        grids = []
+        for _, grid in LIMB_SEARCH:
+            dofs = [skel.dof_index(n) for n in grid]
+            axes = [
+                np.linspace(lo[d] + pad[d], hi[d] - pad[d], n)
+                for d, n in zip(dofs, grid.values(), strict=True)
+            ]
+            grids.append((dofs, np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(dofs))))
+        return grids
+
+    def _search_limbs(self, hyp: _Hypotheses, tree: cKDTree) -> None:
+        """Set every limb's searched DOFs (:meth:`_limb_grids`) of every hypothesis to the candidate whose
+        limb lies on the scan (its "subset" vertices close to scan points) and reaches the scan points on its side
+        of the body that the rest of the body leaves unexplained (an arm folded onto the chest lies on the
+        scan too, but reaches nothing); both terms are mean truncated squared distances."""
+        c, q, root = (t.numpy() for t in self.fitter.parameters(hyp.state))
+        decoder = self.fitter.decoders["subset"]
+        dtype = self.fitter.config.dtype
+        grids = self._limb_grids()
+        for h in range(len(q)):
+            K = max(len(g) for _, g in grids)
+            Q = np.repeat(q[h : h + 1], K, axis=0)
+            for dofs, values in grids:
+                Q[:, dofs] = values[np.arange(K) % len(values)]
+            with torch.no_grad():
+                rows = (np.repeat(c[h : h + 1], K, 0), Q, np.repeat(root[h : h + 1], K, 0))
+                v = decoder(*(torch.as_tensor(x, dtype=dtype) for x in rows))[0].double().numpy()
+            d = tree.query(v.reshape(-1, 3) @ hyp.rotation[h] + hyp.centre, workers=-1)[0].reshape(K, -1)
+            cost = np.minimum(d, LIMB_TRUNCATION_M) ** 2
+            # Scan points the rest of the body does not explain: a limb must reach them, not just touch
+            # the scan (an arm folded onto the chest touches it everywhere).
+            rest = cKDTree(v[0, self._non_limb]).query(hyp.points[h], workers=-1)[0]
+            loose = hyp.points[h][rest > LIMB_TRUNCATION_M]
+            loose = loose[:: max(1, len(loose) // LOOSE_POINTS)]
+            right = loose[:, 2] > root[h, 2]  # +Z is the body's right
+            for (dofs, values), limb, side in zip(grids, self._limb_vertices, LIMB_SIDES, strict=True):
+                n = len(values)
+                mine = loose[right] if side == "r" else loose[~right]
+                reach = np.zeros(n)
+                if len(mine):
+                    gap = np.linalg.norm(v[:n, limb][:, :, None, :] - mine[None, None], axis=-1).min(1)
+                    reach = (np.minimum(gap, LIMB_TRUNCATION_M) ** 2).mean(1)
+                best = int(np.argmin(cost[:n, limb].mean(1) + reach))
+                q[h, dofs] = values[best]
+        hyp.state = self.fitter.start_state(q, root, c)
+
+    def _score(self, hyp: _Hypotheses, phase: ScanPhase, tree: cKDTree) -> np.ndarray:
+        """(H,) each hypothesis's robust Chamfer score on all vertices (rho / sigma^2, lower is better)."""
+        verts = self._vertices(hyp.state)[:, self.fitter.index[phase.stage.vertices]]
+        sigma = phase.sigma_mm / 1000.0
+        score = np.empty(len(verts))
+        for h, v in enumerate(verts):
+            d_s = cKDTree(v).query(hyp.points[h], workers=-1)[0]
+            d_m = tree.query(v @ hyp.rotation[h] + hyp.centre, workers=-1)[0]
+            score[h] = 0.5 * (d_m**2 / (d_m**2 + sigma**2)).mean()
+            if phase.two_way:
+                score[h] += (d_s**2 / (d_s**2 + sigma**2)).mean()
+        return score
+
+    def _result(
+        self,
+        hyp: _Hypotheses,
+        points: np.ndarray,
+        cleaned: np.ndarray,
+        tree: cKDTree,
+        iterations: int,
+        losses: dict[str, float],
+        start: float,
+    ) -> ScanFit:
+        model, skel = self.model, self.model.skeleton
+        R, m = hyp.rotation[0], hyp.centre
+        c, q, root = (t[0].numpy() for t in self.fitter.parameters(hyp.state))
+        body_verts = self._vertices(hyp.state)[0]
+        body_points = (cleaned - m) @ R.T
+        registration = body_verts
+        if self.config.nonrigid is not None:
+            registration = refine_nonrigid(body_verts, self.faces, body_points, self.config.nonrigid)
+        # Parameters in the scan's frame when the pelvis angles can hold its orientation.
+        out = model.forward(c[None], q[None], root[None], dtype=torch.float64)
+        pelvis = out.frames[0, 0].numpy()
+        q_scan = q.copy()
+        q_scan[self.pelvis] = zxy_angles(R.T @ pelvis[:3, :3])
+        root_scan = R.T @ pelvis[:3, 3] + m
+        inside = np.all((q_scan >= skel.ranges[:, 0] + 1e-6) & (q_scan <= skel.ranges[:, 1] - 1e-6))
+        scan_to_body = np.eye(4)
+        if inside:
+            q, root = q_scan, root_scan
+        else:
+            scan_to_body[:3, :3], scan_to_body[:3, 3] = R, -R @ m
+        joints = out.joints[0].numpy() @ R + m
+        vertices = body_verts @ R + m
+        registration = registration @ R + m
+        distances = point_to_surface(points, registration, self.faces)
+        coverage = float(
+            np.mean(tree.query(registration, distance_upper_bound=COVERED_MM / 1000)[0] < np.inf)
+        )
+        report = self._report(distances, coverage, q, iterations, time.perf_counter() - start, losses)
+        return ScanFit(c, q, root, vertices, registration, joints, scan_to_body, distances, report)
+
+    def _report(
+        self,
+        distances: np.ndarray,
+        coverage: float,
+        q: np.ndarray,
+        iterations: int,
+        seconds: float,
+        losses: dict[str, float],
+    ) -> FitReport:
+        inlier = distances * 1000.0 <= INLIER_MM
+        stats = DistanceStats.of(distances[inlier])
+        fraction = float(inlier.mean())
+        violations = count_limit_violations(q, self.model.skeleton.ranges)
+        reasons = []
+        if fraction < MIN_INLIER_FRACTION:
+            reasons.append(
+                f"only {fraction:.0%} of the scan's points lie within {INLIER_MM:.0f} mm of the fitted body: "
+                "crop the background or other objects, or the scan may not be a human body"
+            )
+        if not stats.mean <= CONFIDENT_MEAN_MM:
+            reasons.append(
+                f"mean scan-to-body distance {stats.mean:.1f} mm exceeds {CONFIDENT_MEAN_MM:.0f} mm"
+            )
+        if coverage < MIN_COVERAGE:
+            reasons.append(
+                f"the scan covers {coverage:.0%} of the body surface: the shape and pose of the rest are "
+                "guesses"
+            )
+        if violations:
+            reasons.append(f"{violations} coordinates outside their joint limits")
+        return FitReport(
+            distances=stats,
+            limit_violations=violations,
+            iterations=iterations,
+            seconds=seconds,
+            confident=not reasons,
+            reasons=tuple(reasons),
+            extra={
+                "inlier_fraction": round(fraction, 4),
+                "inlier_threshold_mm": INLIER_MM,
+                "coverage": round(coverage, 4),
+                "phase_scores": {k: round(v, 5) for k, v in losses.items()},
+            },
+        )
