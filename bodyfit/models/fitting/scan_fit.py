@@ -318,9 +318,9 @@ class ScanFitter:
 
     def _search_limbs(self, hyp: _Hypotheses, tree: cKDTree) -> None:
         """Set every limb's searched DOFs (:meth:`_limb_grids`) of every hypothesis to the candidate whose
-        limb lies on the scan (its "subset" vertices close to scan points) and reaches the scan points on its side
-        of the body that the rest of the body leaves unexplained (an arm folded onto the chest lies on the
-        scan too, but reaches nothing); both terms are mean truncated squared distances."""
+        limb lies on the scan (its "subset" vertices close to scan points) and reaches the scan points on
+        its side of the body that the rest of the body leaves unexplained (an arm folded onto the chest lies
+        on the scan too, but reaches nothing); both terms are mean truncated squared distances."""
         c, q, root = (t.numpy() for t in self.fitter.parameters(hyp.state))
         decoder = self.fitter.decoders["subset"]
         dtype = self.fitter.config.dtype
