@@ -18,6 +18,10 @@ from bodyfit.models.body.model import BODY_ASSET, BodyModel
 from bodyfit.models.body.onnx_export import BODY_ONNX, export_body_onnx
 from bodyfit.models.body.onnx_export import INPUTS as ONNX_INPUTS
 from bodyfit.models.body.onnx_export import OUTPUTS as ONNX_OUTPUTS
+from bodyfit.models.fitting.smpl_topology import ASSET as SMPL_ASSET
+from bodyfit.models.fitting.smpl_topology import SOURCE_DIR as SMPL_SOURCE_DIR
+from bodyfit.models.fitting.smpl_topology import SOURCES as SMPL_SOURCES
+from bodyfit.models.fitting.smpl_topology import build_smpl_topology, read_obj
 from bodyfit.models.skeleton.bones import BONES_ASSET, build_bone_mesh
 from bodyfit.models.skeleton.build import build_skeleton
 from bodyfit.models.skeleton.docs import skeleton_markdown
@@ -55,6 +59,20 @@ def export_onnx(folder: Path | None = None, model: BodyModel | None = None) -> P
         "build_seconds": round(time.perf_counter() - t0, 2),
     }
     return write_manifest(folder, {BODY_ONNX: entry}, {})
+
+
+def build_smpl_asset(out: Path, model: BodyModel) -> dict[str, Any]:
+    """Write the SMPL-topology correspondence (:mod:`bodyfit.models.fitting.smpl_topology`) for ``model``
+    into ``out``; returns its manifest entry (sources, metrics, seconds)."""
+    t0 = time.perf_counter()
+    sources = [read_obj(SMPL_SOURCE_DIR / name) for name in SMPL_SOURCES]
+    tmap, metrics = build_smpl_topology(model, sources)
+    tmap.save(out / SMPL_ASSET)
+    return {
+        "sources": [f"data/smpl_ccby/{name}" for name in SMPL_SOURCES],
+        "metrics": metrics,
+        "build_seconds": round(time.perf_counter() - t0, 2),
+    }
 
 
 def build_all(
@@ -130,6 +148,10 @@ def build_all(
         "build_seconds": round(timings["body"], 2),
         "metrics": metrics,
     }
+    t0 = time.perf_counter()
+    log("smpl topology: fitting the CC BY bodies in SMPL topology for the dense correspondence")
+    entries[SMPL_ASSET] = build_smpl_asset(out, model)
+    timings["smpl_topology"] = time.perf_counter() - t0
     info["build_seconds"] = round(sum(timings.values()), 1)
     write_manifest(out, entries, info)
     log(f"skeleton: {len(spec.coordinates)} DOFs, {len(spec.bodies)} bodies -> {out / SKELETON_ASSET}")
