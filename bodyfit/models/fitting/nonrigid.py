@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import splu
+from scipy.sparse.linalg import cg
 from scipy.spatial import cKDTree
 
 from bodyfit.models.fitting.surface import laplacian
@@ -57,19 +57,23 @@ def refine_nonrigid(
     V = len(M)
     tree = scan_tree if scan_tree is not None else cKDTree(P)
     L = laplacian(faces, V)
-    regulariser = (cfg.smoothness * (L.T @ L) + cfg.stiffness * sp.identity(V)).tocsc()
+    regulariser = (cfg.smoothness * (L.T @ L) + cfg.stiffness * sp.identity(V)).tocsr()
     density = V / max(len(P), 1)  # scan -> vertex pairs count like one vertex's worth per vertex
     D = np.zeros_like(M)
     for _ in range(cfg.rounds):
         current = M + D
-        d_m, near = tree.query(current, workers=-1)
+        d_m, near = tree.query(current)
         w_m = geman_mcclure_weights(d_m, cfg.sigma) * (d_m < cfg.max_distance)
-        d_s, owner = cKDTree(current).query(P, workers=-1)
+        d_s, owner = cKDTree(current).query(P)
         w_s = geman_mcclure_weights(d_s, cfg.sigma) * (d_s < cfg.max_distance) * density
         a = w_m + np.bincount(owner, w_s, minlength=V)
         b = w_m[:, None] * P[near]
         for k in range(3):
             b[:, k] += np.bincount(owner, w_s * P[:, k], minlength=V)
-        system = (sp.diags(a) + regulariser).tocsc()
-        D = splu(system).solve(b - a[:, None] * M)
+        system = (sp.diags(a) + regulariser).tocsr()
+        rhs = b - a[:, None] * M
+        jacobi = sp.diags(1.0 / system.diagonal())
+        D = np.stack(
+            [cg(system, rhs[:, k], x0=D[:, k], M=jacobi, rtol=1e-5, maxiter=500)[0] for k in range(3)], 1
+        )
     return M + D

@@ -134,7 +134,7 @@ def clean_points(points: np.ndarray, voxel: float, neighbours: int, cutoff: floa
     thin = points[np.sort(first)]
     if len(thin) <= neighbours + 1:
         return thin
-    d, _ = cKDTree(thin).query(thin, k=neighbours + 1, workers=-1)
+    d, _ = cKDTree(thin).query(thin, k=neighbours + 1)
     spread = d[:, 1:].mean(axis=1)
     median = np.median(spread)
     mad = np.median(np.abs(spread - median))
@@ -223,7 +223,7 @@ class ScanFitter:
                 "hij,nj->hni", hyp.rotation, cleaned[order[: phase.scan_points]] - hyp.centre
             )
             if phase.search_limbs:
-                self._search_limbs(hyp, tree)
+                self._search_limbs(hyp)
             term = self._chamfer(hyp, phase, tree, cleaned)
             n_iter, _ = self.fitter.optimise(phase.stage, hyp.state, term)
             iterations += n_iter
@@ -270,6 +270,7 @@ class ScanFitter:
         idx = self.fitter.index[phase.stage.vertices]
         P = torch.as_tensor(hyp.points * 1000.0, dtype=dtype)
         fit_points = hyp.points
+        point_trees = [cKDTree(p) for p in fit_points]
         s2 = phase.sigma_mm**2
         tangential = self.config.tangential
         faces = self.faces if phase.plane else None
@@ -285,9 +286,8 @@ class ScanFitter:
             pairs = np.empty(fit_points.shape[:2], np.int64)
             targets = np.empty(v.shape)
             for h in range(H):
-                pairs[h] = cKDTree(v[h]).query(fit_points[h], workers=-1)[1]
-                near = tree.query(v[h] @ hyp.rotation[h] + hyp.centre, workers=-1)[1]
-                targets[h] = (cleaned[near] - hyp.centre) @ hyp.rotation[h].T
+                pairs[h] = cKDTree(v[h]).query(fit_points[h])[1]
+                targets[h] = fit_points[h][point_trees[h].query(v[h])[1]]
             J = torch.as_tensor(pairs).unsqueeze(-1).expand(-1, -1, 3)
             r = torch.gather(verts_mm, 1, J) - P  # (H, N, 3)
             d2 = (r**2).sum(-1)
@@ -316,7 +316,7 @@ class ScanFitter:
             grids.append((dofs, np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(dofs))))
         return grids
 
-    def _search_limbs(self, hyp: _Hypotheses, tree: cKDTree) -> None:
+    def _search_limbs(self, hyp: _Hypotheses) -> None:
         """Set every limb's searched DOFs (:meth:`_limb_grids`) of every hypothesis to the candidate whose
         limb lies on the scan (its "subset" vertices close to scan points) and reaches the scan points on
         its side of the body that the rest of the body leaves unexplained (an arm folded onto the chest lies
@@ -333,23 +333,22 @@ class ScanFitter:
             with torch.no_grad():
                 rows = (np.repeat(c[h : h + 1], K, 0), Q, np.repeat(root[h : h + 1], K, 0))
                 v = decoder(*(torch.as_tensor(x, dtype=dtype) for x in rows))[0].double().numpy()
-            d = tree.query(v.reshape(-1, 3) @ hyp.rotation[h] + hyp.centre, workers=-1)[0].reshape(K, -1)
-            cost = np.minimum(d, LIMB_TRUNCATION_M) ** 2
+            scan = cKDTree(hyp.points[h])
             # Scan points the rest of the body does not explain: a limb must reach them, not just touch
             # the scan (an arm folded onto the chest touches it everywhere).
-            rest = cKDTree(v[0, self._non_limb]).query(hyp.points[h], workers=-1)[0]
+            rest = cKDTree(v[0, self._non_limb]).query(hyp.points[h])[0]
             loose = hyp.points[h][rest > LIMB_TRUNCATION_M]
             loose = loose[:: max(1, len(loose) // LOOSE_POINTS)]
             right = loose[:, 2] > root[h, 2]  # +Z is the body's right
             for (dofs, values), limb, side in zip(grids, self._limb_vertices, LIMB_SIDES, strict=True):
                 n = len(values)
+                d = scan.query(v[:n, limb].reshape(-1, 3))[0].reshape(n, -1)
+                cost = (np.minimum(d, LIMB_TRUNCATION_M) ** 2).mean(1)
                 mine = loose[right] if side == "r" else loose[~right]
-                reach = np.zeros(n)
                 if len(mine):
-                    gap = np.linalg.norm(v[:n, limb][:, :, None, :] - mine[None, None], axis=-1).min(1)
-                    reach = (np.minimum(gap, LIMB_TRUNCATION_M) ** 2).mean(1)
-                best = int(np.argmin(cost[:n, limb].mean(1) + reach))
-                q[h, dofs] = values[best]
+                    gap = np.stack([cKDTree(v[k, limb]).query(mine)[0] for k in range(n)])
+                    cost += (np.minimum(gap, LIMB_TRUNCATION_M) ** 2).mean(1)
+                q[h, dofs] = values[int(np.argmin(cost))]
         hyp.state = self.fitter.start_state(q, root, c)
 
     def _score(self, hyp: _Hypotheses, phase: ScanPhase, tree: cKDTree) -> np.ndarray:
@@ -358,8 +357,8 @@ class ScanFitter:
         sigma = phase.sigma_mm / 1000.0
         score = np.empty(len(verts))
         for h, v in enumerate(verts):
-            d_s = cKDTree(v).query(hyp.points[h], workers=-1)[0]
-            d_m = tree.query(v @ hyp.rotation[h] + hyp.centre, workers=-1)[0]
+            d_s = cKDTree(v).query(hyp.points[h])[0]
+            d_m = tree.query(v @ hyp.rotation[h] + hyp.centre)[0]
             score[h] = 0.5 * (d_m**2 / (d_m**2 + sigma**2)).mean()
             if phase.two_way:
                 score[h] += (d_s**2 / (d_s**2 + sigma**2)).mean()
