@@ -5,9 +5,14 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from bodyfit.models.fitting.registered import BodyFit
 
 app = typer.Typer(
     no_args_is_help=True, add_completion=False, help="bodyfit: human bodies with a biomechanical skeleton."
@@ -69,16 +74,19 @@ def export_onnx(
 @app.command()
 def fit(
     meshes: Annotated[
-        list[Path], typer.Argument(help="Meshes in our template's topology (.ply, .obj, .npz).")
+        list[Path], typer.Argument(help="Meshes or point clouds (.ply, .obj, .stl, .pcd, .npz).")
     ],
     out: Annotated[Path, typer.Option(help="Output folder.")] = Path("out/fit"),
     units: Annotated[str, typer.Option(help="auto, m or mm.")] = "auto",
 ) -> None:
-    """Fit the body model to registered meshes (our 13,348-vertex topology, any placement), batched.
+    """Fit the body model to meshes and scans, any placement.
 
-    Writes fit.npz (shape, coordinates, root, registered vertices, joints), fit.json (one error report per
-    mesh: distances in mm, joint-limit violations, iterations, time, confidence), the registrations as
-    .ply and the coordinates as an OpenSim .mot.
+    Meshes in our 13,348-vertex topology are fitted vertex to vertex (batched); meshes in SMPL's 6,890-vertex
+    topology through the stored correspondence; anything else as a raw scan (any topology or a bare point
+    cloud; orientation searched; no landmarks). Writes fit.npz (shape, coordinates, root, registered vertices
+    in our topology, joints), fit.json (one error report per input: distances in mm, joint-limit
+    violations, iterations, time, confidence), the registrations as .ply and the coordinates as an OpenSim
+    .mot.
     """
     import numpy as np
     import trimesh
@@ -86,36 +94,63 @@ def fit(
     from bodyfit.models.body.model import BodyModel
     from bodyfit.models.errors import BodyfitError
     from bodyfit.models.fitting.registered import RegisteredFitter
+    from bodyfit.models.fitting.report import FitReport
+    from bodyfit.models.fitting.scan_fit import ScanFitter
     from bodyfit.models.fitting.scan_io import load_scan
+    from bodyfit.models.fitting.smpl_topology import SMPL_VERTICES, fit_smpl_meshes
     from bodyfit.models.skeleton.opensim_export import write_mot
 
     try:
         model = BodyModel.load()
-        targets = np.stack([load_scan(path, units=units).points for path in meshes])
-        result = RegisteredFitter(model).fit(targets)
+        scans = [load_scan(path, units=units) for path in meshes]
+        registered = RegisteredFitter(model)
+        scanner: ScanFitter | None = None
+        fits: list[tuple[str, dict[str, np.ndarray], FitReport]] = []
+        for path, scan in zip(meshes, scans, strict=True):
+            if scan.n_points == model.n_vertices:
+                fitted = registered.fit(scan.points)
+                fits.append(("registered", _first(fitted), fitted.reports[0]))
+            elif scan.n_points == SMPL_VERTICES and scan.faces is not None:
+                fitted = fit_smpl_meshes(registered, scan.points)[0]
+                fits.append(("SMPL topology", _first(fitted), fitted.reports[0]))
+            else:
+                typer.echo(f"{path.name}: raw scan of {scan.n_points} points", err=True)
+                scanner = scanner or ScanFitter(model)
+                f = scanner.fit(scan)
+                params = {"shape": f.shape, "coordinates": f.coordinates, "root": f.root}
+                fits.append(
+                    ("raw scan", {**params, "vertices": f.registration, "joints": f.joints}, f.report)
+                )
     except (BodyfitError, OSError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
     out.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(
-        out / "fit.npz",
-        shape=result.shape,
-        coordinates=result.coordinates,
-        dof_names=np.array(model.dof_names),
-        root=result.root,
-        vertices=result.vertices,
-        joints=result.joints,
-        joint_names=np.array(model.joint_names),
-    )
-    reports = [{"mesh": str(p), **r.to_dict()} for p, r in zip(meshes, result.reports, strict=True)]
-    (out / "fit.json").write_text(json.dumps(reports, indent=1) + "\n")
-    for k, v in enumerate(result.vertices):
-        trimesh.Trimesh(v, model.faces, process=False).export(out / f"registration_{k:03d}.ply")
-    write_mot(out / "fit.mot", model.skeleton.spec, result.coordinates, result.root, fps=1.0)
-    for p, r in zip(meshes, result.reports, strict=True):
+    arrays: dict[str, np.ndarray] = {key: np.stack([a[key] for _, a, _ in fits]) for key in fits[0][1]}
+    arrays["dof_names"], arrays["joint_names"] = np.array(model.dof_names), np.array(model.joint_names)
+    np.savez_compressed(out / "fit.npz", allow_pickle=False, **arrays)
+    records = [
+        {"mesh": str(p), "fitted_as": kind, **r.to_dict()}
+        for p, (kind, _, r) in zip(meshes, fits, strict=True)
+    ]
+    (out / "fit.json").write_text(json.dumps(records, indent=1) + "\n")
+    for k, (_, a, _) in enumerate(fits):
+        trimesh.Trimesh(a["vertices"], model.faces, process=False).export(out / f"registration_{k:03d}.ply")
+    write_mot(out / "fit.mot", model.skeleton.spec, arrays["coordinates"], arrays["root"], fps=1.0)
+    for p, (kind, _, r) in zip(meshes, fits, strict=True):
         flag = "ok" if r.confident else "LOW CONFIDENCE: " + "; ".join(r.reasons)
-        typer.echo(f"{p.name}: mean {r.distances.mean:.2f} mm, p95 {r.distances.p95:.2f} mm ({flag})")
+        typer.echo(f"{p.name} ({kind}): mean {r.distances.mean:.2f} mm, p95 {r.distances.p95:.2f} mm, {flag}")
     typer.echo(f"wrote {len(meshes)} fits to {out}/ (fit.npz, fit.json, registration_*.ply, fit.mot)")
+
+
+def _first(fit: BodyFit) -> dict[str, np.ndarray]:
+    """The arrays of a one-mesh :class:`BodyFit`."""
+    return {
+        "shape": fit.shape[0],
+        "coordinates": fit.coordinates[0],
+        "root": fit.root[0],
+        "vertices": fit.vertices[0],
+        "joints": fit.joints[0],
+    }
 
 
 @app.command()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -53,8 +54,6 @@ def test_every_command_documents_its_options() -> None:
 
 def test_fit_registered_meshes(tmp_path: Path) -> None:
     """`bodyfit fit` on two meshes of the model written as PLY in millimetres: reports and outputs."""
-    import json
-
     import trimesh
 
     from bodyfit.models.body.model import BodyModel
@@ -79,11 +78,40 @@ def test_fit_registered_meshes(tmp_path: Path) -> None:
     assert (out / "registration_001.ply").exists() and (out / "fit.mot").exists()
 
 
-def test_fit_rejects_a_mesh_of_another_topology(tmp_path: Path) -> None:
+def test_fit_a_sphere_is_a_low_confidence_scan(tmp_path: Path) -> None:
+    """A mesh of another topology is fitted as a raw scan; a sphere is not a body and says so."""
     import trimesh
 
     path = tmp_path / "sphere.ply"
     trimesh.creation.icosphere(subdivisions=4, radius=0.8).export(path)
+    out = tmp_path / "o"
+    result = runner.invoke(app, ["fit", str(path), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "raw scan" in result.output and "LOW CONFIDENCE" in result.output
+    report = json.loads((out / "fit.json").read_text())[0]
+    assert report["fitted_as"] == "raw scan" and report["confident"] is False and report["reasons"]
+
+
+def test_fit_an_smpl_topology_mesh(tmp_path: Path) -> None:
+    """A 6,890-vertex mesh goes through the stored SMPL correspondence (the CC BY woman, in millimetres)."""
+    import trimesh
+
+    from bodyfit.models.fitting.smpl_topology import SOURCE_DIR, read_obj
+
+    verts, faces = read_obj(SOURCE_DIR / "human_woman.obj")
+    path = tmp_path / "woman.ply"
+    trimesh.Trimesh(verts * 1000.0, faces, process=False).export(path)
+    out = tmp_path / "o"
+    result = runner.invoke(app, ["fit", str(path), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    report = json.loads((out / "fit.json").read_text())[0]
+    assert report["fitted_as"] == "SMPL topology" and report["limit_violations"] == 0
+    assert np.load(out / "fit.npz")["vertices"].shape == (1, 13348, 3)
+
+
+def test_fit_reports_an_unreadable_file(tmp_path: Path) -> None:
+    path = tmp_path / "broken.ply"
+    path.write_bytes(b"ply\nformat nonsense\n")
     result = runner.invoke(app, ["fit", str(path), "--out", str(tmp_path / "o")])
     assert result.exit_code == 2
-    assert "13348" in result.output and "Traceback" not in result.output
+    assert "error:" in result.output and "Traceback" not in result.output

@@ -398,16 +398,18 @@ class ScanFitter:
         vertices = body_verts @ R + m
         registration = registration @ R + m
         distances = point_to_surface(points, registration, self.faces)
+        offset = float(np.linalg.norm(registration - vertices, axis=1).mean())
         coverage = float(
             np.mean(tree.query(registration, distance_upper_bound=COVERED_MM / 1000)[0] < np.inf)
         )
-        report = self._report(distances, coverage, q, iterations, time.perf_counter() - start, losses)
+        report = self._report(distances, coverage, offset, q, iterations, time.perf_counter() - start, losses)
         return ScanFit(c, q, root, vertices, registration, joints, scan_to_body, distances, report)
 
     def _report(
         self,
         distances: np.ndarray,
         coverage: float,
+        offset: float,
         q: np.ndarray,
         iterations: int,
         seconds: float,
@@ -445,6 +447,7 @@ class ScanFitter:
                 "inlier_fraction": round(fraction, 4),
                 "inlier_threshold_mm": INLIER_MM,
                 "coverage": round(coverage, 4),
+                "nonrigid_offset_mm": round(offset * 1000, 2),
                 "phase_scores": {k: round(v, 5) for k, v in losses.items()},
             },
         )
