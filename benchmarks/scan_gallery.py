@@ -1,9 +1,10 @@
 """Fits of real scans, rendered for docs/: the two CC BY bodies as bare point clouds (their 6,890 vertices,
 no faces, turned at random; orientation searched) and the real Kinect scan (tests/data/scans; the person
-cropped as the points nearer than 1 m to the camera; camera axes: +Y down, the person faces the camera).
+cropped as the points nearer than 1 m to the camera; camera axes: +Y down, the person seen in profile,
+facing the camera's +X).
 
-Writes ``docs/scan_fits.png`` (rows: input points, our fit; the CC BY bodies also show their own mesh) and
-prints each fit's report.
+Writes ``docs/scan_fits.png`` (a row per scan: the input points, the CC BY body's own mesh, our
+registration; the Kinect row as the camera saw it) and prints each fit's report.
 
 Usage::
 
@@ -26,30 +27,36 @@ from bodyfit.models.render import RenderMesh, render, save_png, tile
 KINECT = (
     Path(__file__).resolve().parents[1] / "tests" / "data" / "scans" / "pcl_template_alignment_person.pcd"
 )
-KINECT_TO_BODY = np.array([[0.0, 0.0, -1.0], [0.0, -1.0, 0.0], [-1.0, 0.0, 0.0]])  # facing the camera
+KINECT_TO_BODY = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])  # +Y down; faces camera +X
 KINECT_CROP_M = 1.0
 SPLAT_M = 0.004
 
 
 def splats(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """A tiny triangle at every point (N, 3), so the mesh renderer can draw a point cloud."""
-    offsets = np.array([[0.0, SPLAT_M, 0.0], [0.0, -SPLAT_M, SPLAT_M], [0.0, -SPLAT_M, -SPLAT_M]])
+    # in the plane x = -z, so both the front (along x) and the side (along z) views see it
+    offsets = np.array([[0.0, SPLAT_M, 0.0], [SPLAT_M, -SPLAT_M, -SPLAT_M], [-SPLAT_M, -SPLAT_M, SPLAT_M]])
     verts = (points[:, None, :] + offsets[None]).reshape(-1, 3)
     return verts, np.arange(len(verts)).reshape(-1, 3)
 
 
 def panel(
-    points: np.ndarray, fit: ScanFit, faces: np.ndarray, to_body: np.ndarray, truth: RenderMesh | None
+    points: np.ndarray,
+    fit: ScanFit,
+    faces: np.ndarray,
+    to_body: np.ndarray,
+    truth: RenderMesh | None,
+    view: str = "front",
 ) -> list[np.ndarray]:
-    """Front views of the points, the truth (when given) and the registration, in the body's axes."""
+    """Views of the points, the truth (when given) and the registration, in the body's axes."""
     lo = (points @ to_body.T).min(0) - 0.05
     hi = (points @ to_body.T).max(0) + 0.05
     v, f = splats(points @ to_body.T)
-    images = [render([RenderMesh(v, f, color=(0.3, 0.3, 0.3))], "front", (384, 576), bounds=(lo, hi))]
+    images = [render([RenderMesh(v, f, color=(0.3, 0.3, 0.3))], view, (384, 576), bounds=(lo, hi))]
     if truth is not None:
-        images.append(render([truth], "front", (384, 576), bounds=(lo, hi)))
+        images.append(render([truth], view, (384, 576), bounds=(lo, hi)))
     reg = RenderMesh(fit.registration @ to_body.T, faces, color=(0.9, 0.6, 0.5))
-    images.append(render([reg], "front", (384, 576), bounds=(lo, hi)))
+    images.append(render([reg], view, (384, 576), bounds=(lo, hi)))
     return images
 
 
@@ -70,10 +77,10 @@ def main(argv: list[str] | None = None) -> None:
         truth = RenderMesh(verts @ SMPL_TO_BODY.T, faces, color=(0.6, 0.6, 0.9))
         images += panel(verts @ R.T, fit, model.faces, to_body, truth)
         print(f"{name} (bare points, turned): {fit.report.to_dict()}")
-    kinect = load_scan(KINECT)
+    kinect = load_scan(KINECT, drop_nonfinite=True)
     person = kinect.points[kinect.points[:, 2] < KINECT_CROP_M]
     fit = fitter.fit(person, orientation=KINECT_TO_BODY)
-    images += panel(person, fit, model.faces, KINECT_TO_BODY, None)
+    images += panel(person, fit, model.faces, KINECT_TO_BODY, None, view="side")  # the camera's view
     images.append(np.full_like(images[0], 255))
     print(f"kinect (cropped to {len(person)} points): {fit.report.to_dict()}")
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -35,7 +35,7 @@ from bodyfit.models.skeleton.model import PELVIS_ROTATIONS
 
 CONFIDENT_MEAN_MM = 10.0
 MIN_INLIER_FRACTION = 0.85
-MIN_COVERAGE = 0.15
+MIN_COVERAGE = 0.5
 INLIER_MM = 30.0  # scan points further than this from the registration count as outliers
 COVERED_MM = 20.0  # a model vertex is covered when a scan point lies this close
 
