@@ -16,8 +16,6 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import platform
 import time
@@ -27,6 +25,7 @@ import fit_markers  # benchmarks/ is on sys.path when this script runs
 import fit_registered
 import fit_scans
 import fit_sequences
+from bench_cli import bench_main
 
 
 def run(quick: bool) -> dict[str, Any]:
@@ -43,16 +42,9 @@ def run(quick: bool) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description="fitting benchmarks: ours against anny and OpenSim")
-    parser.add_argument("--quick", action="store_true", help="small samples (a minute or two)")
-    parser.add_argument("--json", action="store_true", help="print one JSON object")
-    args = parser.parse_args(argv)
-    r = run(args.quick)
-    if args.json:
-        print(json.dumps(r))
-        return
-    for key, value in r.items():
-        print(f"{key:>28}: {value}")
+    bench_main(
+        run, "fitting benchmarks: ours against anny and OpenSim", "small samples (a minute or two)", argv
+    )
 
 
 if __name__ == "__main__":

@@ -25,13 +25,12 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
-import json
 import time
 from typing import Any
 
 import numpy as np
 import torch
+from bench_cli import bench_main  # benchmarks/ is on sys.path when this script runs
 
 from bodyfit.models.body.anny_posed import posed_anny_bodies
 from bodyfit.models.body.anny_source import AnnySource
@@ -128,16 +127,7 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true", help="12 scans instead of 102")
-    parser.add_argument("--json", action="store_true", help="print one JSON object")
-    args = parser.parse_args(argv)
-    r = run(args.quick)
-    if args.json:
-        print(json.dumps(r))
-        return
-    for key, value in r.items():
-        print(f"{key:>30}: {value}")
+    bench_main(run, __doc__.split("\n")[0], "12 scans instead of 102", argv)
 
 
 if __name__ == "__main__":

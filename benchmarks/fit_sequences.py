@@ -25,8 +25,6 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +32,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from bench_cli import bench_main  # benchmarks/ is on sys.path when this script runs
 
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting.bvh import CMU_UNITS, BvhMotion, read_bvh
@@ -169,16 +168,7 @@ def run(quick: bool) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true", help="the tests' clip instead of a whole trial")
-    parser.add_argument("--json", action="store_true", help="print one JSON object")
-    args = parser.parse_args(argv)
-    r = run(args.quick)
-    if args.json:
-        print(json.dumps(r))
-        return
-    for key, value in r.items():
-        print(f"{key:>28}: {value}")
+    bench_main(run, __doc__.split("\n")[0], "the tests' clip instead of a whole trial", argv)
 
 
 if __name__ == "__main__":
