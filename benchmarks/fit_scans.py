@@ -30,7 +30,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from bench_cli import bench_main  # benchmarks/ is on sys.path when this script runs
 
 from bodyfit.models.body.anny_posed import posed_anny_bodies
 from bodyfit.models.body.anny_source import AnnySource
@@ -127,6 +126,8 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> None:
+    from bench_cli import bench_main  # benchmarks/ is on sys.path when this runs as a script
+
     bench_main(run, __doc__.split("\n")[0], "12 scans instead of 102", argv)
 
 

@@ -32,7 +32,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from bench_cli import bench_main  # benchmarks/ is on sys.path when this script runs
 
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting.bvh import CMU_UNITS, BvhMotion, read_bvh
@@ -168,6 +167,8 @@ def run(quick: bool) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> None:
+    from bench_cli import bench_main  # benchmarks/ is on sys.path when this runs as a script
+
     bench_main(run, __doc__.split("\n")[0], "the tests' clip instead of a whole trial", argv)
 
 
