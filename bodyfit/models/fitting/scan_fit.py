@@ -157,12 +157,14 @@ def orientation_candidates(points: np.ndarray) -> np.ndarray:
 @dataclass
 class _Hypotheses:
     """Candidate body frames and their optimisation state: rotation (H, 3, 3), the scan's centre (3,), the
-    fit points in each body frame (H, N, 3) metres, state (see RegisteredFitter.start_state)."""
+    fit points in each body frame (H, N, 3) metres, state (see RegisteredFitter.start_state); searched: the
+    candidates came from the scan's axes (no orientation given)."""
 
     rotation: np.ndarray
     centre: np.ndarray
     points: np.ndarray
     state: State
+    searched: bool
 
     def keep(self, rows: np.ndarray) -> None:
         self.rotation, self.points = self.rotation[rows], self.points[rows]
@@ -249,7 +251,7 @@ class ScanFitter:
         centre_offset = (tri.mean(1) * area[:, None]).sum(0) / area.sum()  # the surface's centroid
         r0 = np.repeat(-centre_offset[None], H, axis=0)
         state = self.fitter.start_state(q0, r0, np.zeros((H, model.n_shape)))
-        return _Hypotheses(rotation, points.mean(0), np.zeros((H, 0, 3)), state)
+        return _Hypotheses(rotation, points.mean(0), np.zeros((H, 0, 3)), state, orientation is None)
 
     def _vertices(self, state: State) -> np.ndarray:
         """(H, V, 3) model vertices (body frames, metres) of the current state."""
@@ -402,7 +404,8 @@ class ScanFitter:
         coverage = float(
             np.mean(tree.query(registration, distance_upper_bound=COVERED_MM / 1000)[0] < np.inf)
         )
-        report = self._report(distances, coverage, offset, q, iterations, time.perf_counter() - start, losses)
+        seconds = time.perf_counter() - start
+        report = self._report(distances, coverage, offset, hyp.searched, q, iterations, seconds, losses)
         return ScanFit(c, q, root, vertices, registration, joints, scan_to_body, distances, report)
 
     def _report(
@@ -410,6 +413,7 @@ class ScanFitter:
         distances: np.ndarray,
         coverage: float,
         offset: float,
+        searched: bool,
         q: np.ndarray,
         iterations: int,
         seconds: float,
@@ -433,6 +437,12 @@ class ScanFitter:
             reasons.append(
                 f"the scan covers {coverage:.0%} of the body surface: the shape and pose of the rest are "
                 "guesses"
+            )
+        if searched:
+            reasons.append(
+                "the orientation was searched: on varied poses such fits often match the surface with a "
+                "wrong heading or wrong limbs, which the distances cannot show; pass orientation= (and a "
+                "start pose) when you know them"
             )
         if violations:
             reasons.append(f"{violations} coordinates outside their joint limits")
