@@ -34,7 +34,7 @@ from bodyfit.models.fitting.calibration import (
 from bodyfit.models.fitting.marker_sets import MarkerSetError, choose_marker_set, normalise_name
 from bodyfit.models.fitting.marker_solve import solve_ik
 from bodyfit.models.fitting.mocap_io import MarkerTrial
-from bodyfit.models.fitting.report import DistanceStats, FitReport, count_limit_violations
+from bodyfit.models.fitting.report import DistanceStats, FitReport
 from bodyfit.models.fitting.subject import Calibration, calibrate
 from bodyfit.models.skeleton.model import Skeleton
 from bodyfit.models.skeleton.opensim_export import write_mot, write_osim
@@ -243,14 +243,4 @@ def _report(
             f"mean marker error {mean_error * 1000:.1f} mm exceeds {MAX_MEAN_ERROR * 1000:.0f} mm: check "
             "marker names and labelling, the static trial, or the lab-to-world rotation"
         )
-    violations = count_limit_violations(q, ranges)
-    if violations:
-        reasons.append(f"{violations} coordinate values outside their joint limits")
-    return FitReport(
-        distances=DistanceStats.of(errors),
-        limit_violations=violations,
-        iterations=iterations,
-        seconds=seconds,
-        confident=not reasons,
-        reasons=tuple(reasons),
-    )
+    return FitReport.judged(DistanceStats.of(errors), q, ranges, iterations, seconds, reasons)

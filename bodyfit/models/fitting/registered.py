@@ -22,7 +22,7 @@ import torch
 from bodyfit.models.body.model import BodyDecoder, BodyModel
 from bodyfit.models.errors import ShapeError
 from bodyfit.models.fitting.lbfgs import batched_lbfgs
-from bodyfit.models.fitting.report import DistanceStats, FitReport, count_limit_violations
+from bodyfit.models.fitting.report import DistanceStats, FitReport
 from bodyfit.models.rotations import kabsch, zxy_angles
 from bodyfit.models.skeleton.model import PELVIS_ROTATIONS, check_finite
 
@@ -423,21 +423,11 @@ class RegisteredFitter:
     ) -> FitReport:
         used = dist[w > 0]
         stats = DistanceStats.of(used)
-        violations = count_limit_violations(q, self.model.skeleton.ranges)
         reasons = []
         if stats.mean > CONFIDENT_MEAN_MM:
             reasons.append(
                 f"mean vertex error {stats.mean:.1f} mm exceeds {CONFIDENT_MEAN_MM:.0f} mm: the mesh may not "
                 "be a human body in our topology, or its pose is outside the joint limits"
             )
-        if violations:
-            reasons.append(f"{violations} coordinates outside their joint limits")
-        return FitReport(
-            distances=stats,
-            limit_violations=violations,
-            iterations=iterations,
-            seconds=seconds,
-            confident=not reasons,
-            reasons=tuple(reasons),
-            extra={"stage_loss_mm2": {k: round(v, 4) for k, v in losses.items()}},
-        )
+        extra = {"stage_loss_mm2": {k: round(v, 4) for k, v in losses.items()}}
+        return FitReport.judged(stats, q, self.model.skeleton.ranges, iterations, seconds, reasons, extra)

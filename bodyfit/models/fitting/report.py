@@ -50,6 +50,24 @@ class FitReport:
     reasons: tuple[str, ...] = ()
     extra: dict[str, Any] = field(default_factory=dict)
 
+    @classmethod
+    def judged(
+        cls,
+        distances: DistanceStats,
+        q: np.ndarray,
+        ranges: np.ndarray,
+        iterations: int,
+        seconds: float,
+        reasons: list[str],
+        extra: dict[str, Any] | None = None,
+    ) -> FitReport:
+        """A report whose confidence follows from ``reasons`` (causes found by the fitter) plus the
+        joint-limit violations of q (..., n_dof) against ``ranges`` (n_dof, 2), counted here."""
+        violations = count_limit_violations(q, ranges)
+        if violations:
+            reasons = [*reasons, f"{violations} coordinate values outside their joint limits"]
+        return cls(distances, violations, iterations, seconds, not reasons, tuple(reasons), extra or {})
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary (distances in mm)."""
         out = asdict(self)

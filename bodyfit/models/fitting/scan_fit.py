@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting.nonrigid import NonRigidConfig, refine_nonrigid
 from bodyfit.models.fitting.registered import DataTerm, RegisteredFitter, Stage, State
-from bodyfit.models.fitting.report import DistanceStats, FitReport, count_limit_violations
+from bodyfit.models.fitting.report import DistanceStats, FitReport
 from bodyfit.models.fitting.scan_io import MIN_POINTS, Scan, ScanError
 from bodyfit.models.fitting.surface import point_to_surface, vertex_normals
 from bodyfit.models.rotations import zxy_angles
@@ -422,7 +422,6 @@ class ScanFitter:
         inlier = distances * 1000.0 <= INLIER_MM
         stats = DistanceStats.of(distances[inlier])
         fraction = float(inlier.mean())
-        violations = count_limit_violations(q, self.model.skeleton.ranges)
         reasons = []
         if fraction < MIN_INLIER_FRACTION:
             reasons.append(
@@ -444,20 +443,11 @@ class ScanFitter:
                 "wrong heading or wrong limbs, which the distances cannot show; pass orientation= (and a "
                 "start pose) when you know them"
             )
-        if violations:
-            reasons.append(f"{violations} coordinates outside their joint limits")
-        return FitReport(
-            distances=stats,
-            limit_violations=violations,
-            iterations=iterations,
-            seconds=seconds,
-            confident=not reasons,
-            reasons=tuple(reasons),
-            extra={
-                "inlier_fraction": round(fraction, 4),
-                "inlier_threshold_mm": INLIER_MM,
-                "coverage": round(coverage, 4),
-                "nonrigid_offset_mm": round(offset * 1000, 2),
-                "phase_scores": {k: round(v, 5) for k, v in losses.items()},
-            },
-        )
+        extra = {
+            "inlier_fraction": round(fraction, 4),
+            "inlier_threshold_mm": INLIER_MM,
+            "coverage": round(coverage, 4),
+            "nonrigid_offset_mm": round(offset * 1000, 2),
+            "phase_scores": {k: round(v, 5) for k, v in losses.items()},
+        }
+        return FitReport.judged(stats, q, self.model.skeleton.ranges, iterations, seconds, reasons, extra)

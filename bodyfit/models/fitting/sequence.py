@@ -33,8 +33,14 @@ import torch
 
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.errors import ShapeError
-from bodyfit.models.fitting.registered import RegisteredFitConfig, RegisteredFitter, Stage, vertex_term
-from bodyfit.models.fitting.report import DistanceStats, FitReport, count_limit_violations
+from bodyfit.models.fitting.registered import (
+    CONFIDENT_MEAN_MM,
+    RegisteredFitConfig,
+    RegisteredFitter,
+    Stage,
+    vertex_term,
+)
+from bodyfit.models.fitting.report import DistanceStats, FitReport
 from bodyfit.models.fitting.retarget import unwrap_pelvis, wrap_pelvis
 from bodyfit.models.rotations import kabsch, zxy_angles
 from bodyfit.models.skeleton.model import PELVIS_ROTATIONS
@@ -313,15 +319,13 @@ class SequenceFitter:
         self, dist: np.ndarray, w: np.ndarray, q: np.ndarray, iterations: int, seconds: float
     ) -> FitReport:
         stats = DistanceStats.of(dist[w > 0])
-        violations = count_limit_violations(q, self.model.skeleton.ranges)
         reasons = []
-        if stats.mean > 10.0:
+        if stats.mean > CONFIDENT_MEAN_MM:
             reasons.append(
-                f"mean vertex error {stats.mean:.1f} mm exceeds 10 mm: the frame may not be this body"
+                f"mean vertex error {stats.mean:.1f} mm exceeds {CONFIDENT_MEAN_MM:.0f} mm: the frame may "
+                "not be this body"
             )
-        if violations:
-            reasons.append(f"{violations} coordinates outside their joint limits")
-        return FitReport(stats, violations, iterations, seconds, not reasons, tuple(reasons))
+        return FitReport.judged(stats, q, self.model.skeleton.ranges, iterations, seconds, reasons)
 
 
 def fit_sequence(
