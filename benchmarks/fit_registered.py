@@ -23,8 +23,6 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
-import json
 import time
 from typing import Any
 
@@ -112,20 +110,18 @@ def run(quick: bool) -> dict[str, Any]:
     }
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true", help="24 bodies for us, 8 for anny")
-    parser.add_argument("--json", action="store_true", help="print one JSON object")
-    args = parser.parse_args(argv)
-    r = run(args.quick)
-    if args.json:
-        print(json.dumps(r))
-        return
+def show(r: dict[str, Any]) -> None:
     print(f"ours : {r['registered_mm']:.2f} mm mean ({r['registered_mm_max']:.2f} worst body), "
           f"{r['registered_ms']:.1f} ms/mesh over {r['registered_bodies']} bodies")  # fmt: skip
     print(f"anny : {r['anny_mm']:.2f} mm mean ({r['anny_mm_max']:.2f} worst body), "
           f"{r['anny_ms']:.1f} ms/mesh over {r['anny_bodies']} bodies")  # fmt: skip
     print(f"speed: ours {r['registered_speed_ratio']}x faster; targets met: {r['registered_targets_met']}")
+
+
+def main(argv: list[str] | None = None) -> None:
+    from bench_cli import bench_main  # benchmarks/ is on sys.path when this runs as a script
+
+    bench_main(run, __doc__.split("\n")[0], "24 bodies for us, 8 for anny", argv, show)
 
 
 if __name__ == "__main__":
