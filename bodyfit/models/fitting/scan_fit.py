@@ -226,7 +226,7 @@ class ScanFitter:
             )
             if phase.search_limbs:
                 self._search_limbs(hyp)
-            term = self._chamfer(hyp, phase, tree, cleaned)
+            term = self._chamfer(hyp, phase)
             n_iter, _ = self.fitter.optimise(phase.stage, hyp.state, term)
             iterations += n_iter
             score = self._score(hyp, phase, tree)
@@ -261,13 +261,14 @@ class ScanFitter:
             v = self.fitter.decoder(c.to(dtype), q.to(dtype), root.to(dtype))[0]
         return v.double().numpy()
 
-    def _chamfer(self, hyp: _Hypotheses, phase: ScanPhase, tree: cKDTree, cleaned: np.ndarray) -> DataTerm:
+    def _chamfer(self, hyp: _Hypotheses, phase: ScanPhase) -> DataTerm:
         """The robust two-way Chamfer loss of every hypothesis on the stage's vertices (H, V', 3) in mm:
 
             mean_i rho(|v_j(i) - p_i|) + 0.5 mean_j rho(|v_j - s(j)|),  rho(d) = d^2 s^2 / (d^2 + s^2)
 
-        with p_i the fit points, j(i) the vertex nearest p_i, s(j) the cleaned scan point nearest v_j (found
-        again at every evaluation), and the scan -> model distance point-to-plane when ``phase.plane``."""
+        with p_i the phase's fit points, j(i) the vertex nearest p_i, s(j) the fit point nearest v_j (both
+        found again at every evaluation), and the scan -> model distance point-to-plane when
+        ``phase.plane``."""
         dtype = self.fitter.config.dtype
         idx = self.fitter.index[phase.stage.vertices]
         P = torch.as_tensor(hyp.points * 1000.0, dtype=dtype)

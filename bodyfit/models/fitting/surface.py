@@ -87,16 +87,15 @@ def closest_on_triangles(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
 
 
 def closest_on_surface(
-    points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, ring: np.ndarray | None = None
+    points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For each point (N, 3), the closest surface point among the triangles around its nearest vertex
     (exact except where a far vertex's triangle passes closer, which needs a badly shaped mesh).
 
-    ``ring``: :func:`vertex_faces` of the mesh, when the caller has it.
     Returns:
         face index (N,), barycentric coordinates in that face (N, 3), distance (N,).
     """
-    ring = vertex_faces(faces, len(vertices)) if ring is None else ring
+    ring = vertex_faces(faces, len(vertices))
     _, nearest = cKDTree(vertices).query(points, workers=-1)
     tri_all = vertices[faces]
     face = np.zeros(len(points), np.int64)
