@@ -1,0 +1,42 @@
+"""Server settings, read from the environment (prefix ``BODYFIT_``) or given explicitly."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from bodyfit.service.limits import Limits
+
+
+class ServiceSettings(BaseSettings):
+    """host / rest_port / grpc_port: where the service listens (gRPC off when grpc_port is 0); assets: the
+    asset folder (default the checkout's assets/); threads: ONNX Runtime and torch threads; the rest are
+    request limits (see :class:`bodyfit.service.limits.Limits`)."""
+
+    model_config = SettingsConfigDict(env_prefix="BODYFIT_", extra="ignore")
+
+    host: str = "127.0.0.1"
+    rest_port: int = Field(8000, ge=0, le=65535)
+    grpc_port: int = Field(50051, ge=0, le=65535)
+    assets: Path | None = None
+    threads: int | None = Field(None, ge=1)
+    max_upload_mb: float = Field(200.0, gt=0)
+    max_points: int = Field(2_000_000, ge=300)
+    max_frames: int = Field(20_000, ge=1)
+    max_batch: int = Field(256, ge=1)
+    max_seconds: float = Field(600.0, gt=0)
+    max_concurrent: int = Field(1, ge=1)
+    queue_seconds: float = Field(30.0, ge=0)
+
+    def limits(self) -> Limits:
+        return Limits(
+            max_upload_bytes=int(self.max_upload_mb * 2**20),
+            max_points=self.max_points,
+            max_frames=self.max_frames,
+            max_batch=self.max_batch,
+            max_seconds=self.max_seconds,
+            max_concurrent=self.max_concurrent,
+            queue_seconds=self.queue_seconds,
+        )

@@ -1,0 +1,381 @@
+"""The transport-neutral service core: loads the model once, then synthesizes, fits and streams.
+
+REST and gRPC call the same :class:`BodyService` methods; they only translate wire formats and map
+:mod:`bodyfit.service.errors` to statuses. The service holds read-only model buffers, an ONNX Runtime
+session and a semaphore bounding concurrent heavy work; one instance serves concurrent requests.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnxruntime as ort
+import torch
+
+from bodyfit.models.assets import read_manifest, verified_asset
+from bodyfit.models.body.model import BodyModel
+from bodyfit.models.body.onnx_export import BODY_ONNX
+from bodyfit.models.errors import BodyfitError
+from bodyfit.models.fitting.registered import BodyFit, RegisteredFitter
+from bodyfit.models.fitting.report import FitReport
+from bodyfit.models.fitting.scan_fit import ScanFitter
+from bodyfit.models.fitting.scan_io import FORMATS as SCAN_FORMATS
+from bodyfit.models.fitting.scan_io import Scan, load_scan
+from bodyfit.models.fitting.sequence import SequenceFit, SequenceFitter
+from bodyfit.models.fitting.smpl_topology import SMPL_VERTICES, fit_smpl_meshes
+from bodyfit.service.errors import BusyError, InvalidInputError, LimitExceededError
+from bodyfit.service.formats import Bodies
+from bodyfit.service.jobs import Job
+from bodyfit.service.limits import Limits
+
+Coordinates = np.ndarray | Mapping[str, float | Sequence[float]] | None
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    """What clients need to build requests: DOF names, ranges (n_dof, 2) and units ("rad" / "m"), shape
+    coefficient counts, mesh sizes, joint names, and the asset version with each file's sha256."""
+
+    dof_names: tuple[str, ...]
+    dof_ranges: np.ndarray
+    dof_units: tuple[str, ...]
+    n_bone: int
+    n_identity: int
+    n_vertices: int
+    n_faces: int
+    joint_names: tuple[str, ...]
+    asset_format: str
+    asset_sources: dict[str, str]
+    asset_sha256: dict[str, str]
+    version: str
+
+    @property
+    def n_shape(self) -> int:
+        return self.n_bone + self.n_identity
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "version": self.version,
+            "dofs": [
+                {"name": n, "min": float(lo), "max": float(hi), "unit": u}
+                for n, (lo, hi), u in zip(self.dof_names, self.dof_ranges, self.dof_units, strict=True)
+            ],
+            "shape": {"n_bone": self.n_bone, "n_identity": self.n_identity, "n_shape": self.n_shape},
+            "mesh": {"n_vertices": self.n_vertices, "n_faces": self.n_faces},
+            "joint_names": list(self.joint_names),
+            "assets": {
+                "format": self.asset_format,
+                "sources": self.asset_sources,
+                "sha256": self.asset_sha256,
+            },
+        }
+
+
+@dataclass(frozen=True)
+class SynthRequest:
+    """shape (B, n_shape) or None (the mean body); coordinates (B, n_dof) in ``dof_names`` order, or a
+    mapping DOF name -> value or (B,) values (missing DOFs are 0), or None (zero pose); root (B, 3) metres
+    or None; skeleton: also pose the bone mesh; batch: B when nothing else gives it."""
+
+    shape: np.ndarray | None = None
+    coordinates: Coordinates = None
+    root: np.ndarray | None = None
+    skeleton: bool = False
+    batch: int | None = None
+
+
+@dataclass(frozen=True)
+class MeshFit:
+    """One fitted mesh or scan: how it was fitted ("registered", "SMPL topology" or "raw scan"), the
+    parameters shape (n_shape,), coordinates (n_dof,), root (3,), the registration ``vertices`` (V, 3) in our
+    topology, ``joints`` (J, 3), and the error report."""
+
+    fitted_as: str
+    shape: np.ndarray
+    coordinates: np.ndarray
+    root: np.ndarray
+    vertices: np.ndarray
+    joints: np.ndarray
+    report: FitReport
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {
+            "shape": self.shape,
+            "coordinates": self.coordinates,
+            "root": self.root,
+            "vertices": self.vertices,
+            "joints": self.joints,
+        }
+
+
+@dataclass
+class _Fitters:
+    registered: RegisteredFitter
+    scan: ScanFitter
+    sequence: SequenceFitter
+
+
+@dataclass
+class BodyService:
+    """The loaded model and fitters; build with :meth:`load` (once per process)."""
+
+    model: BodyModel
+    session: ort.InferenceSession
+    limits: Limits = field(default_factory=Limits)
+    manifest: dict[str, Any] = field(default_factory=dict)
+    _fitters: _Fitters | None = None
+    _slots: threading.BoundedSemaphore = field(init=False)
+
+    def __post_init__(self) -> None:
+        self._slots = threading.BoundedSemaphore(self.limits.max_concurrent)
+        self._info = self._model_info()
+
+    @classmethod
+    def load(
+        cls, assets: Path | None = None, limits: Limits | None = None, threads: int | None = None
+    ) -> BodyService:
+        """Load the hash-checked assets, the ONNX session and the fitters.
+
+        Args:
+            assets: asset folder (default: the checkout's assets/ or $BODYFIT_ASSETS).
+            limits: request limits.
+            threads: threads of ONNX Runtime and torch (default: their own choice).
+        Raises:
+            AssetError: a missing or corrupted asset, with how to rebuild it.
+        """
+        model = BodyModel.load(assets)
+        options = ort.SessionOptions()
+        if threads:
+            options.intra_op_num_threads = threads
+            options.inter_op_num_threads = 1
+            torch.set_num_threads(threads)
+        session = ort.InferenceSession(
+            str(verified_asset(BODY_ONNX, assets)), options, providers=["CPUExecutionProvider"]
+        )
+        registered = RegisteredFitter(model)
+        service = cls(model, session, limits or Limits(), read_manifest(assets))
+        service._fitters = _Fitters(registered, ScanFitter(model), SequenceFitter(registered))
+        return service
+
+    @property
+    def fitters(self) -> _Fitters:
+        if self._fitters is None:
+            self._fitters = _Fitters(
+                RegisteredFitter(self.model), ScanFitter(self.model), SequenceFitter(self.model)
+            )
+        return self._fitters
+
+    # -- info ------------------------------------------------------------------------------------------
+    def info(self) -> ModelInfo:
+        return self._info
+
+    def _model_info(self) -> ModelInfo:
+        skel = self.model.skeleton
+        units = tuple("m" if c.motion == "translational" else "rad" for c in skel.spec.coordinates)
+        try:
+            pkg = version("bodyfit")
+        except PackageNotFoundError:  # pragma: no cover - running from a source tree without install
+            pkg = "unknown"
+        files = self.manifest.get("files", {})
+        return ModelInfo(
+            dof_names=tuple(self.model.dof_names),
+            dof_ranges=skel.ranges.copy(),
+            dof_units=units,
+            n_bone=self.model.n_bone,
+            n_identity=self.model.n_identity,
+            n_vertices=self.model.n_vertices,
+            n_faces=len(self.model.faces),
+            joint_names=tuple(self.model.joint_names),
+            asset_format=str(self.manifest.get("format", "")),
+            asset_sources=dict(self.manifest.get("sources", {})),
+            asset_sha256={name: str(entry.get("sha256", "")) for name, entry in files.items()},
+            version=pkg,
+        )
+
+    # -- synthesis -------------------------------------------------------------------------------------
+    def synthesize(self, request: SynthRequest) -> Bodies:
+        """Parameters -> posed skin and joints (ONNX Runtime), and the posed bone mesh when asked for.
+
+        Raises:
+            InvalidInputError: wrong shapes, NaN, unknown DOF names, out-of-range values (the message
+                names the field and the fix); LimitExceededError: more bodies than ``limits.max_batch``.
+        """
+        q, root, shape = self._parameters(request)
+        vertices, joints = self.session.run(None, {"shape": shape, "coordinates": q, "root": root})
+        bones = bone_faces = None
+        if request.skeleton:
+            with torch.no_grad():
+                out = self.model.forward(shape, q, root, skeleton_mesh=True)
+            assert out.bones is not None
+            bones = out.bones.numpy().astype(np.float32)
+            bone_faces = np.asarray(self.model.skeleton.bone_mesh().faces, np.int32)
+        return Bodies(
+            vertices=vertices,
+            faces=self.model.faces.astype(np.int32),
+            joints=joints,
+            joint_names=tuple(self.model.joint_names),
+            bones=bones,
+            bone_faces=bone_faces,
+        )
+
+    def _parameters(self, request: SynthRequest) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Validated float32 (B, n_dof), (B, 3), (B, n_shape)."""
+        skel = self.model.skeleton
+        batch = _batch_of(request)
+        if batch > self.limits.max_batch:
+            raise LimitExceededError(
+                f"{batch} bodies asked for in one call; the limit is {self.limits.max_batch}: split it",
+                field="batch",
+            )
+        with invalid_input("coordinates"):
+            coords = request.coordinates
+            if coords is None:
+                q = np.zeros((batch, skel.n_dof))
+            elif isinstance(coords, Mapping):
+                q = skel.coordinates({k: np.asarray(v) for k, v in coords.items()}, batch=batch)
+            else:
+                q = np.asarray(coords, np.float64)
+            root = np.zeros((len(q), 3)) if request.root is None else np.asarray(request.root, np.float64)
+            qt, rt, _ = skel.validate(q, root, dtype=torch.float32)
+        with invalid_input("shape"):
+            ct = self.model.validate_shape(request.shape, len(qt), torch.float32)
+        assert rt is not None
+        return qt.numpy(), rt.numpy(), ct.numpy()
+
+    # -- fitting ---------------------------------------------------------------------------------------
+    def read_scan(self, data: bytes, format: str, units: str = "auto") -> Scan:
+        """Read an uploaded mesh or point cloud (see :func:`bodyfit.models.fitting.scan_io.load_scan`).
+
+        Raises:
+            LimitExceededError: larger than ``limits.max_upload_bytes`` or ``limits.max_points``.
+            InvalidInputError: unknown format, unreadable, empty, NaN, degenerate, not human-sized.
+        """
+        fmt = format.lower().lstrip(".")
+        if fmt not in SCAN_FORMATS:
+            raise InvalidInputError(
+                f"unknown scan format {format!r}; send one of {', '.join(SCAN_FORMATS)} (by file name suffix "
+                "or the format field)",
+                field="format",
+            )
+        self._check_upload(len(data))
+        with invalid_input("file"):
+            scan = load_scan(data, format=fmt, units=units, drop_nonfinite=True)
+        if scan.n_points > self.limits.max_points:
+            raise LimitExceededError(
+                f"the scan has {scan.n_points:,} points; the limit is {self.limits.max_points:,}: thin it "
+                "(e.g. a 5 mm voxel grid keeps every detail the fit uses)",
+                field="file",
+            )
+        return scan
+
+    def fit_mesh(self, scan: Scan, job: Job | None = None) -> MeshFit:
+        """Fit one mesh or scan, routed by its topology: 13,348 vertices -> registered fit; 6,890 vertices
+        with faces -> SMPL topology; anything else -> raw scan (orientation searched, no landmarks).
+
+        Raises:
+            BusyError: no worker slot within ``limits.queue_seconds``; JobCancelledError /
+            DeadlineExceededError via ``job``.
+        """
+        job = job or Job(timeout_s=self.limits.max_seconds)
+        with self._slot():
+            job.report("fit", 0, 1, f"{scan.n_points} points")
+            fitters = self.fitters
+            if scan.n_points == self.model.n_vertices:
+                fit = _first(fitters.registered.fit(scan.points), "registered")
+            elif scan.n_points == SMPL_VERTICES and scan.faces is not None:
+                fit = _first(fit_smpl_meshes(fitters.registered, scan.points)[0], "SMPL topology")
+            else:
+                phases = len(fitters.scan.config.phases)
+                done = iter(range(1, phases + 1))
+
+                def progress(line: str) -> None:
+                    job.report("fit", next(done), phases + 1, line)
+
+                f = fitters.scan.fit(scan, progress=progress)
+                fit = MeshFit("raw scan", f.shape, f.coordinates, f.root, f.registration, f.joints, f.report)
+            job.report("fit", 1, 1, "done")
+            return fit
+
+    def fit_sequence(
+        self, frames: np.ndarray, weights: np.ndarray | None = None, job: Job | None = None
+    ) -> SequenceFit:
+        """Fit a registered sequence (T, V, 3) of one person (one shape, per-frame pose).
+
+        Raises:
+            InvalidInputError: wrong shape, NaN, no frames; LimitExceededError: more than
+            ``limits.max_frames``; BusyError, JobCancelledError, DeadlineExceededError.
+        """
+        job = job or Job(timeout_s=self.limits.max_seconds)
+        x = np.asarray(frames)
+        if x.ndim >= 1 and len(x) > self.limits.max_frames:
+            raise LimitExceededError(
+                f"{len(x):,} frames sent; the limit is {self.limits.max_frames:,}: split the sequence into "
+                "overlapping parts",
+                field="frames",
+            )
+        with self._slot():
+            job.report("fit", 0, max(len(x), 1), "shape and keyframes")
+
+            def progress(done: int, total: int) -> None:
+                job.report("fit", done, total, f"{done}/{total} frames")
+
+            with invalid_input("frames"):
+                return self.fitters.sequence.fit(x, weights, progress=progress)
+
+    def _check_upload(self, n_bytes: int) -> None:
+        if n_bytes > self.limits.max_upload_bytes:
+            raise LimitExceededError(
+                f"the upload is {n_bytes / 2**20:.1f} MiB; the limit is "
+                f"{self.limits.max_upload_bytes / 2**20:.0f} MiB: thin or split it",
+                field="file",
+            )
+
+    @contextmanager
+    def _slot(self) -> Iterator[None]:
+        if not self._slots.acquire(timeout=self.limits.queue_seconds):
+            raise BusyError(
+                f"all {self.limits.max_concurrent} worker slots stayed busy for "
+                f"{self.limits.queue_seconds:g} s; retry later"
+            )
+        try:
+            yield
+        finally:
+            self._slots.release()
+
+
+@contextmanager
+def invalid_input(field_name: str) -> Iterator[None]:
+    """Turn the model layer's typed errors into :class:`InvalidInputError` naming ``field_name``."""
+    try:
+        yield
+    except BodyfitError as exc:
+        raise InvalidInputError(str(exc), field=field_name) from exc
+
+
+def _batch_of(request: SynthRequest) -> int:
+    for value in (request.shape, request.root):
+        if value is not None and np.ndim(value) >= 1:
+            return len(value)
+    coords = request.coordinates
+    if coords is not None and not isinstance(coords, Mapping) and np.ndim(coords) >= 1:
+        return len(coords)
+    if isinstance(coords, Mapping):
+        lengths = [np.size(v) for v in coords.values() if np.ndim(v) >= 1]
+        if lengths:
+            return max(lengths)
+    if request.batch is not None and request.batch < 1:
+        raise InvalidInputError(f"batch must be at least 1; got {request.batch}", field="batch")
+    return request.batch or 1
+
+
+def _first(fit: BodyFit, kind: str) -> MeshFit:
+    return MeshFit(
+        kind, fit.shape[0], fit.coordinates[0], fit.root[0], fit.vertices[0], fit.joints[0], fit.reports[0]
+    )
