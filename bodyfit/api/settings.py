@@ -18,17 +18,17 @@ class ServiceSettings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="BODYFIT_", extra="ignore")
 
     host: str = "127.0.0.1"
-    rest_port: int = Field(8000, ge=0, le=65535)
-    grpc_port: int = Field(50051, ge=0, le=65535)
+    rest_port: int = Field(default=8000, ge=0, le=65535)
+    grpc_port: int = Field(default=50051, ge=0, le=65535)
     assets: Path | None = None
-    threads: int | None = Field(None, ge=1)
-    max_upload_mb: float = Field(200.0, gt=0)
-    max_points: int = Field(2_000_000, ge=300)
-    max_frames: int = Field(20_000, ge=1)
-    max_batch: int = Field(256, ge=1)
-    max_seconds: float = Field(600.0, gt=0)
-    max_concurrent: int = Field(1, ge=1)
-    queue_seconds: float = Field(30.0, ge=0)
+    threads: int | None = Field(default=None, ge=1)
+    max_upload_mb: float = Field(default=200.0, gt=0)
+    max_points: int = Field(default=2_000_000, ge=300)
+    max_frames: int = Field(default=20_000, ge=1)
+    max_batch: int = Field(default=256, ge=1)
+    max_seconds: float = Field(default=600.0, gt=0)
+    max_concurrent: int = Field(default=1, ge=1)
+    queue_seconds: float = Field(default=30.0, ge=0)
 
     def limits(self) -> Limits:
         return Limits(

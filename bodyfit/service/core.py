@@ -7,6 +7,7 @@ session and a semaphore bounding concurrent heavy work; one instance serves conc
 
 from __future__ import annotations
 
+import io
 import threading
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -242,8 +243,10 @@ class BodyService:
                 q = skel.coordinates({k: np.asarray(v) for k, v in coords.items()}, batch=batch)
             else:
                 q = np.asarray(coords, np.float64)
-            root = np.zeros((len(q), 3)) if request.root is None else np.asarray(request.root, np.float64)
-            qt, rt, _ = skel.validate(q, root, dtype=torch.float32)
+            qt, _, _ = skel.validate(q, None, dtype=torch.float32)
+        with invalid_input("root"):
+            root = np.zeros((len(qt), 3)) if request.root is None else np.asarray(request.root, np.float64)
+            _, rt, _ = skel.validate(qt, root, dtype=torch.float32)
         with invalid_input("shape"):
             ct = self.model.validate_shape(request.shape, len(qt), torch.float32)
         assert rt is not None
@@ -274,6 +277,47 @@ class BodyService:
                 field="file",
             )
         return scan
+
+    def read_sequence(self, data: bytes) -> tuple[np.ndarray, np.ndarray | None]:
+        """Read an uploaded .npz holding ``frames`` (T, V, 3) metres in our topology and optionally
+        ``weights`` (T, V).
+
+        Raises:
+            LimitExceededError: too large; InvalidInputError: not an npz, missing or malformed arrays.
+        """
+        self._check_upload(len(data))
+        try:
+            with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+                arrays = {k: npz[k] for k in npz.files if k in ("frames", "weights")}
+                found = list(npz.files)
+        except Exception as exc:
+            raise InvalidInputError(
+                f"the upload is not a readable .npz file ({type(exc).__name__}: {exc}); save the frames with "
+                "numpy.savez(path, frames=array)",
+                field="file",
+            ) from None
+        if "frames" not in arrays:
+            raise InvalidInputError(
+                f"the .npz holds {found or 'no arrays'}; it needs "
+                f"'frames' (T, {self.model.n_vertices}, 3) in "
+                "metres and optionally 'weights' (T, V)",
+                field="frames",
+            )
+        frames = arrays["frames"]
+        if frames.ndim != 3 or frames.shape[1:] != (self.model.n_vertices, 3) or len(frames) == 0:
+            raise InvalidInputError(
+                f"frames must have shape (T, {self.model.n_vertices}, 3) with T >= 1 (meshes in our "
+                f"topology; fit other topologies frame by frame as scans); got {frames.shape}",
+                field="frames",
+            )
+        if not np.issubdtype(frames.dtype, np.floating):
+            raise InvalidInputError(f"frames must be floats (metres); got {frames.dtype}", field="frames")
+        if len(frames) > self.limits.max_frames:
+            raise LimitExceededError(
+                f"{len(frames):,} frames sent; the limit is {self.limits.max_frames:,}: split the sequence",
+                field="frames",
+            )
+        return frames, arrays.get("weights")
 
     def fit_mesh(self, scan: Scan, job: Job | None = None) -> MeshFit:
         """Fit one mesh or scan, routed by its topology: 13,348 vertices -> registered fit; 6,890 vertices

@@ -1,0 +1,71 @@
+"""The FastAPI application: ``create_app(settings)`` for uvicorn, or ``create_app(service=...)`` over an
+already loaded core (tests, in-process use)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import AsyncIterator, Awaitable, Callable
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI, Request, Response
+
+from bodyfit.api import problems
+from bodyfit.api.rest import routes_fit, routes_model, routes_ops, routes_synth
+from bodyfit.api.rest.limits import BodyLimit
+from bodyfit.api.rest.state import AppState
+from bodyfit.api.settings import ServiceSettings
+from bodyfit.service.core import BodyService
+
+DESCRIPTION = """Parametric human bodies with a biomechanical skeleton inside.
+
+Errors are RFC 7807 problem+json documents whose `detail` says what was wrong and how to fix it, with
+`kind` (also used by gRPC) and `field`. Long work (fits) streams NDJSON when asked with
+`Accept: application/x-ndjson`; closing the connection cancels it."""
+
+
+def create_app(settings: ServiceSettings | None = None, service: BodyService | None = None) -> FastAPI:
+    """The app. With ``service`` given it is ready at once; otherwise the model loads in a background
+    thread at start-up (``/healthz`` answers meanwhile, ``/readyz`` turns 200 when loaded)."""
+    settings = settings or ServiceSettings()
+    state = AppState(settings, service=service)
+    if service is not None:
+        state.loaded.set()
+
+    @asynccontextmanager
+    async def lifespan(_: FastAPI) -> AsyncIterator[None]:
+        if not state.loaded.is_set():
+            threading.Thread(target=state.load, name="bodyfit-load", daemon=True).start()
+        yield
+
+    app = FastAPI(
+        title="bodyfit",
+        version="1",
+        description=DESCRIPTION,
+        lifespan=lifespan,
+        openapi_url="/openapi.json",
+    )
+    app.state.bodyfit = state
+    problems.install(app)
+    for router in (routes_model.router, routes_synth.router, routes_fit.router, routes_ops.router):
+        app.include_router(router)
+
+    @app.middleware("http")
+    async def measure(request: Request, call_next: Callable[[Request], Awaitable[Response]]) -> Response:
+        m = state.metrics
+        m.in_flight.labels("rest").inc()
+        began = time.perf_counter()
+        status = 500
+        try:
+            response = await call_next(request)
+            status = response.status_code
+            return response
+        finally:
+            route = request.scope.get("route")
+            operation = getattr(route, "path", "unmatched")
+            m.in_flight.labels("rest").dec()
+            m.latency.labels("rest", operation).observe(time.perf_counter() - began)
+            m.requests.labels("rest", operation, str(status)).inc()
+
+    app.add_middleware(BodyLimit, max_bytes=settings.limits().max_upload_bytes)
+    return app

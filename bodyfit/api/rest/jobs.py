@@ -1,0 +1,85 @@
+"""Running long work for REST: in a worker thread, as an NDJSON stream of progress and results or as one
+JSON answer; a client that goes away cancels the work (at the core's next progress check)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import AsyncIterator, Callable
+from typing import Any
+
+from fastapi import Request
+from fastapi.responses import JSONResponse, StreamingResponse
+
+from bodyfit.api import problems
+from bodyfit.api.wire import progress_event
+from bodyfit.service.errors import ServiceError
+from bodyfit.service.jobs import Job, Progress
+
+NDJSON = "application/x-ndjson"
+Work = Callable[[Job], list[dict[str, Any]]]
+"""Runs in a worker thread; returns the result events (the last one is the ``"result"`` event)."""
+
+
+def wants_stream(request: Request) -> bool:
+    return NDJSON in request.headers.get("accept", "")
+
+
+def _line(doc: dict[str, Any]) -> bytes:
+    return (json.dumps(doc, separators=(",", ":")) + "\n").encode()
+
+
+async def stream(work: Work, job: Job) -> AsyncIterator[bytes]:
+    """NDJSON lines: ``progress`` events while the work runs, then its result events, or one ``error``
+    event (a problem document) if it failed. Closing the stream early cancels the job."""
+    loop = asyncio.get_running_loop()
+    queue: asyncio.Queue[Progress] = asyncio.Queue()
+
+    def forward(p: Progress) -> None:
+        loop.call_soon_threadsafe(queue.put_nowait, p)
+
+    job.on_progress = forward
+    task = loop.run_in_executor(None, work, job)
+    try:
+        while not task.done() or not queue.empty():
+            getter: asyncio.Future[Progress] = asyncio.ensure_future(queue.get())
+            pending: set[asyncio.Future[Any]] = {getter, task}
+            await asyncio.wait(pending, return_when=asyncio.FIRST_COMPLETED)
+            if getter.done():
+                yield _line(progress_event(getter.result()))
+            else:
+                getter.cancel()
+        try:
+            events = task.result()
+        except ServiceError as exc:
+            yield _line({"event": "error", **problems.service_problem(exc)})
+            return
+        except Exception:
+            problems.LOG.exception("unhandled error in a streamed job")
+            yield _line({"event": "error", **problems.problem("internal", "Internal error", _BUG, 500)})
+            return
+        for event in events:
+            yield _line(event)
+    finally:
+        job.cancel()  # no-op when finished; stops the work when the client went away
+
+
+async def answer(request: Request, work: Work, job: Job) -> StreamingResponse | JSONResponse:
+    """Stream NDJSON when the client accepts it, else wait and answer with the result event as JSON
+    (errors then get their own HTTP status)."""
+    if wants_stream(request):
+        return StreamingResponse(stream(work, job), media_type=NDJSON)
+    loop = asyncio.get_running_loop()
+    task = loop.run_in_executor(None, work, job)
+    while not task.done():
+        await asyncio.wait({task}, timeout=0.5)
+        if not task.done() and await request.is_disconnected():
+            job.cancel()
+    events = task.result()  # ServiceError -> the app's problem handler
+    result = {k: v for k, v in events[-1].items() if k != "event"}
+    if len(events) > 1:
+        result["chunks"] = [{k: v for k, v in e.items() if k != "event"} for e in events[:-1]]
+    return JSONResponse(result)
+
+
+_BUG = "the server failed unexpectedly; the error is logged on the server. Please report it."

@@ -1,0 +1,80 @@
+"""POST /v1/fit/scan and /v1/fit/sequence: long work, streamed as NDJSON (Accept: application/x-ndjson)
+or answered as one JSON document."""
+
+from __future__ import annotations
+
+from pathlib import PurePath
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, File, Form, Query, Request, UploadFile
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import JSONResponse, StreamingResponse
+
+from bodyfit.api import wire
+from bodyfit.api.rest.jobs import NDJSON, answer
+from bodyfit.api.rest.state import Service
+from bodyfit.service.errors import InvalidInputError
+from bodyfit.service.jobs import Job
+
+router = APIRouter(prefix="/v1/fit", tags=["fitting"])
+STREAM_DOC: dict[int | str, dict[str, Any]] = {
+    200: {
+        "description": "With Accept: application/x-ndjson, one JSON event per line: progress events, then "
+        "the result (sequences: chunk events first); a failure mid-way is an 'error' event.",
+        "content": {NDJSON: {}, "application/json": {}},
+    }
+}
+
+
+@router.post(
+    "/scan",
+    summary="Fit a mesh or point cloud (any topology and placement)",
+    responses=STREAM_DOC,
+    response_model=None,
+)
+async def fit_scan(
+    request: Request,
+    service: Service,
+    file: Annotated[UploadFile, File(description="PLY, OBJ, STL, PCD or NPZ (points / vertices, faces).")],
+    units: Annotated[Literal["auto", "m", "mm"], Form()] = "auto",
+    format: Annotated[str | None, Form(description="Overrides the file name's suffix.")] = None,
+) -> StreamingResponse | JSONResponse:
+    data = await file.read()
+    fmt = format or PurePath(file.filename or "").suffix.lstrip(".")
+    if not fmt:
+        raise InvalidInputError(
+            "the file name has no suffix; give format= (ply, obj, stl, pcd or npz)", "format"
+        )
+    scan = await run_in_threadpool(service.read_scan, data, fmt, units)
+    info = service.info()
+
+    def work(job: Job) -> list[dict[str, Any]]:
+        fit = service.fit_mesh(scan, job)
+        return [wire.mesh_fit_result(fit, list(info.dof_names), list(info.joint_names))]
+
+    return await answer(request, work, Job(timeout_s=service.limits.max_seconds))
+
+
+@router.post(
+    "/sequence",
+    summary="Fit a registered mesh sequence (one person, our topology): one shape, per-frame pose",
+    responses=STREAM_DOC,
+    response_model=None,
+)
+async def fit_sequence(
+    request: Request,
+    service: Service,
+    file: Annotated[
+        UploadFile, File(description=".npz with frames (T, 13348, 3) metres, optional weights (T, V)")
+    ],
+    chunk: Annotated[int, Query(ge=1, le=1024, description="Frames per chunk event.")] = 64,
+) -> StreamingResponse | JSONResponse:
+    data = await file.read()
+    frames, weights = await run_in_threadpool(service.read_sequence, data)
+    joint_names = list(service.info().joint_names)
+
+    def work(job: Job) -> list[dict[str, Any]]:
+        fit = service.fit_sequence(frames, weights, job)
+        return [*wire.sequence_chunks(fit, chunk), wire.sequence_summary(fit, joint_names)]
+
+    return await answer(request, work, Job(timeout_s=service.limits.max_seconds))

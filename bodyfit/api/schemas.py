@@ -1,0 +1,46 @@
+"""Request bodies of the REST API (pydantic). Unknown keys are refused, so a typo never passes silently."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+Format = Literal["npz", "ply", "obj", "glb", "json"]
+Matrix = list[list[float]]
+
+
+class SynthesizeRequest(BaseModel):
+    """Parameters of B bodies. Every field is optional: nothing gives the mean body in the zero pose."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "examples": [
+                {"coordinates": {"knee_angle_r": 1.0, "hip_flexion_r": 0.5}, "format": "npz"},
+                {"shape": [[0.5] * 32], "root": [[0.0, 0.95, 0.0]], "skeleton": True, "format": "glb"},
+            ]
+        },
+    )
+
+    shape: Matrix | None = Field(
+        default=None, description="(B, n_shape) shape coefficients: bone then identity (see GET /v1/model)."
+    )
+    coordinates: Matrix | dict[str, float | list[float]] | None = Field(
+        default=None,
+        description="(B, n_dof) coordinates in the order of GET /v1/model's dofs (radians / metres), or "
+        "{dof name: value or [B values]}; missing DOFs are 0 (OpenSim's neutral pose).",
+    )
+    root: Matrix | None = Field(default=None, description="(B, 3) pelvis translation in metres.")
+    batch: Annotated[int, Field(ge=1)] | None = Field(
+        default=None, description="B when no array gives it (e.g. B mean bodies)."
+    )
+    skeleton: bool = Field(
+        default=False, description="Also pose the bone mesh (npz 'bones'; a second mesh otherwise)."
+    )
+    format: Format = Field(
+        default="npz", description="Response format: npz (fastest), ply, obj, glb or json."
+    )
+    faces: bool = Field(
+        default=False, description="Add the triangles to npz / json (mesh formats always have them)."
+    )
