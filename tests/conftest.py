@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import pytest
 import torch
 
 from bodyfit.models.skeleton import Skeleton
+
+if TYPE_CHECKING:
+    from bodyfit.service.core import BodyService
 
 
 @pytest.fixture(scope="session")
@@ -22,6 +27,15 @@ def random_pose(skel: Skeleton, n: int, seed: int, rajagopal_only: bool = False)
         mask = np.array([c.rajagopal for c in skel.spec.coordinates])
         q[:, ~mask] = 0.0
     return q
+
+
+@pytest.fixture(scope="session")
+def body_service() -> BodyService:
+    """The service core over the built-in assets (one per test process; it takes seconds to load)."""
+    from bodyfit.service.core import BodyService
+    from bodyfit.service.limits import Limits
+
+    return BodyService.load(limits=Limits(max_batch=64, queue_seconds=5.0), threads=1)
 
 
 @pytest.fixture(autouse=True)
