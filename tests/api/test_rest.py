@@ -230,7 +230,7 @@ MALFORMED: list[tuple[str, str, str, dict[str, Any], int, str]] = [
         "/v1/fit/scan",
         {"files": {"file": ("a.obj", b"v 1 2\nf 1 2 3\n" * 10)}},
         422,
-        "OBJ",
+        "(N, 3)",
     ),
     (
         "too few points",
