@@ -12,7 +12,6 @@ import typer
 if TYPE_CHECKING:
     import numpy as np
 
-    from bodyfit.models.fitting.registered import BodyFit
 
 app = typer.Typer(
     no_args_is_help=True, add_completion=False, help="bodyfit: human bodies with a biomechanical skeleton."
@@ -91,66 +90,130 @@ def fit(
     import numpy as np
     import trimesh
 
-    from bodyfit.models.body.model import BodyModel
     from bodyfit.models.errors import BodyfitError
-    from bodyfit.models.fitting.registered import RegisteredFitter
-    from bodyfit.models.fitting.report import FitReport
-    from bodyfit.models.fitting.scan_fit import ScanFitter
     from bodyfit.models.fitting.scan_io import load_scan
-    from bodyfit.models.fitting.smpl_topology import SMPL_VERTICES, fit_smpl_meshes
     from bodyfit.models.skeleton.opensim_export import write_mot
+    from bodyfit.service.core import BodyService
+    from bodyfit.service.errors import ServiceError
+    from bodyfit.service.jobs import Job, Progress
+
+    def show(p: Progress) -> None:
+        if p.message not in ("", "done"):
+            typer.echo(f"  {p.message}", err=True)
 
     try:
-        model = BodyModel.load()
+        service = BodyService.load(fitters=False)
+        model = service.model
         scans = [load_scan(path, units=units) for path in meshes]
-        registered = RegisteredFitter(model)
-        scanner: ScanFitter | None = None
-        fits: list[tuple[str, dict[str, np.ndarray], FitReport]] = []
+        fits = []
         for path, scan in zip(meshes, scans, strict=True):
-            if scan.n_points == model.n_vertices:
-                fitted = registered.fit(scan.points)
-                fits.append(("registered", _first(fitted), fitted.reports[0]))
-            elif scan.n_points == SMPL_VERTICES and scan.faces is not None:
-                fitted = fit_smpl_meshes(registered, scan.points)[0]
-                fits.append(("SMPL topology", _first(fitted), fitted.reports[0]))
-            else:
-                typer.echo(f"{path.name}: raw scan of {scan.n_points} points", err=True)
-                scanner = scanner or ScanFitter(model)
-                f = scanner.fit(scan)
-                params = {"shape": f.shape, "coordinates": f.coordinates, "root": f.root}
-                fits.append(
-                    ("raw scan", {**params, "vertices": f.registration, "joints": f.joints}, f.report)
-                )
-    except (BodyfitError, OSError) as exc:
+            typer.echo(f"{path.name}: {scan.n_points} points", err=True)
+            fits.append(service.fit_mesh(scan, Job(on_progress=show)))
+    except (BodyfitError, ServiceError, OSError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
     out.mkdir(parents=True, exist_ok=True)
-    arrays: dict[str, np.ndarray] = {key: np.stack([a[key] for _, a, _ in fits]) for key in fits[0][1]}
+    arrays: dict[str, np.ndarray] = {
+        key: np.stack([f.arrays()[key] for f in fits]) for key in fits[0].arrays()
+    }
     arrays["dof_names"], arrays["joint_names"] = np.array(model.dof_names), np.array(model.joint_names)
     np.savez_compressed(out / "fit.npz", allow_pickle=False, **arrays)
     records = [
-        {"mesh": str(p), "fitted_as": kind, **r.to_dict()}
-        for p, (kind, _, r) in zip(meshes, fits, strict=True)
+        {"mesh": str(p), "fitted_as": f.fitted_as, **f.report.to_dict()}
+        for p, f in zip(meshes, fits, strict=True)
     ]
     (out / "fit.json").write_text(json.dumps(records, indent=1) + "\n")
-    for k, (_, a, _) in enumerate(fits):
-        trimesh.Trimesh(a["vertices"], model.faces, process=False).export(out / f"registration_{k:03d}.ply")
+    for k, f in enumerate(fits):
+        trimesh.Trimesh(f.vertices, model.faces, process=False).export(out / f"registration_{k:03d}.ply")
     write_mot(out / "fit.mot", model.skeleton.spec, arrays["coordinates"], arrays["root"], fps=1.0)
-    for p, (kind, _, r) in zip(meshes, fits, strict=True):
+    for p, f in zip(meshes, fits, strict=True):
+        r = f.report
         flag = "ok" if r.confident else "LOW CONFIDENCE: " + "; ".join(r.reasons)
-        typer.echo(f"{p.name} ({kind}): mean {r.distances.mean:.2f} mm, p95 {r.distances.p95:.2f} mm, {flag}")
+        typer.echo(
+            f"{p.name} ({f.fitted_as}): mean {r.distances.mean:.2f} mm, p95 {r.distances.p95:.2f} mm, {flag}"
+        )
     typer.echo(f"wrote {len(meshes)} fits to {out}/ (fit.npz, fit.json, registration_*.ply, fit.mot)")
 
 
-def _first(fit: BodyFit) -> dict[str, np.ndarray]:
-    """The arrays of a one-mesh :class:`BodyFit`."""
-    return {
-        "shape": fit.shape[0],
-        "coordinates": fit.coordinates[0],
-        "root": fit.root[0],
-        "vertices": fit.vertices[0],
-        "joints": fit.joints[0],
-    }
+@app.command()
+def serve(
+    host: Annotated[str, typer.Option(help="Interface to listen on (0.0.0.0 in a container).")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(help="REST port.")] = 8000,
+    grpc_port: Annotated[int, typer.Option(help="gRPC port (0: no gRPC).")] = 50051,
+    assets: Annotated[Path | None, typer.Option(help="Asset folder (default: the built-in assets).")] = None,
+    threads: Annotated[int | None, typer.Option(min=1, help="ONNX Runtime / torch threads.")] = None,
+) -> None:
+    """Serve REST and gRPC over the built-in model (limits from BODYFIT_* variables, see the README).
+
+    REST: /v1/model, /v1/synthesize, /v1/fit/scan, /v1/fit/sequence, /healthz, /readyz, /metrics and the
+    OpenAPI document at /docs. gRPC: service bodyfit.v1.Bodyfit with health and reflection.
+    """
+    from bodyfit.api.server import run_server
+    from bodyfit.api.settings import ServiceSettings
+    from bodyfit.models.errors import BodyfitError
+
+    settings = ServiceSettings(host=host, rest_port=port, grpc_port=grpc_port, assets=assets, threads=threads)
+    try:
+        run_server(settings)
+    except BodyfitError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+
+
+@app.command()
+def synth(
+    out: Annotated[Path, typer.Argument(help="Output file: .npz, .ply, .obj, .glb or .json.")],
+    coordinate: Annotated[
+        list[str] | None,
+        typer.Option("--coordinate", "-c", help="NAME=RADIANS, repeatable (e.g. knee_angle_r=1.0)."),
+    ] = None,
+    shape: Annotated[
+        str | None, typer.Option(help="Comma-separated shape coefficients (bone then identity).")
+    ] = None,
+    root: Annotated[str | None, typer.Option(help="Pelvis translation x,y,z in metres.")] = None,
+    skeleton: Annotated[bool, typer.Option(help="Also write the posed bone mesh.")] = False,
+    server: Annotated[
+        str | None, typer.Option(help="Ask this bodyfit server (URL) instead of computing locally.")
+    ] = None,
+) -> None:
+    """Synthesize one posed body and write it (format from the file suffix)."""
+    import numpy as np
+
+    fmt = out.suffix.lstrip(".").lower()
+    try:
+        values = {k: float(v) for k, v in (item.split("=", 1) for item in coordinate or [])}
+        c = None if shape is None else np.array([[float(x) for x in shape.split(",")]])
+        r = None if root is None else np.array([[float(x) for x in root.split(",")]])
+    except ValueError as exc:
+        typer.echo(
+            f"error: {exc}; write coordinates as NAME=RADIANS and arrays as comma-separated numbers", err=True
+        )
+        raise typer.Exit(2) from exc
+    if server is not None:
+        from bodyfit.clients.errors import BodyfitClientError
+        from bodyfit.clients.rest_client import Client
+
+        try:
+            with Client(server) as client:
+                data = client.synthesize_file(fmt, shape=c, coordinates=values, root=r, skeleton=skeleton)
+        except BodyfitClientError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(2) from exc
+    else:
+        from bodyfit.models.errors import BodyfitError
+        from bodyfit.service.core import BodyService, SynthRequest
+        from bodyfit.service.errors import ServiceError
+        from bodyfit.service.formats import encode_bodies
+
+        try:
+            service = BodyService.load(fitters=False)
+            data = encode_bodies(service.synthesize(SynthRequest(c, values, r, skeleton)), fmt, faces=True)
+        except (ServiceError, BodyfitError) as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(2) from exc
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_bytes(data)
+    typer.echo(f"wrote {out} ({len(data):,} bytes)")
 
 
 @app.command()

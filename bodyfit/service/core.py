@@ -140,7 +140,11 @@ class BodyService:
 
     @classmethod
     def load(
-        cls, assets: Path | None = None, limits: Limits | None = None, threads: int | None = None
+        cls,
+        assets: Path | None = None,
+        limits: Limits | None = None,
+        threads: int | None = None,
+        fitters: bool = True,
     ) -> BodyService:
         """Load the hash-checked assets, the ONNX session and the fitters.
 
@@ -148,6 +152,8 @@ class BodyService:
             assets: asset folder (default: the checkout's assets/ or $BODYFIT_ASSETS).
             limits: request limits.
             threads: threads of ONNX Runtime and torch (default: their own choice).
+            fitters: build the fitters now (a server); otherwise on first use (synthesis only).
+            fitters: build the fitters now (a server); otherwise on first use (synthesis only).
         Raises:
             AssetError: a missing or corrupted asset, with how to rebuild it.
         """
@@ -160,17 +166,17 @@ class BodyService:
         session = ort.InferenceSession(
             str(verified_asset(BODY_ONNX, assets)), options, providers=["CPUExecutionProvider"]
         )
-        registered = RegisteredFitter(model)
         service = cls(model, session, limits or Limits(), read_manifest(assets))
-        service._fitters = _Fitters(registered, ScanFitter(model), SequenceFitter(registered))
+        if fitters:
+            _ = service.fitters
         return service
 
     @property
     def fitters(self) -> _Fitters:
+        """The registered, scan and sequence fitters (built on first use)."""
         if self._fitters is None:
-            self._fitters = _Fitters(
-                RegisteredFitter(self.model), ScanFitter(self.model), SequenceFitter(self.model)
-            )
+            registered = RegisteredFitter(self.model)
+            self._fitters = _Fitters(registered, ScanFitter(self.model), SequenceFitter(registered))
         return self._fitters
 
     # -- info ------------------------------------------------------------------------------------------

@@ -18,7 +18,7 @@ class ServiceError(Exception):
     title: ClassVar[str] = "Internal error"
 
     def __init__(self, detail: str, field: str | None = None) -> None:
-        super().__init__(detail)
+        super().__init__(detail if field is None else f"{field}: {detail}")
         self.detail = detail
         self.field = field
 

@@ -115,3 +115,16 @@ def test_fit_reports_an_unreadable_file(tmp_path: Path) -> None:
     result = runner.invoke(app, ["fit", str(path), "--out", str(tmp_path / "o")])
     assert result.exit_code == 2
     assert "error:" in result.output and "Traceback" not in result.output
+
+
+def test_synth_writes_the_requested_format(tmp_path: Path) -> None:
+    out = tmp_path / "body.npz"
+    result = runner.invoke(app, ["synth", str(out), "-c", "knee_angle_r=1.2", "--root", "0,1,0"])
+    assert result.exit_code == 0, result.output
+    data = np.load(out)
+    assert data["vertices"].shape == (1, 13348, 3) and data["faces"].shape == (26692, 3)
+    assert abs(np.median(data["vertices"][0, :, 1]) - 1.0) < 0.3  # lifted by the root translation
+    bad = runner.invoke(app, ["synth", str(tmp_path / "b.ply"), "-c", "knee_angle_r=4"])
+    assert bad.exit_code == 2 and "joint limits" in bad.output
+    bad = runner.invoke(app, ["synth", str(tmp_path / "b.ply"), "-c", "knee"])
+    assert bad.exit_code == 2 and "NAME=RADIANS" in bad.output

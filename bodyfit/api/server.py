@@ -1,0 +1,40 @@
+"""Running the service: one process serves REST (uvicorn) and gRPC over one loaded core."""
+
+from __future__ import annotations
+
+import logging
+
+from bodyfit.api.settings import ServiceSettings
+
+LOG = logging.getLogger("bodyfit.server")
+
+
+def run_server(settings: ServiceSettings) -> None:
+    """Load the model once, start gRPC (unless ``grpc_port`` is 0) and serve REST until interrupted."""
+    import uvicorn
+
+    from bodyfit.api.rest.app import create_app
+    from bodyfit.service.core import BodyService
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    LOG.info("loading the model and fitters from %s", settings.assets or "the built-in assets")
+    service = BodyService.load(settings.assets, settings.limits(), settings.threads)
+    grpc_server = None
+    if settings.grpc_port:
+        from bodyfit.api.grpc_server import create_grpc_server
+
+        grpc_server = create_grpc_server(service, f"{settings.host}:{settings.grpc_port}", settings)
+        grpc_server.start()
+        LOG.info("gRPC on %s:%d", settings.host, settings.grpc_port)
+    LOG.info("REST on http://%s:%d (OpenAPI at /docs)", settings.host, settings.rest_port)
+    try:
+        uvicorn.run(
+            create_app(settings, service=service),
+            host=settings.host,
+            port=settings.rest_port,
+            log_level="info",
+            access_log=False,
+        )
+    finally:
+        if grpc_server is not None:
+            grpc_server.stop(grace=5).wait()
