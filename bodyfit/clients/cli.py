@@ -141,7 +141,9 @@ def serve(
     port: Annotated[int, typer.Option(help="REST port.")] = 8000,
     grpc_port: Annotated[int, typer.Option(help="gRPC port (0: no gRPC).")] = 50051,
     assets: Annotated[Path | None, typer.Option(help="Asset folder (default: the built-in assets).")] = None,
-    threads: Annotated[int | None, typer.Option(min=1, help="ONNX Runtime / torch threads.")] = None,
+    threads: Annotated[
+        int | None, typer.Option(min=1, help="ONNX Runtime / torch threads (default $BODYFIT_THREADS).")
+    ] = None,
 ) -> None:
     """Serve REST and gRPC over the built-in model (limits from BODYFIT_* variables, see the README).
 
@@ -152,7 +154,10 @@ def serve(
     from bodyfit.api.settings import ServiceSettings
     from bodyfit.models.errors import BodyfitError
 
-    settings = ServiceSettings(host=host, rest_port=port, grpc_port=grpc_port, assets=assets, threads=threads)
+    settings = ServiceSettings(host=host, rest_port=port, grpc_port=grpc_port)
+    settings = settings.model_copy(
+        update={k: v for k, v in {"assets": assets, "threads": threads}.items() if v is not None}
+    )
     try:
         run_server(settings)
     except BodyfitError as exc:

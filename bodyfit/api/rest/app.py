@@ -4,15 +4,15 @@ already loaded core (tests, in-process use)."""
 from __future__ import annotations
 
 import threading
-import time
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
-from fastapi import FastAPI, Request, Response
+from fastapi import FastAPI
 
 from bodyfit.api import problems
 from bodyfit.api.rest import routes_fit, routes_model, routes_ops, routes_synth
 from bodyfit.api.rest.limits import BodyLimit
+from bodyfit.api.rest.measured import Measured
 from bodyfit.api.rest.state import AppState
 from bodyfit.api.settings import ServiceSettings
 from bodyfit.service.core import BodyService
@@ -50,22 +50,6 @@ def create_app(settings: ServiceSettings | None = None, service: BodyService | N
     for router in (routes_model.router, routes_synth.router, routes_fit.router, routes_ops.router):
         app.include_router(router)
 
-    @app.middleware("http")
-    async def measure(request: Request, call_next: Callable[[Request], Awaitable[Response]]) -> Response:
-        m = state.metrics
-        m.in_flight.labels("rest").inc()
-        began = time.perf_counter()
-        status = 500
-        try:
-            response = await call_next(request)
-            status = response.status_code
-            return response
-        finally:
-            route = request.scope.get("route")
-            operation = getattr(route, "path", "unmatched")
-            m.in_flight.labels("rest").dec()
-            m.latency.labels("rest", operation).observe(time.perf_counter() - began)
-            m.requests.labels("rest", operation, str(status)).inc()
-
+    app.add_middleware(Measured, metrics=state.metrics)
     app.add_middleware(BodyLimit, max_bytes=settings.limits().max_upload_bytes)
     return app

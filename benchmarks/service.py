@@ -1,0 +1,269 @@
+"""Service benchmark: synthesize latency and throughput over REST and gRPC on loopback, plus error
+handling and memory under bad input, against the same synthesis called in process.
+
+What is measured
+----------------
+* A real server (``bodyfit serve`` in a subprocess, REST + gRPC on 127.0.0.1, ``--threads 1``, upload
+  limit 4 MiB) is started and waited for (``/readyz``).
+* Load: C concurrent clients (threads in this process, one SDK client each: ``bodyfit.clients.Client`` over
+  REST, ``GrpcClient`` over gRPC) each send ``synthesize`` requests for one body (16 fixed random poses
+  and shapes, npz response without faces) until the level's request count or time budget is spent. C = 1, 8
+  and 32. Reported per level and transport: p50 / p99 latency (ms), throughput (requests/s), errors.
+* In-process baseline: ``BodyService.synthesize`` + npz encoding, one thread, median ms: what the wire,
+  the framework and the concurrency add to is ``rest_p50_ms_c1 / inproc_ms``.
+* Bad input: a bounded corpus of malformed requests (garbage JSON, unknown DOFs, NaN, out-of-range values,
+  truncated uploads, 5 MiB uploads over the limit) sent repeatedly; every one must get a 4xx (counted
+  otherwise in ``errors``); the server's resident memory (from /metrics) before and after is reported.
+* The client threads share the machine's cores with the server, as on any loopback test.
+* Target: p99 <= 20 ms at 8 clients for one mesh on 2 cores; zero errors.
+
+Usage::
+
+    python benchmarks/service.py [--quick] [--json]
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import re
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+LEVELS = (1, 8, 32)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def start_server(rest: int, grpc: int) -> subprocess.Popen[bytes]:
+    env = {**os.environ, "BODYFIT_MAX_UPLOAD_MB": "4"}
+    cmd = [
+        sys.executable,
+        "-m",
+        "bodyfit.clients.cli",
+        "serve",
+        "--port",
+        str(rest),
+        "--grpc-port",
+        str(grpc),
+    ]
+    proc = subprocess.Popen(
+        [*cmd, "--threads", "1"], cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+    )
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(
+                f"the server exited: {proc.stderr.read().decode()[-2000:] if proc.stderr else ''}"
+            )
+        try:
+            if httpx.get(f"http://127.0.0.1:{rest}/readyz", timeout=1).status_code == 200:
+                return proc
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.3)
+    proc.kill()
+    raise RuntimeError("the server did not become ready in 120 s")
+
+
+def requests_for(n_dof: int, ranges: np.ndarray, n_shape: int) -> list[dict[str, np.ndarray]]:
+    rng = np.random.default_rng(0)
+    return [
+        {
+            "shape": rng.normal(size=(1, n_shape)),
+            "coordinates": rng.uniform(ranges[:, 0] * 0.5, ranges[:, 1] * 0.5, (1, n_dof)),
+        }
+        for _ in range(16)
+    ]
+
+
+def load(
+    make_call: Callable[[], Callable[[dict[str, np.ndarray]], Any]],
+    params: list[dict[str, np.ndarray]],
+    clients: int,
+    count: int,
+    seconds: float,
+) -> dict[str, float]:
+    """``clients`` threads, each with its own call from ``make_call()``, send ``count // clients``
+    requests at most, within ``seconds``."""
+    latencies: list[float] = []
+    errors = [0]
+    lock = threading.Lock()
+    per_client = max(1, count // clients)
+    stop = time.monotonic() + seconds
+
+    def worker(k: int) -> None:
+        call = make_call()
+        call(params[k % len(params)])  # connection set-up, not timed
+        mine = []
+        for i in range(per_client):
+            if time.monotonic() > stop:
+                break
+            t = time.perf_counter()
+            try:
+                call(params[(k + i) % len(params)])
+            except Exception:
+                with lock:
+                    errors[0] += 1
+                continue
+            mine.append(time.perf_counter() - t)
+        with lock:
+            latencies.extend(mine)
+
+    threads = [threading.Thread(target=worker, args=(k,)) for k in range(clients)]
+    began = time.perf_counter()
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    wall = time.perf_counter() - began
+    ms = np.array(latencies) * 1000.0
+    return {
+        "p50_ms": float(np.percentile(ms, 50)) if len(ms) else float("nan"),
+        "p99_ms": float(np.percentile(ms, 99)) if len(ms) else float("nan"),
+        "rps": len(ms) / wall,
+        "requests": len(ms),
+        "errors": errors[0],
+    }
+
+
+def rest_call(url: str) -> Callable[[], Callable[[dict[str, np.ndarray]], Any]]:
+    from bodyfit.clients.rest_client import Client
+
+    def make() -> Callable[[dict[str, np.ndarray]], Any]:
+        client = Client(url, retries=0)
+        return lambda p: client.synthesize(shape=p["shape"], coordinates=p["coordinates"])
+
+    return make
+
+
+def grpc_call(target: str) -> Callable[[], Callable[[dict[str, np.ndarray]], Any]]:
+    from bodyfit.clients.grpc_client import GrpcClient
+
+    def make() -> Callable[[dict[str, np.ndarray]], Any]:
+        client = GrpcClient(target)
+        return lambda p: client.synthesize(shape=p["shape"], coordinates=p["coordinates"])
+
+    return make
+
+
+def resident_mb(url: str) -> float:
+    text = httpx.get(f"{url}/metrics", timeout=5).text
+    match = re.search(r"^process_resident_memory_bytes ([0-9.e+]+)$", text, re.M)
+    return float(match.group(1)) / 2**20 if match else float("nan")
+
+
+def bad_inputs(url: str, rounds: int) -> dict[str, float]:
+    """Send the malformed corpus ``rounds`` times; count answers that are not 4xx problem documents."""
+    truncated = b"ply\nformat binary_little_endian 1.0\nelement vertex 100000\nproperty float x\nend_header\n"
+    corpus: list[dict[str, Any]] = [
+        {"json": {"coordinates": {"knee_angel_r": 1.0}}},
+        {"json": {"coordinates": {"knee_angle_r": 9.0}}},
+        {"json": {"shape": [[0.0] * 3]}},
+        {"json": {"unknown": 1}},
+        {"content": b"{garbage", "headers": {"content-type": "application/json"}},
+        {"content": b'{"root": [[NaN, 0, 0]]}', "headers": {"content-type": "application/json"}},
+    ]
+    uploads: list[dict[str, Any]] = [
+        {"files": {"file": ("scan.ply", truncated)}},
+        {"files": {"file": ("scan.ply", os.urandom(5 * 2**20))}},
+        {"files": {"file": ("scan.npz", b"PK\x03\x04" + os.urandom(1000))}},
+    ]
+    wrong = 0
+    sent = 0
+    with httpx.Client(base_url=url, timeout=30) as http:
+        for _ in range(rounds):
+            for kwargs in corpus:
+                r = http.post("/v1/synthesize", **kwargs)
+                wrong += not (
+                    400 <= r.status_code < 500 and r.headers["content-type"].startswith("application/problem")
+                )
+                sent += 1
+            for kwargs in uploads:
+                r = http.post("/v1/fit/scan", **kwargs)
+                wrong += not (400 <= r.status_code < 500)
+                sent += 1
+    return {"bad_requests": sent, "bad_not_4xx": wrong}
+
+
+def in_process_ms(params: list[dict[str, np.ndarray]], repeats: int) -> float:
+    from bodyfit.service.core import BodyService, SynthRequest
+    from bodyfit.service.formats import encode_bodies
+
+    service = BodyService.load(threads=1, fitters=False)
+    times = []
+    for i in range(repeats):
+        p = params[i % len(params)]
+        t = time.perf_counter()
+        encode_bodies(service.synthesize(SynthRequest(p["shape"], p["coordinates"])), "npz")
+        times.append(time.perf_counter() - t)
+    return float(np.median(times[5:]) * 1000.0)
+
+
+def run(quick: bool) -> dict[str, Any]:
+    from bodyfit.clients.rest_client import Client
+
+    rest_port, grpc_port = free_port(), free_port()
+    url, target = f"http://127.0.0.1:{rest_port}", f"127.0.0.1:{grpc_port}"
+    server = start_server(rest_port, grpc_port)
+    try:
+        info = Client(url).model_info()
+        params = requests_for(len(info.dof_names), info.dof_ranges, info.n_shape)
+        count, seconds = (400, 10.0) if quick else (3000, 60.0)
+        result: dict[str, Any] = {
+            "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores"
+        }
+        result["inproc_ms"] = in_process_ms(params, 60 if quick else 300)
+        mem_before = resident_mb(url)
+        errors = 0
+        for name, make in (("rest", rest_call(url)), ("grpc", grpc_call(target))):
+            for c in LEVELS:
+                stats = load(make, params, c, count, seconds)
+                errors += int(stats["errors"])
+                for key in ("p50_ms", "p99_ms", "rps"):
+                    result[f"{name}_{key}_c{c}"] = round(stats[key], 3)
+        bad = bad_inputs(url, 3 if quick else 20)
+        mem_after = resident_mb(url)
+        result.update(bad)
+        result["errors"] = errors + bad["bad_not_4xx"]
+        result["rss_mb_before"], result["rss_mb_after"] = round(mem_before, 1), round(mem_after, 1)
+        result["rss_growth_mb"] = round(mem_after - mem_before, 1)
+        result["rest_overhead_ratio_c1"] = round(result["rest_p50_ms_c1"] / result["inproc_ms"], 2)
+        result["target_p99_ms_c8"] = 20.0
+        result["met"] = bool(
+            result["rest_p99_ms_c8"] <= 20.0 and result["grpc_p99_ms_c8"] <= 20.0 and result["errors"] == 0
+        )
+        return result
+    finally:
+        server.terminate()
+        try:
+            server.wait(10)
+        except subprocess.TimeoutExpired:
+            server.kill()
+
+
+def main(argv: list[str] | None = None) -> None:
+    from benchmarks.bench_cli import bench_main
+
+    bench_main(
+        run, "Service latency, throughput and bad-input handling (REST and gRPC).", "fewer requests", argv
+    )
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(ROOT))
+    main()
