@@ -50,6 +50,6 @@ def create_app(settings: ServiceSettings | None = None, service: BodyService | N
     for router in (routes_model.router, routes_synth.router, routes_fit.router, routes_ops.router):
         app.include_router(router)
 
-    app.add_middleware(Measured, metrics=state.metrics)
     app.add_middleware(BodyLimit, max_bytes=settings.limits().max_upload_bytes)
+    app.add_middleware(Measured, metrics=state.metrics)  # outermost: sees refused uploads too
     return app

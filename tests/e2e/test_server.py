@@ -1,0 +1,91 @@
+"""End to end: the real server (``bodyfit serve`` in a subprocess, REST and gRPC on 127.0.0.1) answered
+through the SDK; bad input does not stop it; SIGTERM stops it cleanly."""
+
+from __future__ import annotations
+
+import io
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from bodyfit.clients.errors import InvalidRequestError, RequestTooLargeError
+from bodyfit.clients.rest_client import Client
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture(scope="module")
+def server() -> Iterator[tuple[str, str, subprocess.Popen[bytes]]]:
+    rest, grpc = free_port(), free_port()
+    env = {**os.environ, "BODYFIT_MAX_UPLOAD_MB": "1", "BODYFIT_THREADS": "1"}
+    cmd = [
+        sys.executable,
+        "-m",
+        "bodyfit.clients.cli",
+        "serve",
+        "--port",
+        str(rest),
+        "--grpc-port",
+        str(grpc),
+    ]
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    url = f"http://127.0.0.1:{rest}"
+    deadline = time.monotonic() + 120
+    while True:
+        assert proc.poll() is None, proc.stdout.read().decode()[-3000:] if proc.stdout else ""
+        try:
+            if httpx.get(f"{url}/readyz", timeout=1).status_code == 200:
+                break
+        except httpx.HTTPError:
+            pass
+        assert time.monotonic() < deadline, "the server did not get ready in 120 s"
+        time.sleep(0.3)
+    yield url, f"127.0.0.1:{grpc}", proc
+    proc.terminate()
+    proc.wait(30)
+
+
+def test_rest_operations_through_the_sdk(server: tuple[str, str, subprocess.Popen[bytes]]) -> None:
+    url, _, _ = server
+    with Client(url) as client:
+        info = client.model_info()
+        assert len(info.dof_names) == 46 and all(len(h) == 64 for h in info.assets["sha256"].values())
+        body = client.synthesize(coordinates={"hip_flexion_r": 0.9, "knee_angle_r": 1.1})
+        buf = io.BytesIO()
+        np.savez(buf, points=body.vertices[0])
+        fit = client.fit_scan(buf.getvalue(), format="npz")
+        assert fit.fitted_as == "registered" and fit.confident
+        knee = info.dof_names.index("knee_angle_r")
+        assert abs(fit.coordinates[knee] - 1.1) < 0.05
+        with pytest.raises(InvalidRequestError, match="knee_angle_r"):
+            client.synthesize(coordinates={"knee_angle": 1.0})
+        with pytest.raises(RequestTooLargeError, match=r"at most 1\.0 MiB"):
+            client.fit_scan(os.urandom(2 * 2**20), format="ply")
+        assert client.synthesize().vertices.shape == (1, 13348, 3)  # still serving
+        metrics = httpx.get(f"{url}/metrics").text
+        assert 'outcome="413",transport="rest"} 1.0' in metrics
+
+
+def test_sigterm_stops_the_server(server: tuple[str, str, subprocess.Popen[bytes]]) -> None:
+    url, _, proc = server
+    assert httpx.get(f"{url}/healthz").json() == {"status": "ok"}
+    proc.send_signal(signal.SIGTERM)
+    code = proc.wait(30)
+    log = proc.stdout.read().decode() if proc.stdout else ""
+    # uvicorn shuts down gracefully, then re-raises the signal so the exit status tells it was stopped.
+    assert code in (0, -signal.SIGTERM) and "Finished server process" in log, log[-2000:]
