@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Main job: poses the built-in skeleton and writes it (JSON, OpenSim .osim + .mot) to out/demo.
+# Main job: serves the built-in model over REST (http://127.0.0.1:8000, OpenAPI at /docs) and gRPC
+# (127.0.0.1:50051). Options are passed on: ./run.sh --port 9000 --grpc-port 0 (see `bodyfit serve --help`).
 set -euo pipefail
 cd "$(dirname "$0")"
 source scripts/ensure_venv.sh
-exec bodyfit demo --out out/demo "$@"
+exec bodyfit serve "$@"
