@@ -335,22 +335,24 @@ class BodyService:
         """
         job = job or Job(timeout_s=self.limits.max_seconds)
         with self._slot():
-            job.report("fit", 0, 1, f"{scan.n_points} points")
             fitters = self.fitters
-            if scan.n_points == self.model.n_vertices:
+            registered = scan.n_points == self.model.n_vertices
+            smpl = scan.n_points == SMPL_VERTICES and scan.faces is not None
+            total = 1 if registered or smpl else len(fitters.scan.config.phases)
+            job.report("fit", 0, total, f"{scan.n_points} points")
+            if registered:
                 fit = _first(fitters.registered.fit(scan.points), "registered")
-            elif scan.n_points == SMPL_VERTICES and scan.faces is not None:
+            elif smpl:
                 fit = _first(fit_smpl_meshes(fitters.registered, scan.points)[0], "SMPL topology")
             else:
-                phases = len(fitters.scan.config.phases)
-                done = iter(range(1, phases + 1))
+                done = iter(range(1, total + 1))
 
                 def progress(line: str) -> None:
-                    job.report("fit", next(done), phases + 1, line)
+                    job.report("fit", next(done), total, line)
 
                 f = fitters.scan.fit(scan, progress=progress)
                 fit = MeshFit("raw scan", f.shape, f.coordinates, f.root, f.registration, f.joints, f.report)
-            job.report("fit", 1, 1, "done")
+            job.report("fit", total, total, "done")
             return fit
 
     def fit_sequence(
