@@ -10,6 +10,7 @@ from __future__ import annotations
 import io
 import threading
 from collections.abc import Iterator, Mapping, Sequence
+from concurrent.futures import Future
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
@@ -31,12 +32,13 @@ from bodyfit.models.fitting.scan_io import FORMATS as SCAN_FORMATS
 from bodyfit.models.fitting.scan_io import Scan, load_scan
 from bodyfit.models.fitting.sequence import SequenceFit, SequenceFitter
 from bodyfit.models.fitting.smpl_topology import SMPL_VERTICES, fit_smpl_meshes
+from bodyfit.service.batching import Outputs, SynthBatcher
 from bodyfit.service.errors import BusyError, InvalidInputError, LimitExceededError
 from bodyfit.service.formats import Bodies
 from bodyfit.service.jobs import Job
 from bodyfit.service.limits import Limits
 
-Coordinates = np.ndarray | Mapping[str, float | Sequence[float]] | None
+Coordinates = np.ndarray | Mapping[str, float | Sequence[float] | np.ndarray] | None
 
 
 @dataclass(frozen=True)
@@ -93,6 +95,17 @@ class SynthRequest:
 
 
 @dataclass(frozen=True)
+class PendingSynthesis:
+    """A validated synthesis whose model call is queued: ``future`` gives (vertices, joints)."""
+
+    request: SynthRequest
+    shape: np.ndarray
+    coordinates: np.ndarray
+    root: np.ndarray
+    future: Future[Outputs]
+
+
+@dataclass(frozen=True)
 class MeshFit:
     """One fitted mesh or scan: how it was fitted ("registered", "SMPL topology" or "raw scan"), the
     parameters shape (n_shape,), coordinates (n_dof,), root (3,), the registration ``vertices`` (V, 3) in our
@@ -133,9 +146,12 @@ class BodyService:
     manifest: dict[str, Any] = field(default_factory=dict)
     _fitters: _Fitters | None = None
     _slots: threading.BoundedSemaphore = field(init=False)
+    _batcher: SynthBatcher = field(init=False)
 
     def __post_init__(self) -> None:
         self._slots = threading.BoundedSemaphore(self.limits.max_concurrent)
+        self._batcher = SynthBatcher(self.session, max_bodies=self.limits.max_batch)
+        self._faces = self.model.faces.astype(np.int32)
         self._info = self._model_info()
 
     @classmethod
@@ -214,18 +230,27 @@ class BodyService:
             InvalidInputError: wrong shapes, NaN, unknown DOF names, out-of-range values (the message
                 names the field and the fix); LimitExceededError: more bodies than ``limits.max_batch``.
         """
+        pending = self.start_synthesis(request)
+        return self.finish_synthesis(pending, *pending.future.result())
+
+    def start_synthesis(self, request: SynthRequest) -> PendingSynthesis:
+        """Validate ``request`` (raising as :meth:`synthesize`) and queue its model call; concurrent
+        requests share one call (:class:`SynthBatcher`). Await ``future`` then :meth:`finish_synthesis`."""
         q, root, shape = self._parameters(request)
-        vertices, joints = self.session.run(None, {"shape": shape, "coordinates": q, "root": root})
+        return PendingSynthesis(request, shape, q, root, self._batcher.submit(shape, q, root))
+
+    def finish_synthesis(self, pending: PendingSynthesis, vertices: np.ndarray, joints: np.ndarray) -> Bodies:
+        """The :class:`Bodies` of a finished model call, with the bone mesh posed when it was asked for."""
         bones = bone_faces = None
-        if request.skeleton:
+        if pending.request.skeleton:
             with torch.no_grad():
-                out = self.model.forward(shape, q, root, skeleton_mesh=True)
+                out = self.model.forward(pending.shape, pending.coordinates, pending.root, skeleton_mesh=True)
             assert out.bones is not None
             bones = out.bones.numpy().astype(np.float32)
             bone_faces = np.asarray(self.model.skeleton.bone_mesh().faces, np.int32)
         return Bodies(
             vertices=vertices,
-            faces=self.model.faces.astype(np.int32),
+            faces=self._faces,
             joints=joints,
             joint_names=tuple(self.model.joint_names),
             bones=bones,

@@ -43,7 +43,7 @@ def test_synthesize_npz_matches_the_core(client: TestClient, body_service: BodyS
     r = client.post("/v1/synthesize", json={"coordinates": {"elbow_flex_r": [0.2, 1.2]}, "faces": True})
     assert r.status_code == 200 and r.headers["content-type"] == "application/x-npz"
     z = np.load(io.BytesIO(r.content))
-    q = body_service.model.skeleton.coordinates({"elbow_flex_r": [0.2, 1.2]})
+    q = body_service.model.skeleton.coordinates({"elbow_flex_r": np.array([0.2, 1.2])})
     ref = body_service.synthesize(SynthRequest(coordinates=q))
     assert np.array_equal(z["vertices"], ref.vertices) and z["faces"].shape == (26692, 3)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+from typing import Any
 
 import numpy as np
 import pytest
@@ -85,9 +86,9 @@ def test_formats_hold_the_mesh(body_service: BodyService) -> None:
 
     bodies = body_service.synthesize(SynthRequest())
     for fmt in ("ply", "obj"):
-        mesh = trimesh.load(io.BytesIO(encode_bodies(bodies, fmt)), file_type=fmt, process=False)
+        mesh: Any = trimesh.load(io.BytesIO(encode_bodies(bodies, fmt)), file_type=fmt, process=False)
         assert np.allclose(mesh.vertices, bodies.vertices[0], atol=1e-5)
-    scene = trimesh.load(io.BytesIO(encode_bodies(bodies, "glb")), file_type="glb")
+    scene: Any = trimesh.load(io.BytesIO(encode_bodies(bodies, "glb")), file_type="glb")
     assert sum(len(g.vertices) for g in scene.geometry.values()) == 13348
     with pytest.raises(InvalidInputError, match="one of"):
         encode_bodies(bodies, "fbx")

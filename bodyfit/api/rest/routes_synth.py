@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import asyncio
+
 import numpy as np
 from fastapi import APIRouter, Response
+from fastapi.concurrency import run_in_threadpool
 
 from bodyfit.api.rest.state import Service
 from bodyfit.api.schemas import SynthesizeRequest
@@ -31,7 +34,7 @@ def _array(value: list[list[float]] | None, field: str) -> np.ndarray | None:
     response_class=Response,
     responses={200: {"content": {t: {} for t in MEDIA_TYPES.values()}}},
 )
-def synthesize(body: SynthesizeRequest, service: Service) -> Response:
+async def synthesize(body: SynthesizeRequest, service: Service) -> Response:
     coords = body.coordinates
     request = SynthRequest(
         shape=_array(body.shape, "shape"),
@@ -40,5 +43,15 @@ def synthesize(body: SynthesizeRequest, service: Service) -> Response:
         skeleton=body.skeleton,
         batch=body.batch,
     )
-    data = encode_bodies(service.synthesize(request), body.format, faces=body.faces)
+    pending = service.start_synthesis(request)  # validates here; the model call joins the next batch
+    vertices, joints = await asyncio.wrap_future(pending.future)
+
+    def encode() -> bytes:
+        return encode_bodies(
+            service.finish_synthesis(pending, vertices, joints), body.format, faces=body.faces
+        )
+
+    # npz of a plain body takes a fraction of a millisecond; meshes, text and the skeleton go to a thread.
+    light = body.format == "npz" and not body.skeleton and len(vertices) <= 8
+    data = encode() if light else await run_in_threadpool(encode)
     return Response(data, media_type=MEDIA_TYPES[body.format])

@@ -42,13 +42,15 @@ class AppState:
         raise BusyError("the model is still loading; retry in a few seconds (GET /readyz says when)")
 
 
-def app_state(request: Request) -> AppState:
+async def app_state(request: Request) -> AppState:
     state: AppState = request.app.state.bodyfit
     return state
 
 
-def ready_service(request: Request) -> BodyService:
-    return app_state(request).ready_service()
+async def ready_service(request: Request) -> BodyService:
+    # async: FastAPI would run a plain function in its thread pool, a hop per request
+    state: AppState = request.app.state.bodyfit
+    return state.ready_service()
 
 
 Service = Annotated[BodyService, Depends(ready_service)]
