@@ -13,23 +13,26 @@ def run_server(settings: ServiceSettings) -> None:
     """Load the model once, start gRPC (unless ``grpc_port`` is 0) and serve REST until interrupted."""
     import uvicorn
 
+    from bodyfit.api.metrics import Metrics
     from bodyfit.api.rest.app import create_app
     from bodyfit.service.core import BodyService
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     LOG.info("loading the model and fitters from %s", settings.assets or "the built-in assets")
     service = BodyService.load(settings.assets, settings.limits(), settings.threads)
+    metrics = Metrics()
     grpc_server = None
     if settings.grpc_port:
         from bodyfit.api.grpc_server import create_grpc_server
 
-        grpc_server = create_grpc_server(service, f"{settings.host}:{settings.grpc_port}", settings)
+        address = f"{settings.host}:{settings.grpc_port}"
+        grpc_server, _ = create_grpc_server(service, address, settings, metrics)
         grpc_server.start()
         LOG.info("gRPC on %s:%d", settings.host, settings.grpc_port)
     LOG.info("REST on http://%s:%d (OpenAPI at /docs)", settings.host, settings.rest_port)
     try:
         uvicorn.run(
-            create_app(settings, service=service),
+            create_app(settings, service=service, metrics=metrics),
             host=settings.host,
             port=settings.rest_port,
             log_level="info",

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from bodyfit.clients.errors import InvalidRequestError, RequestTooLargeError
+from bodyfit.clients.grpc_client import GrpcClient
 from bodyfit.clients.rest_client import Client
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -79,6 +80,19 @@ def test_rest_operations_through_the_sdk(server: tuple[str, str, subprocess.Pope
         assert client.synthesize().vertices.shape == (1, 13348, 3)  # still serving
         metrics = httpx.get(f"{url}/metrics").text
         assert 'outcome="413",transport="rest"} 1.0' in metrics
+
+
+def test_grpc_operations_through_the_sdk(server: tuple[str, str, subprocess.Popen[bytes]]) -> None:
+    url, target, _ = server
+    with GrpcClient(target) as grpc_client, Client(url) as rest_client:
+        assert grpc_client.model_info().dof_names == rest_client.model_info().dof_names
+        over_grpc = grpc_client.synthesize(coordinates={"ankle_angle_l": 0.3})
+        over_rest = rest_client.synthesize(coordinates={"ankle_angle_l": 0.3})
+        assert np.array_equal(over_grpc.vertices, over_rest.vertices)
+        with pytest.raises(InvalidRequestError, match="ankle_angle_l"):
+            grpc_client.synthesize(coordinates={"ankle_angle_l": 3.0})
+    metrics = httpx.get(f"{url}/metrics").text
+    assert 'operation="Synthesize",outcome="OK",transport="grpc"' in metrics
 
 
 def test_sigterm_stops_the_server(server: tuple[str, str, subprocess.Popen[bytes]]) -> None:

@@ -10,6 +10,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from bodyfit.api import problems
+from bodyfit.api.metrics import Metrics
 from bodyfit.api.rest import routes_fit, routes_model, routes_ops, routes_synth
 from bodyfit.api.rest.limits import BodyLimit
 from bodyfit.api.rest.measured import Measured
@@ -24,11 +25,16 @@ Errors are RFC 7807 problem+json documents whose `detail` says what was wrong an
 `Accept: application/x-ndjson`; closing the connection cancels it."""
 
 
-def create_app(settings: ServiceSettings | None = None, service: BodyService | None = None) -> FastAPI:
+def create_app(
+    settings: ServiceSettings | None = None,
+    service: BodyService | None = None,
+    metrics: Metrics | None = None,
+) -> FastAPI:
     """The app. With ``service`` given it is ready at once; otherwise the model loads in a background
-    thread at start-up (``/healthz`` answers meanwhile, ``/readyz`` turns 200 when loaded)."""
+    thread at start-up (``/healthz`` answers meanwhile, ``/readyz`` turns 200 when loaded). ``metrics``:
+    shared with a gRPC server in the same process, so /metrics shows both."""
     settings = settings or ServiceSettings()
-    state = AppState(settings, service=service)
+    state = AppState(settings, metrics=metrics or Metrics(), service=service)
     if service is not None:
         state.loaded.set()
 

@@ -1,0 +1,296 @@
+"""The gRPC transport: ``bodyfit.v1.Bodyfit`` over the service core, with health and reflection.
+
+Errors become statuses (INVALID_ARGUMENT, RESOURCE_EXHAUSTED, UNAVAILABLE, DEADLINE_EXCEEDED, CANCELLED;
+anything unexpected INTERNAL with a generic message, logged here); the trailing metadata "bodyfit-kind" and
+"bodyfit-field" carry the error kind and the field at fault. A request's time limit is the client's
+deadline or the server's ``max_seconds``, whichever is shorter; a client that cancels or goes away cancels
+its work.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable, Iterator
+from concurrent import futures
+from typing import Any, TypeVar
+
+import grpc
+import numpy as np
+from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+from grpc_reflection.v1alpha import reflection
+
+from bodyfit.api import bodyfit_pb2 as pb
+from bodyfit.api import bodyfit_pb2_grpc as pb_grpc
+from bodyfit.api.grpc_wire import WireError, from_proto, optional, to_proto
+from bodyfit.api.metrics import Metrics
+from bodyfit.api.settings import ServiceSettings
+from bodyfit.service.core import BodyService, MeshFit, SynthRequest
+from bodyfit.service.errors import InvalidInputError, ServiceError
+from bodyfit.service.formats import MEDIA_TYPES, encode_bodies
+from bodyfit.service.jobs import Job, Progress
+
+LOG = logging.getLogger("bodyfit.grpc")
+SERVICE_NAME = pb.DESCRIPTOR.services_by_name["Bodyfit"].full_name
+STATUS = {
+    "invalid_argument": grpc.StatusCode.INVALID_ARGUMENT,
+    "resource_exhausted": grpc.StatusCode.RESOURCE_EXHAUSTED,
+    "unavailable": grpc.StatusCode.UNAVAILABLE,
+    "deadline_exceeded": grpc.StatusCode.DEADLINE_EXCEEDED,
+    "cancelled": grpc.StatusCode.CANCELLED,
+}
+FORMATS = {pb.NPZ: "npz", pb.PLY: "ply", pb.OBJ: "obj", pb.GLB: "glb", pb.JSON: "json"}
+_BUG = "the server failed unexpectedly; the error is logged on the server. Please report it."
+T = TypeVar("T")
+
+
+def message_limit(settings: ServiceSettings) -> int:
+    """Largest gRPC message both ways: the upload limit plus room for the envelope (at most 2 GiB)."""
+    return min(settings.limits().max_upload_bytes + (1 << 20), (1 << 31) - 1)
+
+
+def _progress(p: Progress) -> pb.Progress:
+    return pb.Progress(stage=p.stage, done=p.done, total=p.total, message=p.message)
+
+
+def _mesh_fit(fit: MeshFit, dof_names: list[str], joint_names: list[str]) -> pb.MeshFitResult:
+    arrays = {k: to_proto(np.asarray(v, np.float32)) for k, v in fit.arrays().items()}
+    return pb.MeshFitResult(
+        fitted_as=fit.fitted_as,
+        dof_names=dof_names,
+        joint_names=joint_names,
+        report_json=json.dumps(fit.report.to_dict()),
+        **arrays,
+    )
+
+
+class BodyfitServicer(pb_grpc.BodyfitServicer):
+    """Translates messages to core calls and core errors to statuses."""
+
+    def __init__(self, service: BodyService, settings: ServiceSettings, metrics: Metrics) -> None:
+        self.service = service
+        self.settings = settings
+        self.metrics = metrics
+
+    # -- unary -----------------------------------------------------------------------------------------
+    def GetModelInfo(self, request: pb.ModelInfoRequest, context: grpc.ServicerContext) -> pb.ModelInfo:
+        return self._unary("GetModelInfo", context, self._model_info)
+
+    def _model_info(self) -> pb.ModelInfo:
+        info = self.service.info()
+        return pb.ModelInfo(
+            version=info.version,
+            dofs=[
+                pb.Dof(name=n, min=float(lo), max=float(hi), unit=u)
+                for n, (lo, hi), u in zip(info.dof_names, info.dof_ranges, info.dof_units, strict=True)
+            ],
+            n_bone=info.n_bone,
+            n_identity=info.n_identity,
+            n_vertices=info.n_vertices,
+            n_faces=info.n_faces,
+            joint_names=list(info.joint_names),
+            asset_format=info.asset_format,
+            asset_sources=info.asset_sources,
+            asset_sha256=info.asset_sha256,
+        )
+
+    def Synthesize(
+        self, request: pb.SynthesizeRequest, context: grpc.ServicerContext
+    ) -> pb.SynthesizeResponse:
+        return self._unary("Synthesize", context, lambda: self._synthesize(request))
+
+    def _synthesize(self, request: pb.SynthesizeRequest) -> pb.SynthesizeResponse:
+        if request.format not in (pb.ARRAYS, *FORMATS):
+            raise InvalidInputError(f"unknown format {request.format}; use a Format value", "format")
+        coordinates: Any = optional(request, "coordinates")
+        if request.named_coordinates:
+            if coordinates is not None:
+                raise InvalidInputError("give coordinates or named_coordinates, not both", "coordinates")
+            coordinates = {k: np.asarray(v.values) for k, v in request.named_coordinates.items()}
+        synth = SynthRequest(
+            shape=optional(request, "shape"),
+            coordinates=coordinates,
+            root=optional(request, "root"),
+            skeleton=request.skeleton,
+            batch=request.batch or None,
+        )
+        bodies = self.service.synthesize(synth)
+        if request.format != pb.ARRAYS:
+            fmt = FORMATS[request.format]
+            data = encode_bodies(bodies, fmt, faces=request.faces)
+            return pb.SynthesizeResponse(data=data, media_type=MEDIA_TYPES[fmt])
+        out = pb.SynthesizeResponse(
+            vertices=to_proto(bodies.vertices), joints=to_proto(bodies.joints), joint_names=bodies.joint_names
+        )
+        if request.faces:
+            out.faces.CopyFrom(to_proto(bodies.faces))
+        if bodies.bones is not None and bodies.bone_faces is not None:
+            out.bones.CopyFrom(to_proto(bodies.bones))
+            if request.faces:
+                out.bone_faces.CopyFrom(to_proto(bodies.bone_faces))
+        return out
+
+    # -- streaming -------------------------------------------------------------------------------------
+    def FitScan(self, request: pb.FitScanRequest, context: grpc.ServicerContext) -> Iterator[pb.FitScanEvent]:
+        service = self.service
+        info = service.info()
+
+        def work(job: Job) -> list[pb.FitScanEvent]:
+            scan = service.read_scan(request.data, request.format or "", request.units or "auto")
+            fit = service.fit_mesh(scan, job)
+            return [pb.FitScanEvent(result=_mesh_fit(fit, list(info.dof_names), list(info.joint_names)))]
+
+        return self._stream("FitScan", context, work, lambda p: pb.FitScanEvent(progress=_progress(p)))
+
+    def FitSequence(
+        self, request: pb.FitSequenceRequest, context: grpc.ServicerContext
+    ) -> Iterator[pb.FitSequenceEvent]:
+        service = self.service
+        joint_names = list(service.info().joint_names)
+        chunk = request.chunk or 64
+
+        def work(job: Job) -> list[pb.FitSequenceEvent]:
+            try:
+                frames = from_proto(request.frames, "frames")
+                weights = optional(request, "weights")
+            except WireError as exc:
+                raise InvalidInputError(exc.detail, exc.field) from None
+            if chunk < 1:
+                raise InvalidInputError(f"chunk must be at least 1; got {chunk}", "chunk")
+            if frames.ndim >= 1 and len(frames) > service.limits.max_frames:
+                service.fit_sequence(frames)  # raises the limit error
+            fit = service.fit_sequence(frames, weights, job)
+            events = []
+            for lo in range(0, len(fit.coordinates), chunk):
+                hi = min(len(fit.coordinates), lo + chunk)
+                errors = np.array([r.distances.mean for r in fit.reports[lo:hi]])
+                part = pb.SequenceChunk(
+                    start=lo,
+                    stop=hi,
+                    coordinates=to_proto(fit.coordinates[lo:hi]),
+                    root=to_proto(fit.root[lo:hi]),
+                    vertices=to_proto(fit.vertices[lo:hi].astype(np.float32)),
+                    joints=to_proto(fit.joints[lo:hi].astype(np.float32)),
+                    error_mm=to_proto(errors),
+                )
+                events.append(pb.FitSequenceEvent(chunk=part))
+            summary = pb.SequenceSummary(
+                shape=to_proto(fit.shape),
+                dof_names=list(fit.dof_names),
+                joint_names=joint_names,
+                stats_json=json.dumps(fit.stats.to_dict()),
+                limit_violations=sum(r.limit_violations for r in fit.reports),
+            )
+            return [*events, pb.FitSequenceEvent(result=summary)]
+
+        return self._stream(
+            "FitSequence", context, work, lambda p: pb.FitSequenceEvent(progress=_progress(p))
+        )
+
+    # -- plumbing --------------------------------------------------------------------------------------
+    def _unary(self, name: str, context: grpc.ServicerContext, call: Callable[[], T]) -> T:
+        began = time.perf_counter()
+        outcome = "OK"
+        self.metrics.in_flight.labels("grpc").inc()
+        try:
+            try:
+                return call()
+            except WireError as exc:
+                raise InvalidInputError(exc.detail, exc.field) from None
+        except ServiceError as exc:
+            outcome = STATUS.get(exc.kind, grpc.StatusCode.INTERNAL).name
+            self._abort(context, exc)
+        except Exception:
+            outcome = "INTERNAL"
+            LOG.exception("unhandled error in %s", name)
+            context.abort(grpc.StatusCode.INTERNAL, _BUG)
+        finally:
+            self._record(name, outcome, began)
+        raise AssertionError("unreachable")  # context.abort raises
+
+    def _stream(
+        self,
+        name: str,
+        context: grpc.ServicerContext,
+        work: Callable[[Job], list[T]],
+        progress_event: Callable[[Progress], T],
+    ) -> Iterator[T]:
+        """Run ``work`` in a thread; yield its progress as events, then its result events."""
+        remaining = context.time_remaining()
+        limit = self.service.limits.max_seconds
+        events: queue.SimpleQueue[Progress | None] = queue.SimpleQueue()
+        job = Job(timeout_s=limit if remaining is None else min(limit, remaining), on_progress=events.put)
+        context.add_callback(job.cancel)  # the RPC ended: stop the work if it still runs
+        result: list[T] = []
+        failure: list[BaseException] = []
+
+        def run() -> None:
+            try:
+                result.extend(work(job))
+            except BaseException as exc:
+                failure.append(exc)
+            finally:
+                events.put(None)
+
+        began = time.perf_counter()
+        outcome = "OK"
+        self.metrics.in_flight.labels("grpc").inc()
+        threading.Thread(target=run, name=f"bodyfit-{name}", daemon=True).start()
+        try:
+            while (p := events.get()) is not None:
+                yield progress_event(p)
+            if failure:
+                raise failure[0]
+            yield from result
+        except ServiceError as exc:
+            outcome = STATUS.get(exc.kind, grpc.StatusCode.INTERNAL).name
+            self._abort(context, exc)
+        except Exception:
+            outcome = "INTERNAL"
+            LOG.exception("unhandled error in %s", name)
+            context.abort(grpc.StatusCode.INTERNAL, _BUG)
+        finally:
+            job.cancel()
+            self._record(name, outcome, began)
+
+    def _abort(self, context: grpc.ServicerContext, exc: ServiceError) -> None:
+        metadata = [("bodyfit-kind", exc.kind)]
+        if exc.field is not None:
+            metadata.append(("bodyfit-field", exc.field))
+        context.set_trailing_metadata(tuple(metadata))
+        context.abort(STATUS.get(exc.kind, grpc.StatusCode.INTERNAL), exc.detail)
+
+    def _record(self, name: str, outcome: str, began: float) -> None:
+        m = self.metrics
+        m.in_flight.labels("grpc").dec()
+        m.latency.labels("grpc", name).observe(time.perf_counter() - began)
+        m.requests.labels("grpc", name, outcome).inc()
+
+
+def create_grpc_server(
+    service: BodyService,
+    address: str,
+    settings: ServiceSettings | None = None,
+    metrics: Metrics | None = None,
+) -> tuple[grpc.Server, int]:
+    """A started-ready (call ``.start()``) gRPC server on ``address`` ("host:port"; port 0 picks one) with
+    the Bodyfit service, health (SERVING) and reflection. Returns the server and its bound port."""
+    settings = settings or ServiceSettings()
+    limit = message_limit(settings)
+    server = grpc.server(
+        futures.ThreadPoolExecutor(max_workers=32, thread_name_prefix="bodyfit-grpc"),
+        options=[("grpc.max_receive_message_length", limit), ("grpc.max_send_message_length", limit)],
+    )
+    pb_grpc.add_BodyfitServicer_to_server(BodyfitServicer(service, settings, metrics or Metrics()), server)
+    health_servicer = health.HealthServicer()
+    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
+    for name in ("", SERVICE_NAME):
+        health_servicer.set(name, health_pb2.HealthCheckResponse.SERVING)
+    reflection.enable_server_reflection((SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME), server)
+    port = server.add_insecure_port(address)
+    if port == 0:
+        raise OSError(f"cannot bind gRPC to {address}")
+    return server, port
