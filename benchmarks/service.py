@@ -14,8 +14,9 @@ What is measured
 * In-process baseline: ``BodyService.synthesize`` + npz encoding, one thread, median ms: what the wire,
   the framework and the concurrency add to is ``rest_p50_ms_c1 / inproc_ms``.
 * Bad input: a bounded corpus of malformed requests (garbage JSON, unknown DOFs, NaN, out-of-range values,
-  truncated uploads, 5 MiB uploads over the limit) sent repeatedly; every one must get a 4xx (counted
-  otherwise in ``errors``); the server's resident memory (from /metrics) before and after is reported.
+  truncated uploads, 5 MiB uploads over the limit) sent repeatedly after the load; every one must get a
+  4xx (counted otherwise in ``errors``); the server's resident memory (from /metrics) before and after
+  the barrage is reported (``rss_growth_mb``: flat means no leak on refused input).
 * The client threads share the machine's cores with the server, as on any loopback test.
 * Target: p99 <= 20 ms at 8 clients for one mesh on 2 cores; zero errors.
 
@@ -285,7 +286,6 @@ def run(quick: bool) -> dict[str, Any]:
             "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores"
         }
         result["inproc_ms"] = in_process_ms(params, 60 if quick else 300)
-        mem_before = resident_mb(url)
         errors = 0
         runs: list[tuple[str, int, Callable[[int], dict[str, float]]]] = [
             ("rest_sdk", 1, lambda c: load(rest_call(url), params, c, count // 4, seconds)),
@@ -297,7 +297,9 @@ def run(quick: bool) -> dict[str, Any]:
             errors += int(stats["errors"])
             for key in ("p50_ms", "p99_ms", "rps"):
                 result[f"{name}_{key}_c{c}"] = round(stats[key], 3)
-        bad = bad_inputs(url, 3 if quick else 20)
+        bad_inputs(url, 1)  # warm-up: first-use allocations are not growth
+        mem_before = resident_mb(url)
+        bad = bad_inputs(url, 5 if quick else 40)
         mem_after = resident_mb(url)
         result.update(bad)
         result["errors"] = errors + bad["bad_not_4xx"]
