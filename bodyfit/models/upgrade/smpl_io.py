@@ -1,0 +1,170 @@
+"""Readers of SMPL-format motion: AMASS-style ``.npz`` and SMPL ``.pkl`` files.
+
+Accepted keys: ``poses`` (T, 72) SMPL or (T, 156) SMPL-H / (T, 165) SMPL-X layouts (the first 66 values
+are the root and 21 body joints; SMPL's hand joints 22-23 come from positions 66-72 when the layout is
+SMPL's, else stay zero), or ``global_orient`` (T, 3) + ``body_pose`` (T, 63 or 69); ``trans`` (T, 3);
+``betas`` (K,) or (T, K); ``gender``; ``mocap_framerate`` or ``mocap_frame_rate`` (or ``fps``);
+``surface_model_type``. Frames holding NaN or infinite values are flagged in ``bad_frames``, not dropped.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bodyfit.models.errors import BodyfitError
+
+GENDERS = ("neutral", "male", "female")
+EXPECTED = (
+    "poses (T, 72 | 156 | 165) or global_orient (T, 3) + body_pose (T, 63 | 69), trans (T, 3), betas, "
+    "gender, mocap_framerate or mocap_frame_rate"
+)
+
+
+class SmplSequenceError(BodyfitError):
+    """An SMPL-format sequence file is unreadable or malformed; the message names the field."""
+
+
+@dataclass(frozen=True)
+class SmplSequence:
+    """poses (T, 24, 3) axis-angle of SMPL's body joints; trans (T, 3) metres; betas (K,); gender; fps;
+    bad_frames (T,) True where the input held NaN / inf (those frames are zeroed here and flagged);
+    surface_model_type (as given, or "smpl"); source: the file name."""
+
+    poses: np.ndarray
+    trans: np.ndarray
+    betas: np.ndarray
+    gender: str
+    fps: float
+    bad_frames: np.ndarray
+    surface_model_type: str = "smpl"
+    source: str = ""
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.poses)
+
+
+def read_smpl_sequence(path: str | os.PathLike[str]) -> SmplSequence:
+    """Read an AMASS-style .npz or an SMPL .pkl.
+
+    Raises:
+        SmplSequenceError: unreadable file, missing or malformed fields (named, with what was expected).
+    """
+    p = Path(path)
+    try:
+        if p.suffix == ".npz":
+            with np.load(p, allow_pickle=False) as z:
+                data: dict[str, Any] = {k: z[k] for k in z.files}
+        elif p.suffix == ".pkl":
+            with p.open("rb") as f:
+                data = pickle.load(f, encoding="latin1")
+        else:
+            raise SmplSequenceError(f"{p.name}: SMPL-format sequences are .npz (AMASS) or .pkl files")
+    except SmplSequenceError:
+        raise
+    except (
+        OSError,
+        ValueError,
+        EOFError,
+        zipfile.BadZipFile,
+        pickle.UnpicklingError,
+        ModuleNotFoundError,
+    ) as exc:
+        raise SmplSequenceError(f"cannot read {p.name}: {exc}") from None
+    if not isinstance(data, dict):
+        raise SmplSequenceError(
+            f"{p.name} holds a {type(data).__name__}; expected a dictionary with {EXPECTED}"
+        )
+    return smpl_sequence(data, p.name)
+
+
+def smpl_sequence(data: dict[str, Any], source: str = "") -> SmplSequence:
+    """Validate a dictionary of SMPL-format arrays (see the module docstring)."""
+    where = source or "the sequence"
+    poses = _poses(data, where)
+    T = len(poses)
+    if T == 0:
+        raise SmplSequenceError(f"{where}: poses has zero frames; send at least one frame")
+    trans = _array(data, "trans", where, np.zeros((T, 3)))
+    if trans.shape != (T, 3):
+        raise SmplSequenceError(f"{where}: trans must have shape ({T}, 3) to match poses; got {trans.shape}")
+    betas = _array(data, "betas", where, np.zeros(10))
+    if betas.ndim == 2:
+        if len(betas) not in (1, T):
+            raise SmplSequenceError(f"{where}: betas of shape {betas.shape} match neither 1 nor {T} frames")
+        betas = betas.mean(0)
+    if betas.ndim != 1 or not np.isfinite(betas).all():
+        raise SmplSequenceError(f"{where}: betas must be a finite (K,) vector; got shape {betas.shape}")
+    gender = _text(data.get("gender", "neutral")).lower()
+    if gender not in GENDERS:
+        raise SmplSequenceError(f"{where}: unknown gender {gender!r}; use one of {', '.join(GENDERS)}")
+    fps = _fps(data, where)
+    bad = ~(np.isfinite(poses).all(axis=(1, 2)) & np.isfinite(trans).all(axis=1))
+    if bad.all():
+        raise SmplSequenceError(f"{where}: every frame holds NaN or infinite values")
+    poses = np.where(bad[:, None, None], 0.0, poses)
+    trans = np.where(bad[:, None], 0.0, trans)
+    model_type = _text(data.get("surface_model_type", "smpl")).lower()
+    return SmplSequence(poses, trans, betas, gender, fps, bad, model_type, source)
+
+
+def _array(data: dict[str, Any], key: str, where: str, default: np.ndarray) -> np.ndarray:
+    if key not in data:
+        return default
+    try:
+        return np.asarray(data[key], np.float64)
+    except (TypeError, ValueError):
+        raise SmplSequenceError(f"{where}: {key} is not a numeric array") from None
+
+
+def _poses(data: dict[str, Any], where: str) -> np.ndarray:
+    if "poses" in data:
+        p = _array(data, "poses", where, np.zeros((0, 72)))
+        if p.ndim != 2 or p.shape[1] not in (72, 156, 165):
+            raise SmplSequenceError(
+                f"{where}: poses must be (T, 72) SMPL, (T, 156) SMPL-H or (T, 165) SMPL-X; got {p.shape}"
+            )
+        body = np.zeros((len(p), 72))
+        body[:, : 72 if p.shape[1] == 72 else 66] = p[:, : 72 if p.shape[1] == 72 else 66]
+        return body.reshape(len(p), 24, 3)
+    if "global_orient" in data and "body_pose" in data:
+        g = _array(data, "global_orient", where, np.zeros((0, 3)))
+        b = _array(data, "body_pose", where, np.zeros((0, 69)))
+        if g.ndim != 2 or g.shape[1] != 3 or b.ndim != 2 or b.shape[1] not in (63, 69) or len(g) != len(b):
+            raise SmplSequenceError(
+                f"{where}: global_orient must be (T, 3) and body_pose (T, 63 | 69); got {g.shape}, {b.shape}"
+            )
+        body = np.zeros((len(g), 72))
+        body[:, :3], body[:, 3 : 3 + b.shape[1]] = g, b
+        return body.reshape(len(g), 24, 3)
+    found = ", ".join(sorted(data)) or "nothing"
+    raise SmplSequenceError(f"{where} holds {found}; expected {EXPECTED}")
+
+
+def _fps(data: dict[str, Any], where: str) -> float:
+    for key in ("mocap_framerate", "mocap_frame_rate", "fps"):
+        if key in data:
+            try:
+                fps = float(np.asarray(data[key]).reshape(-1)[0])
+            except (TypeError, ValueError, IndexError):
+                raise SmplSequenceError(f"{where}: {key} is not a number") from None
+            if not np.isfinite(fps) or fps <= 0:
+                raise SmplSequenceError(
+                    f"{where}: {key} must be a positive number of frames per second; got {fps}"
+                )
+            return fps
+    raise SmplSequenceError(f"{where}: no frame rate; add mocap_framerate (frames per second)")
+
+
+def _text(value: Any) -> str:
+    a = np.asarray(value)
+    if a.dtype.kind == "S":
+        return bytes(a.reshape(-1)[0]).decode(errors="replace")
+    return str(a.reshape(-1)[0]) if a.size else ""

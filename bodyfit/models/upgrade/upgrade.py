@@ -1,0 +1,192 @@
+"""Upgrading an SMPL-format sequence to our biomechanical model.
+
+Path (a), with the user's SMPL-family model file: the sequence's posed SMPL meshes are computed
+(:class:`SmplModel`), carried to our topology through the stored SMPL-topology correspondence, and fitted
+as one person's registered sequence (:class:`SequenceFitter`: one shape and one set of bone scales for the
+whole sequence, per-frame coordinates from warm-started keyframes, no seams, unwrapped pelvis angles, every
+frame within the joint limits). Frames the input marks bad (NaN) are left out of the fit, given the
+coordinates interpolated from their neighbours, and flagged.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from bodyfit.models.body.model import BodyModel
+from bodyfit.models.fitting.report import count_limit_violations
+from bodyfit.models.fitting.sequence import SequenceFitter
+from bodyfit.models.fitting.smpl_topology import SMPL_TO_BODY, SMPL_VERTICES, TopologyMap, smpl_map
+from bodyfit.models.skeleton.opensim_export import write_mot, write_osim
+from bodyfit.models.upgrade.smpl_io import SmplSequence
+from bodyfit.models.upgrade.smpl_model import SmplModel, SmplModelError
+
+
+@dataclass(frozen=True)
+class UpgradeResult:
+    """One upgraded sequence of T frames.
+
+    path: "a" (SMPL model file) or "b" (joint rotations only); coordinates (T, n_dof) radians, pelvis angles
+    unwrapped, named by ``dof_names``; root (T, 3); joints (T, J, 3) anatomical joint centres named by
+    ``joint_names``; shape (n_shape,); scales (n_seg, 3) per-segment bone scales (``segment_names``);
+    error_mm (T,) mean distance of our skin vertices to their corresponding points on the input mesh
+    (NaN for bad frames); bad_frames (T,); fps: frames per second of the whole upgrade; notes: what the
+    user should know (which path ran, what was not used).
+    """
+
+    path: str
+    coordinates: np.ndarray
+    root: np.ndarray
+    joints: np.ndarray
+    shape: np.ndarray
+    scales: np.ndarray
+    error_mm: np.ndarray
+    bad_frames: np.ndarray
+    rate: float
+    seconds: float
+    dof_names: tuple[str, ...]
+    joint_names: tuple[str, ...]
+    segment_names: tuple[str, ...]
+    limit_violations: int
+    notes: tuple[str, ...] = ()
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def fps(self) -> float:
+        return len(self.coordinates) / self.seconds
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready numbers."""
+        good = self.error_mm[~self.bad_frames]
+        jumps = np.abs(np.diff(self.coordinates, axis=0)) if len(self.coordinates) > 1 else np.zeros((1, 1))
+        return {
+            "path": self.path,
+            "frames": len(self.coordinates),
+            "bad_frames": [int(i) for i in np.flatnonzero(self.bad_frames)],
+            "frame_rate": self.rate,
+            "seconds": round(self.seconds, 3),
+            "fps": round(self.fps, 2),
+            "v2v_mean_mm": float(good.mean()),
+            "v2v_max_frame_mm": float(good.max()),
+            "limit_violations": self.limit_violations,
+            "max_frame_jump_deg": float(np.degrees(jumps.max())),
+            "notes": list(self.notes),
+            **self.extra,
+        }
+
+
+def upgrade_with_model(
+    sequence: SmplSequence,
+    smpl: SmplModel,
+    fitter: SequenceFitter,
+    topology: TopologyMap | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> UpgradeResult:
+    """Path (a): the user's SMPL-family model poses the meshes, which are fitted (see the module docstring).
+
+    Raises:
+        SmplModelError: the model is not in SMPL's 6,890-vertex topology.
+    """
+    began = time.perf_counter()
+    if len(smpl.v_template) != SMPL_VERTICES:
+        raise SmplModelError(
+            f"the model has {len(smpl.v_template)} vertices; path (a) needs SMPL's {SMPL_VERTICES}-vertex "
+            "topology (SMPL, SMPL-H); use path (b) for other models"
+        )
+    model = fitter.model
+    tmap = topology or smpl_map()
+    good = np.flatnonzero(~sequence.bad_frames)
+    verts, _ = smpl.forward(sequence.poses[good], sequence.betas, sequence.trans[good])
+    body = verts.astype(np.float64) @ SMPL_TO_BODY.T
+    targets = tmap.transfer(body)
+    weights = np.broadcast_to(tmap.weight, targets.shape[:2]).copy()
+    fit = fitter.fit(targets, weights, progress=progress)
+    notes = [f"path (a): posed with the SMPL-family model {Path(smpl.source).name or '(given)'}"]
+    if len(sequence.betas) > smpl.n_betas:
+        notes.append(f"the model has {smpl.n_betas} shape directions; betas beyond those were ignored")
+    return _result("a", sequence, model, fit, good, notes, began)
+
+
+def _result(
+    path: str,
+    sequence: SmplSequence,
+    model: BodyModel,
+    fit: Any,
+    good: np.ndarray,
+    notes: list[str],
+    began: float,
+) -> UpgradeResult:
+    """Fill bad frames by interpolation from the fitted ones and assemble the result."""
+    T = sequence.n_frames
+    frames = np.arange(T)
+
+    def fill(a: np.ndarray) -> np.ndarray:
+        if len(good) == T:
+            return a
+        flat = a.reshape(len(good), -1)
+        out = np.stack([np.interp(frames, good, flat[:, k]) for k in range(flat.shape[1])], axis=1)
+        return out.reshape(T, *a.shape[1:])
+
+    coordinates, root, joints = fill(fit.coordinates), fill(fit.root), fill(fit.joints)
+    error = np.full(T, np.nan)
+    error[good] = [r.distances.mean for r in fit.reports]
+    with torch.no_grad():
+        scales = model.forward(fit.shape[None]).scales.numpy()[0]
+    skel = model.skeleton
+    in_range = coordinates.copy()
+    pelvis = [skel.dof_index(n) for n in ("pelvis_tilt", "pelvis_list", "pelvis_rotation")]
+    in_range[:, pelvis] = (in_range[:, pelvis] + np.pi) % (2 * np.pi) - np.pi
+    if sequence.bad_frames.any():
+        notes.append(f"{int(sequence.bad_frames.sum())} frames held NaN / inf: interpolated and flagged")
+    return UpgradeResult(
+        path=path,
+        coordinates=coordinates,
+        root=root,
+        joints=joints,
+        shape=fit.shape,
+        scales=scales,
+        error_mm=error,
+        bad_frames=sequence.bad_frames.copy(),
+        rate=sequence.fps,
+        seconds=time.perf_counter() - began,
+        dof_names=tuple(model.dof_names),
+        joint_names=tuple(model.joint_names),
+        segment_names=tuple(skel.segments),
+        limit_violations=count_limit_violations(in_range, skel.ranges),
+        notes=tuple(notes),
+    )
+
+
+def write_upgrade(
+    result: UpgradeResult, model: BodyModel, out: Path, name: str = "upgrade"
+) -> dict[str, Path]:
+    """Write ``name``.npz (every array with its names), ``name``.json (the summary), ``name``.osim (our
+    skeleton scaled to the subject) and ``name``.mot (the coordinates; degrees, as OpenSim expects)."""
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {ext: out / f"{name}.{ext}" for ext in ("npz", "json", "osim", "mot")}
+    np.savez_compressed(
+        paths["npz"],
+        coordinates=result.coordinates,
+        dof_names=np.array(result.dof_names),
+        root=result.root,
+        joints=result.joints,
+        joint_names=np.array(result.joint_names),
+        shape=result.shape,
+        scales=result.scales,
+        segment_names=np.array(result.segment_names),
+        error_mm=result.error_mm,
+        bad_frames=result.bad_frames,
+        frame_rate=np.array(result.rate),
+        path=np.array(result.path),
+    )
+    paths["json"].write_text(json.dumps(result.summary(), indent=1) + "\n")
+    write_osim(paths["osim"], model.skeleton.spec, result.scales, name=name)
+    write_mot(paths["mot"], model.skeleton.spec, result.coordinates, result.root, fps=result.rate)
+    return paths
