@@ -222,6 +222,56 @@ def synth(
 
 
 @app.command()
+def upgrade(
+    sequence: Annotated[Path, typer.Argument(help="AMASS-style .npz or SMPL .pkl sequence.")],
+    smpl_model: Annotated[
+        Path | None,
+        typer.Option(
+            help="SMPL-family model file (.npz, or .pkl without chumpy); default $BODYFIT_SMPL_MODEL."
+        ),
+    ] = None,
+    out: Annotated[Path, typer.Option(help="Output folder.")] = Path("out/upgrade"),
+) -> None:
+    """Upgrade an SMPL-format sequence to biomechanical coordinates (path a: with an SMPL-family model file).
+
+    Writes <name>.npz (coordinates with their names, root, joints, bone scales, per-frame error, bad-frame
+    flags), <name>.json (summary: v2v error, frames/s, limit violations, largest frame-to-frame jump) and
+    OpenSim files: <name>.osim (our skeleton scaled to the subject) and <name>.mot.
+    """
+    from tqdm import tqdm
+
+    from bodyfit.models.body.model import BodyModel
+    from bodyfit.models.errors import BodyfitError
+    from bodyfit.models.fitting.registered import RegisteredFitter
+    from bodyfit.models.fitting.sequence import SequenceFitter
+    from bodyfit.models.upgrade.smpl_io import read_smpl_sequence
+    from bodyfit.models.upgrade.smpl_model import load_smpl_model
+    from bodyfit.models.upgrade.upgrade import upgrade_with_model, write_upgrade
+
+    try:
+        seq = read_smpl_sequence(sequence)
+        smpl = load_smpl_model(smpl_model)
+        model = BodyModel.load()
+        with tqdm(total=seq.n_frames, unit="frame", desc=sequence.name) as bar:
+
+            def progress(done: int, total: int) -> None:
+                bar.update(done - bar.n)
+
+            result = upgrade_with_model(seq, smpl, SequenceFitter(RegisteredFitter(model)), progress=progress)
+    except (BodyfitError, OSError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    paths = write_upgrade(result, model, out, sequence.stem)
+    summary = result.summary()
+    typer.echo(
+        f"{sequence.name}: {summary['frames']} frames, path ({result.path}), "
+        f"v2v {summary['v2v_mean_mm']:.1f} mm, {summary['fps']:.0f} frames/s, "
+        f"{summary['limit_violations']} limit violations"
+    )
+    typer.echo("wrote " + ", ".join(str(p) for p in paths.values()))
+
+
+@app.command()
 def demo(
     out: Annotated[Path, typer.Option(help="Output folder.")] = Path("out/demo"),
     frames: Annotated[int, typer.Option(min=1, max=100000, help="Frames of the demo motion.")] = 120,

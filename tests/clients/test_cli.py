@@ -128,3 +128,15 @@ def test_synth_writes_the_requested_format(tmp_path: Path) -> None:
     assert bad.exit_code == 2 and "joint limits" in bad.output
     bad = runner.invoke(app, ["synth", str(tmp_path / "b.ply"), "-c", "knee"])
     assert bad.exit_code == 2 and "NAME=RADIANS" in bad.output
+
+
+def test_upgrade_writes_opensim_files(tmp_path: Path) -> None:
+    data = Path(__file__).resolve().parents[1] / "data" / "smpl_format"
+    args = ["upgrade", str(data / "cmu_131_smpl.npz"), "--smpl-model", str(data / "smpl_like_model.npz")]
+    result = runner.invoke(app, [*args, "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((tmp_path / "cmu_131_smpl.json").read_text())
+    assert summary["path"] == "a" and summary["frames"] == 60 and summary["limit_violations"] == 0
+    assert (tmp_path / "cmu_131_smpl.osim").exists() and (tmp_path / "cmu_131_smpl.mot").exists()
+    missing = runner.invoke(app, ["upgrade", str(data / "cmu_131_smpl.npz")], env={"BODYFIT_SMPL_MODEL": ""})
+    assert missing.exit_code == 2 and "--smpl-model" in missing.output

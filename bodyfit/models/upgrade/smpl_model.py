@@ -130,8 +130,8 @@ def model_path(path: str | os.PathLike[str] | None) -> Path:
     chosen = path or os.environ.get(ENV_VAR)
     if not chosen:
         raise SmplModelError(
-            f"no SMPL-family model file given: pass its path (--smpl-model) or set {ENV_VAR}; without one, "
-            "the upgrade runs path (b), which uses the joint rotations only"
+            f"no SMPL-family model file given: pass its path (--smpl-model) or set {ENV_VAR} (the upgrade "
+            "without a model file, from the joint rotations only, is not available yet)"
         )
     p = Path(chosen)
     if not p.is_file():
