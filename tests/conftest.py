@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -31,11 +32,13 @@ def random_pose(skel: Skeleton, n: int, seed: int, rajagopal_only: bool = False)
 
 @pytest.fixture(scope="session")
 def body_service() -> BodyService:
-    """The service core over the built-in assets (one per test process; it takes seconds to load)."""
+    """The service core over the built-in assets, with the SMPL-format test model file for upgrades (one per
+    test process; it takes seconds to load)."""
     from bodyfit.service.core import BodyService
     from bodyfit.service.limits import Limits
 
-    return BodyService.load(limits=Limits(max_batch=64, queue_seconds=5.0), threads=1)
+    smpl = Path(__file__).resolve().parent / "data" / "smpl_format" / "smpl_like_model.npz"
+    return BodyService.load(limits=Limits(max_batch=64, queue_seconds=5.0), threads=1, smpl_model=smpl)
 
 
 @pytest.fixture(autouse=True)

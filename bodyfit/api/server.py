@@ -19,7 +19,9 @@ def run_server(settings: ServiceSettings) -> None:
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     LOG.info("loading the model and fitters from %s", settings.assets or "the built-in assets")
-    service = BodyService.load(settings.assets, settings.limits(), settings.threads)
+    service = BodyService.load(
+        settings.assets, settings.limits(), settings.threads, smpl_model=settings.smpl_model
+    )
     metrics = Metrics()
     grpc_server = None
     if settings.grpc_port:

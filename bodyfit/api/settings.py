@@ -12,8 +12,9 @@ from bodyfit.service.limits import Limits
 
 class ServiceSettings(BaseSettings):
     """host / rest_port / grpc_port: where the service listens (gRPC off when grpc_port is 0); assets: the
-    asset folder (default the checkout's assets/); threads: ONNX Runtime and torch threads; the rest are
-    request limits (see :class:`bodyfit.service.limits.Limits`)."""
+    asset folder (default the checkout's assets/); smpl_model: an SMPL-family model file for upgrades
+    (BODYFIT_SMPL_MODEL; the operator's own, none ships); threads: ONNX Runtime and torch threads; the
+    rest are request limits (see :class:`bodyfit.service.limits.Limits`)."""
 
     model_config = SettingsConfigDict(env_prefix="BODYFIT_", extra="ignore")
 
@@ -21,6 +22,7 @@ class ServiceSettings(BaseSettings):
     rest_port: int = Field(default=8000, ge=0, le=65535)
     grpc_port: int = Field(default=50051, ge=0, le=65535)
     assets: Path | None = None
+    smpl_model: Path | None = None
     threads: int | None = Field(default=None, ge=1)
     max_upload_mb: float = Field(default=200.0, gt=0)
     max_points: int = Field(default=2_000_000, ge=300)

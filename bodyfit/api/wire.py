@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from bodyfit.models.fitting.sequence import SequenceFit
+from bodyfit.models.upgrade.upgrade import UpgradeResult
 from bodyfit.service.core import MeshFit
 from bodyfit.service.jobs import Progress
 
@@ -77,4 +78,41 @@ def sequence_summary(fit: SequenceFit, joint_names: list[str]) -> dict[str, Any]
         "stats": fit.stats.to_dict(),
         "limit_violations": sum(r.limit_violations for r in fit.reports),
         "confident_frames": sum(r.confident for r in fit.reports),
+    }
+
+
+def upgrade_chunks(result: UpgradeResult, chunk: int) -> list[dict[str, Any]]:
+    """Per-chunk events of an upgrade: frames ``[start, stop)`` with coordinates, root, joints, per-frame
+    error (mm) and bad-frame flags."""
+    events = []
+    for lo in range(0, len(result.coordinates), chunk):
+        hi = min(len(result.coordinates), lo + chunk)
+        arrays = {
+            "coordinates": result.coordinates[lo:hi],
+            "root": result.root[lo:hi],
+            "joints": result.joints[lo:hi].astype(np.float32),
+            "error_mm": result.error_mm[lo:hi],
+            "bad_frames": result.bad_frames[lo:hi],
+        }
+        events.append(
+            {
+                "event": "chunk",
+                "start": lo,
+                "stop": hi,
+                "arrays": {k: encode_array(v) for k, v in arrays.items()},
+            }
+        )
+    return events
+
+
+def upgrade_summary(result: UpgradeResult, files: dict[str, bytes]) -> dict[str, Any]:
+    """The final event of an upgrade: names, shape and bone scales, the summary, and the files (base64)."""
+    return {
+        "event": "result",
+        "dof_names": list(result.dof_names),
+        "joint_names": list(result.joint_names),
+        "segment_names": list(result.segment_names),
+        "arrays": {"shape": encode_array(result.shape), "scales": encode_array(result.scales)},
+        "summary": result.summary(),
+        "files": {ext: base64.b64encode(data).decode() for ext, data in files.items()},
     }

@@ -33,6 +33,7 @@ from bodyfit.clients.results import (
     ProgressCallback,
     SequenceResult,
     Synthesis,
+    UpgradeOutput,
 )
 
 DEFAULT_URL = "http://127.0.0.1:8000"
@@ -73,6 +74,14 @@ def scan_upload(scan: str | os.PathLike[str] | bytes, format: str | None) -> tup
         return f"scan.{format}", bytes(scan)
     path = Path(scan)
     return (f"{path.stem}.{format}" if format else path.name), path.read_bytes()
+
+
+def upgrade_upload(sequence: str | os.PathLike[str] | bytes) -> tuple[str, bytes]:
+    """(file name, bytes) of an AMASS-style .npz given as a path or bytes."""
+    if isinstance(sequence, bytes | bytearray):
+        return "sequence.npz", bytes(sequence)
+    path = Path(sequence)
+    return path.name, path.read_bytes()
 
 
 def frames_upload(frames: np.ndarray, weights: np.ndarray | None) -> bytes:
@@ -211,6 +220,16 @@ class Client:
             *self._stream(f"/v1/fit/sequence?chunk={chunk}", files, None, progress)
         )
 
+    def upgrade(
+        self,
+        sequence: str | os.PathLike[str] | bytes,
+        progress: ProgressCallback | None = None,
+        chunk: int = 256,
+    ) -> UpgradeOutput:
+        """Upgrade an AMASS-style .npz (path or bytes) to biomechanical coordinates and OpenSim files."""
+        files = {"file": upgrade_upload(sequence)}
+        return UpgradeOutput.from_events(*self._stream(f"/v1/upgrade?chunk={chunk}", files, None, progress))
+
     def _stream(
         self, path: str, files: dict[str, Any], data: dict[str, str] | None, progress: ProgressCallback | None
     ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
@@ -315,6 +334,17 @@ class AsyncClient:
         files = {"file": ("frames.npz", frames_upload(frames, weights))}
         path = f"/v1/fit/sequence?chunk={chunk}"
         return SequenceResult.from_events(*(await self._stream(path, files, None, progress)))
+
+    async def upgrade(
+        self,
+        sequence: str | os.PathLike[str] | bytes,
+        progress: ProgressCallback | None = None,
+        chunk: int = 256,
+    ) -> UpgradeOutput:
+        files = {"file": upgrade_upload(sequence)}
+        return UpgradeOutput.from_events(
+            *(await self._stream(f"/v1/upgrade?chunk={chunk}", files, None, progress))
+        )
 
     async def _stream(
         self, path: str, files: dict[str, Any], data: dict[str, str] | None, progress: ProgressCallback | None

@@ -6,6 +6,7 @@ import base64
 import io
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -185,3 +186,50 @@ class EventCollector:
         if self.result is None:
             raise ServerError("the server's stream ended without a result (the connection was cut?)")
         return self.chunks, self.result
+
+
+@dataclass(frozen=True)
+class UpgradeOutput:
+    """An upgraded SMPL-format sequence of T frames: coordinates (T, n_dof) named by ``dof_names``; root
+    (T, 3); joints (T, J, 3); error_mm (T,) per frame; bad_frames (T,); shape (n_shape,); scales (n_seg, 3);
+    summary (path, v2v, frames/s, limit violations, largest frame jump, notes); files: the server's npz,
+    json, osim and mot as bytes (:meth:`save` writes them)."""
+
+    coordinates: np.ndarray
+    root: np.ndarray
+    joints: np.ndarray
+    error_mm: np.ndarray
+    bad_frames: np.ndarray
+    shape: np.ndarray
+    scales: np.ndarray
+    dof_names: tuple[str, ...]
+    joint_names: tuple[str, ...]
+    summary: dict[str, Any]
+    files: dict[str, bytes]
+
+    def save(self, folder: str | Path, name: str) -> dict[str, Path]:
+        """Write ``name``.npz / .json / .osim / .mot into ``folder``; returns the paths."""
+        out = Path(folder)
+        out.mkdir(parents=True, exist_ok=True)
+        paths = {}
+        for ext, data in self.files.items():
+            paths[ext] = out / f"{name}.{ext}"
+            paths[ext].write_bytes(data)
+        return paths
+
+    @classmethod
+    def from_events(cls, chunks: list[dict[str, Any]], result: dict[str, Any]) -> UpgradeOutput:
+        chunks = sorted(chunks, key=lambda c: int(c["start"]))
+        arrays = {
+            key: np.concatenate([decode_array(c["arrays"][key]) for c in chunks])
+            for key in ("coordinates", "root", "joints", "error_mm", "bad_frames")
+        }
+        return cls(
+            shape=decode_array(result["arrays"]["shape"]),
+            scales=decode_array(result["arrays"]["scales"]),
+            dof_names=tuple(result["dof_names"]),
+            joint_names=tuple(result["joint_names"]),
+            summary=dict(result["summary"]),
+            files={ext: base64.b64decode(data) for ext, data in result["files"].items()},
+            **arrays,
+        )

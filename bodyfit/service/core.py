@@ -8,6 +8,7 @@ session and a semaphore bounding concurrent heavy work; one instance serves conc
 from __future__ import annotations
 
 import io
+import tempfile
 import threading
 from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import Future
@@ -32,8 +33,11 @@ from bodyfit.models.fitting.scan_io import FORMATS as SCAN_FORMATS
 from bodyfit.models.fitting.scan_io import Scan, load_scan
 from bodyfit.models.fitting.sequence import SequenceFit, SequenceFitter
 from bodyfit.models.fitting.smpl_topology import SMPL_VERTICES, fit_smpl_meshes
+from bodyfit.models.upgrade.smpl_io import SmplSequence, read_smpl_npz
+from bodyfit.models.upgrade.smpl_model import SmplModel, load_smpl_model
+from bodyfit.models.upgrade.upgrade import UpgradeResult, upgrade_with_model, write_upgrade
 from bodyfit.service.batching import Outputs, SynthBatcher
-from bodyfit.service.errors import BusyError, InvalidInputError, LimitExceededError
+from bodyfit.service.errors import BusyError, InvalidInputError, LimitExceededError, NotConfiguredError
 from bodyfit.service.formats import Bodies
 from bodyfit.service.jobs import Job
 from bodyfit.service.limits import Limits
@@ -144,7 +148,9 @@ class BodyService:
     session: ort.InferenceSession
     limits: Limits = field(default_factory=Limits)
     manifest: dict[str, Any] = field(default_factory=dict)
+    smpl_model_path: Path | None = None
     _fitters: _Fitters | None = None
+    _smpl: SmplModel | None = None
     _slots: threading.BoundedSemaphore = field(init=False)
     _batcher: SynthBatcher = field(init=False)
 
@@ -161,6 +167,7 @@ class BodyService:
         limits: Limits | None = None,
         threads: int | None = None,
         fitters: bool = True,
+        smpl_model: Path | None = None,
     ) -> BodyService:
         """Load the hash-checked assets, the ONNX session and the fitters.
 
@@ -169,6 +176,7 @@ class BodyService:
             limits: request limits.
             threads: threads of ONNX Runtime and torch (default: their own choice).
             fitters: build the fitters now (a server); otherwise on first use (synthesis only).
+            smpl_model: an SMPL-family model file for upgrades (path a); checked now when given.
             fitters: build the fitters now (a server); otherwise on first use (synthesis only).
         Raises:
             AssetError: a missing or corrupted asset, with how to rebuild it.
@@ -182,7 +190,9 @@ class BodyService:
         session = ort.InferenceSession(
             str(verified_asset(BODY_ONNX, assets)), options, providers=["CPUExecutionProvider"]
         )
-        service = cls(model, session, limits or Limits(), read_manifest(assets))
+        service = cls(model, session, limits or Limits(), read_manifest(assets), smpl_model)
+        if smpl_model is not None:
+            service._smpl = load_smpl_model(smpl_model)
         if fitters:
             _ = service.fitters
         return service
@@ -405,6 +415,57 @@ class BodyService:
 
             with invalid_input("frames"):
                 return self.fitters.sequence.fit(x, weights, progress=progress)
+
+    # -- SMPL upgrade ----------------------------------------------------------------------------------
+    def read_upgrade(self, data: bytes, filename: str) -> SmplSequence:
+        """Read an uploaded AMASS-style .npz (SMPL .pkl files are refused: uploads are never unpickled).
+
+        Raises:
+            LimitExceededError: too large or too many frames; InvalidInputError: unreadable or malformed.
+        """
+        self._check_upload(len(data))
+        if filename.lower().endswith(".pkl"):
+            raise InvalidInputError(
+                "the server does not unpickle uploads (a pickle can run code); convert the .pkl to an "
+                "AMASS-style .npz (numpy.savez with poses, trans, betas, gender, mocap_framerate)",
+                field="file",
+            )
+        with invalid_input("file"):
+            sequence = read_smpl_npz(data, filename or "upload.npz")
+        if sequence.n_frames > self.limits.max_frames:
+            raise LimitExceededError(
+                f"{sequence.n_frames:,} frames sent; the limit is {self.limits.max_frames:,}: split it",
+                field="file",
+            )
+        return sequence
+
+    def upgrade(self, sequence: SmplSequence, job: Job | None = None) -> UpgradeResult:
+        """Upgrade an SMPL-format sequence with the server's SMPL-family model file (path a).
+
+        Raises:
+            NotConfiguredError: the server has no model file; BusyError, JobCancelledError,
+            DeadlineExceededError.
+        """
+        if self._smpl is None:
+            raise NotConfiguredError(
+                "this server has no SMPL-family model file, which the upgrade needs (path a); the operator "
+                "sets BODYFIT_SMPL_MODEL to one (the upgrade from joint rotations only is not available yet)"
+            )
+        job = job or Job(timeout_s=self.limits.max_seconds)
+        with self._slot():
+            job.report("upgrade", 0, sequence.n_frames, "posing the SMPL meshes")
+
+            def progress(done: int, total: int) -> None:
+                job.report("upgrade", done, total, f"{done}/{total} frames")
+
+            with invalid_input("file"):
+                return upgrade_with_model(sequence, self._smpl, self.fitters.sequence, progress=progress)
+
+    def upgrade_files(self, result: UpgradeResult, name: str) -> dict[str, bytes]:
+        """The upgrade's files as bytes: npz, json (summary), osim and mot (see ``write_upgrade``)."""
+        with tempfile.TemporaryDirectory() as tmp:
+            paths = write_upgrade(result, self.model, Path(tmp), name)
+            return {ext: path.read_bytes() for ext, path in paths.items()}
 
     def _check_upload(self, n_bytes: int) -> None:
         if n_bytes > self.limits.max_upload_bytes:

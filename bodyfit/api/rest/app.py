@@ -11,7 +11,7 @@ from fastapi import FastAPI
 
 from bodyfit.api import problems
 from bodyfit.api.metrics import Metrics
-from bodyfit.api.rest import routes_fit, routes_model, routes_ops, routes_synth
+from bodyfit.api.rest import routes_fit, routes_model, routes_ops, routes_synth, routes_upgrade
 from bodyfit.api.rest.limits import BodyLimit
 from bodyfit.api.rest.measured import Measured
 from bodyfit.api.rest.state import AppState
@@ -53,7 +53,13 @@ def create_app(
     )
     app.state.bodyfit = state
     problems.install(app)
-    for router in (routes_model.router, routes_synth.router, routes_fit.router, routes_ops.router):
+    for router in (
+        routes_model.router,
+        routes_synth.router,
+        routes_fit.router,
+        routes_upgrade.router,
+        routes_ops.router,
+    ):
         app.include_router(router)
 
     app.add_middleware(BodyLimit, max_bytes=settings.limits().max_upload_bytes)

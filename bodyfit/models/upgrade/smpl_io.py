@@ -9,6 +9,7 @@ SMPL's, else stay zero), or ``global_orient`` (T, 3) + ``body_pose`` (T, 63 or 6
 
 from __future__ import annotations
 
+import io
 import os
 import pickle
 import zipfile
@@ -83,6 +84,22 @@ def read_smpl_sequence(path: str | os.PathLike[str]) -> SmplSequence:
             f"{p.name} holds a {type(data).__name__}; expected a dictionary with {EXPECTED}"
         )
     return smpl_sequence(data, p.name)
+
+
+def read_smpl_npz(data: bytes, source: str = "upload.npz") -> SmplSequence:
+    """An AMASS-style .npz given as bytes (never unpickled: safe for uploads).
+
+    Raises:
+        SmplSequenceError: not an .npz, or missing / malformed fields.
+    """
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            arrays: dict[str, Any] = {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise SmplSequenceError(
+            f"{source} is not a readable .npz ({exc}); send an AMASS-style .npz with {EXPECTED}"
+        ) from None
+    return smpl_sequence(arrays, source)
 
 
 def smpl_sequence(data: dict[str, Any], source: str = "") -> SmplSequence:

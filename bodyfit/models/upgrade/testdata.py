@@ -233,7 +233,7 @@ def write_test_data(out: Path, bvh: Path, frames: int = 60) -> dict[str, Path]:
     arrays, fitted = build_smpl_like_model(model)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"model": out / "smpl_like_model.npz", "sequence": out / "cmu_131_smpl.npz"}
-    np.savez_compressed(paths["model"], **arrays)
-    sequence = cmu_smpl_sequence(model, load_smpl_model(paths["model"]), fitted, bvh, frames)
-    np.savez_compressed(paths["sequence"], **sequence)
+    save: Any = np.savez_compressed  # keyword arrays (numpy's stub types them as its own options)
+    save(paths["model"], **arrays)
+    save(paths["sequence"], **cmu_smpl_sequence(model, load_smpl_model(paths["model"]), fitted, bvh, frames))
     return paths

@@ -1,0 +1,44 @@
+"""POST /v1/upgrade: an SMPL-format sequence -> biomechanical coordinates, in chunks, then the files."""
+
+from __future__ import annotations
+
+from pathlib import PurePath
+from typing import Annotated, Any
+
+from fastapi import APIRouter, File, Query, Request, UploadFile
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import JSONResponse, StreamingResponse
+
+from bodyfit.api import wire
+from bodyfit.api.rest.jobs import answer
+from bodyfit.api.rest.routes_fit import STREAM_DOC
+from bodyfit.api.rest.state import Service
+from bodyfit.service.jobs import Job
+
+router = APIRouter(prefix="/v1", tags=["upgrade"])
+
+
+@router.post(
+    "/upgrade",
+    summary="Upgrade an AMASS-style SMPL sequence (.npz) to biomechanical coordinates and OpenSim files",
+    responses=STREAM_DOC,
+    response_model=None,
+)
+async def upgrade(
+    request: Request,
+    service: Service,
+    file: Annotated[
+        UploadFile, File(description="AMASS-style .npz: poses, trans, betas, gender, mocap_framerate")
+    ],
+    chunk: Annotated[int, Query(ge=1, le=4096, description="Frames per chunk event.")] = 256,
+) -> StreamingResponse | JSONResponse:
+    data = await file.read()
+    name = file.filename or "upload.npz"
+    sequence = await run_in_threadpool(service.read_upgrade, data, name)
+
+    def work(job: Job) -> list[dict[str, Any]]:
+        result = service.upgrade(sequence, job)
+        files = service.upgrade_files(result, PurePath(name).stem or "upgrade")
+        return [*wire.upgrade_chunks(result, chunk), wire.upgrade_summary(result, files)]
+
+    return await answer(request, work, Job(timeout_s=service.limits.max_seconds))

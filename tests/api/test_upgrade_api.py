@@ -1,0 +1,55 @@
+"""The upgrade operation over REST and through the SDK: chunks, files that load, errors."""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from bodyfit.api.rest.app import create_app
+from bodyfit.clients.errors import InvalidRequestError, NotAvailableError
+from bodyfit.clients.rest_client import Client
+from bodyfit.service.core import BodyService
+
+SEQUENCE = Path(__file__).resolve().parents[1] / "data" / "smpl_format" / "cmu_131_smpl.npz"
+
+
+@pytest.fixture(scope="module")
+def client(body_service: BodyService) -> Iterator[Client]:
+    with Client("http://testserver", http_client=TestClient(create_app(service=body_service))) as c:
+        yield c
+
+
+def test_upgrade_through_the_sdk(client: Client, tmp_path: Path) -> None:
+    events: list[dict[str, object]] = []
+    out = client.upgrade(SEQUENCE, progress=events.append, chunk=25)
+    assert out.coordinates.shape == (60, 46) and out.joints.shape[0] == 60 and not out.bad_frames.any()
+    assert out.summary["path"] == "a" and out.summary["limit_violations"] == 0
+    assert out.summary["v2v_mean_mm"] < 20.0 and events
+    paths = out.save(tmp_path, "walk")
+    saved = np.load(paths["npz"])
+    assert np.allclose(saved["coordinates"], out.coordinates)
+    assert (
+        paths["osim"].read_text().lstrip().startswith("<?xml") and "pelvis_tilt" in paths["mot"].read_text()
+    )
+
+
+def test_upgrade_errors(client: Client, body_service: BodyService, tmp_path: Path) -> None:
+    pkl = tmp_path / "walk.pkl"
+    pkl.write_bytes(b"\x80\x04K\x01.")
+    with pytest.raises(InvalidRequestError, match="unpickle"):
+        client.upgrade(pkl)
+    buf = io.BytesIO()
+    np.savez(buf, poses=np.zeros((3, 70)), mocap_framerate=30)
+    with pytest.raises(InvalidRequestError, match=r"\(T, 72\)"):
+        client.upgrade(buf.getvalue())
+    unconfigured = dataclasses.replace(body_service, _smpl=None)
+    with Client("http://t", http_client=TestClient(create_app(service=unconfigured))) as bare:
+        with pytest.raises(NotAvailableError, match="BODYFIT_SMPL_MODEL") as err:
+            bare.upgrade(SEQUENCE)
+        assert err.value.status == 501
