@@ -141,14 +141,18 @@ def serve(
     port: Annotated[int, typer.Option(help="REST port.")] = 8000,
     grpc_port: Annotated[int, typer.Option(help="gRPC port (0: no gRPC).")] = 50051,
     assets: Annotated[Path | None, typer.Option(help="Asset folder (default: the built-in assets).")] = None,
+    smpl_model: Annotated[
+        Path | None,
+        typer.Option(help="SMPL-family model file for upgrades (default $BODYFIT_SMPL_MODEL; none ships)."),
+    ] = None,
     threads: Annotated[
         int | None, typer.Option(min=1, help="ONNX Runtime / torch threads (default $BODYFIT_THREADS).")
     ] = None,
 ) -> None:
     """Serve REST and gRPC over the built-in model (limits from BODYFIT_* variables, see the README).
 
-    REST: /v1/model, /v1/synthesize, /v1/fit/scan, /v1/fit/sequence, /healthz, /readyz, /metrics and the
-    OpenAPI document at /docs. gRPC: service bodyfit.v1.Bodyfit with health and reflection.
+    REST: /v1/model, /v1/synthesize, /v1/fit/scan, /v1/fit/sequence, /v1/upgrade, /healthz, /readyz,
+    /metrics and the OpenAPI document at /docs. gRPC: service bodyfit.v1.Bodyfit with health and reflection.
     """
     from bodyfit.api.server import run_server
     from bodyfit.api.settings import ServiceSettings
@@ -156,7 +160,11 @@ def serve(
 
     settings = ServiceSettings(host=host, rest_port=port, grpc_port=grpc_port)
     settings = settings.model_copy(
-        update={k: v for k, v in {"assets": assets, "threads": threads}.items() if v is not None}
+        update={
+            k: v
+            for k, v in {"assets": assets, "threads": threads, "smpl_model": smpl_model}.items()
+            if v is not None
+        }
     )
     try:
         run_server(settings)

@@ -20,6 +20,7 @@ OPERATIONS = [
     ("POST", "/v1/synthesize"),
     ("POST", "/v1/fit/scan"),
     ("POST", "/v1/fit/sequence"),
+    ("POST", "/v1/upgrade"),
     ("GET", "/healthz"),
     ("GET", "/readyz"),
 ]
