@@ -242,3 +242,64 @@ class FitSequenceEvent(_message.Message):
     chunk: SequenceChunk
     result: SequenceSummary
     def __init__(self, progress: _Optional[_Union[Progress, _Mapping]] = ..., chunk: _Optional[_Union[SequenceChunk, _Mapping]] = ..., result: _Optional[_Union[SequenceSummary, _Mapping]] = ...) -> None: ...
+
+class UpgradeRequest(_message.Message):
+    __slots__ = ("data", "filename", "chunk")
+    DATA_FIELD_NUMBER: _ClassVar[int]
+    FILENAME_FIELD_NUMBER: _ClassVar[int]
+    CHUNK_FIELD_NUMBER: _ClassVar[int]
+    data: bytes
+    filename: str
+    chunk: int
+    def __init__(self, data: _Optional[bytes] = ..., filename: _Optional[str] = ..., chunk: _Optional[int] = ...) -> None: ...
+
+class UpgradeChunk(_message.Message):
+    __slots__ = ("start", "stop", "coordinates", "root", "joints", "error_mm", "bad_frames")
+    START_FIELD_NUMBER: _ClassVar[int]
+    STOP_FIELD_NUMBER: _ClassVar[int]
+    COORDINATES_FIELD_NUMBER: _ClassVar[int]
+    ROOT_FIELD_NUMBER: _ClassVar[int]
+    JOINTS_FIELD_NUMBER: _ClassVar[int]
+    ERROR_MM_FIELD_NUMBER: _ClassVar[int]
+    BAD_FRAMES_FIELD_NUMBER: _ClassVar[int]
+    start: int
+    stop: int
+    coordinates: Array
+    root: Array
+    joints: Array
+    error_mm: Array
+    bad_frames: Array
+    def __init__(self, start: _Optional[int] = ..., stop: _Optional[int] = ..., coordinates: _Optional[_Union[Array, _Mapping]] = ..., root: _Optional[_Union[Array, _Mapping]] = ..., joints: _Optional[_Union[Array, _Mapping]] = ..., error_mm: _Optional[_Union[Array, _Mapping]] = ..., bad_frames: _Optional[_Union[Array, _Mapping]] = ...) -> None: ...
+
+class UpgradeSummary(_message.Message):
+    __slots__ = ("dof_names", "joint_names", "shape", "scales", "summary_json", "files")
+    class FilesEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: bytes
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[bytes] = ...) -> None: ...
+    DOF_NAMES_FIELD_NUMBER: _ClassVar[int]
+    JOINT_NAMES_FIELD_NUMBER: _ClassVar[int]
+    SHAPE_FIELD_NUMBER: _ClassVar[int]
+    SCALES_FIELD_NUMBER: _ClassVar[int]
+    SUMMARY_JSON_FIELD_NUMBER: _ClassVar[int]
+    FILES_FIELD_NUMBER: _ClassVar[int]
+    dof_names: _containers.RepeatedScalarFieldContainer[str]
+    joint_names: _containers.RepeatedScalarFieldContainer[str]
+    shape: Array
+    scales: Array
+    summary_json: str
+    files: _containers.ScalarMap[str, bytes]
+    def __init__(self, dof_names: _Optional[_Iterable[str]] = ..., joint_names: _Optional[_Iterable[str]] = ..., shape: _Optional[_Union[Array, _Mapping]] = ..., scales: _Optional[_Union[Array, _Mapping]] = ..., summary_json: _Optional[str] = ..., files: _Optional[_Mapping[str, bytes]] = ...) -> None: ...
+
+class UpgradeEvent(_message.Message):
+    __slots__ = ("progress", "chunk", "result")
+    PROGRESS_FIELD_NUMBER: _ClassVar[int]
+    CHUNK_FIELD_NUMBER: _ClassVar[int]
+    RESULT_FIELD_NUMBER: _ClassVar[int]
+    progress: Progress
+    chunk: UpgradeChunk
+    result: UpgradeSummary
+    def __init__(self, progress: _Optional[_Union[Progress, _Mapping]] = ..., chunk: _Optional[_Union[UpgradeChunk, _Mapping]] = ..., result: _Optional[_Union[UpgradeSummary, _Mapping]] = ...) -> None: ...

@@ -54,6 +54,11 @@ class BodyfitStub:
                 request_serializer=bodyfit__pb2.FitSequenceRequest.SerializeToString,
                 response_deserializer=bodyfit__pb2.FitSequenceEvent.FromString,
                 _registered_method=True)
+        self.Upgrade = channel.unary_stream(
+                '/bodyfit.v1.Bodyfit/Upgrade',
+                request_serializer=bodyfit__pb2.UpgradeRequest.SerializeToString,
+                response_deserializer=bodyfit__pb2.UpgradeEvent.FromString,
+                _registered_method=True)
 
 
 class BodyfitServicer:
@@ -87,6 +92,13 @@ class BodyfitServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def Upgrade(self, request, context):
+        """Upgrade an AMASS-style SMPL sequence (.npz): progress, coordinates in chunks, then the files.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_BodyfitServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -109,6 +121,11 @@ def add_BodyfitServicer_to_server(servicer, server):
                     servicer.FitSequence,
                     request_deserializer=bodyfit__pb2.FitSequenceRequest.FromString,
                     response_serializer=bodyfit__pb2.FitSequenceEvent.SerializeToString,
+            ),
+            'Upgrade': grpc.unary_stream_rpc_method_handler(
+                    servicer.Upgrade,
+                    request_deserializer=bodyfit__pb2.UpgradeRequest.FromString,
+                    response_serializer=bodyfit__pb2.UpgradeEvent.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -219,6 +236,33 @@ class Bodyfit:
             '/bodyfit.v1.Bodyfit/FitSequence',
             bodyfit__pb2.FitSequenceRequest.SerializeToString,
             bodyfit__pb2.FitSequenceEvent.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def Upgrade(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_stream(
+            request,
+            target,
+            '/bodyfit.v1.Bodyfit/Upgrade',
+            bodyfit__pb2.UpgradeRequest.SerializeToString,
+            bodyfit__pb2.UpgradeEvent.FromString,
             options,
             channel_credentials,
             insecure,

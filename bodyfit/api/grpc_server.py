@@ -16,6 +16,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from concurrent import futures
+from pathlib import Path
 from typing import Any, TypeVar
 
 import grpc
@@ -190,6 +191,41 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
         return self._stream(
             "FitSequence", context, work, lambda p: pb.FitSequenceEvent(progress=_progress(p))
         )
+
+    def Upgrade(self, request: pb.UpgradeRequest, context: grpc.ServicerContext) -> Iterator[pb.UpgradeEvent]:
+        service = self.service
+        chunk = request.chunk or 256
+        name = request.filename or "upload.npz"
+
+        def work(job: Job) -> list[pb.UpgradeEvent]:
+            if chunk < 1:
+                raise InvalidInputError(f"chunk must be at least 1; got {chunk}", "chunk")
+            result = service.upgrade(service.read_upgrade(request.data, name), job)
+            files = service.upgrade_files(result, Path(name).stem or "upgrade")
+            events = []
+            for lo in range(0, len(result.coordinates), chunk):
+                hi = min(len(result.coordinates), lo + chunk)
+                part = pb.UpgradeChunk(
+                    start=lo,
+                    stop=hi,
+                    coordinates=to_proto(result.coordinates[lo:hi]),
+                    root=to_proto(result.root[lo:hi]),
+                    joints=to_proto(result.joints[lo:hi].astype(np.float32)),
+                    error_mm=to_proto(result.error_mm[lo:hi]),
+                    bad_frames=to_proto(result.bad_frames[lo:hi]),
+                )
+                events.append(pb.UpgradeEvent(chunk=part))
+            summary = pb.UpgradeSummary(
+                dof_names=list(result.dof_names),
+                joint_names=list(result.joint_names),
+                shape=to_proto(result.shape),
+                scales=to_proto(result.scales),
+                summary_json=json.dumps(result.summary()),
+                files=files,
+            )
+            return [*events, pb.UpgradeEvent(result=summary)]
+
+        return self._stream("Upgrade", context, work, lambda p: pb.UpgradeEvent(progress=_progress(p)))
 
     # -- plumbing --------------------------------------------------------------------------------------
     def _unary(self, name: str, context: grpc.ServicerContext, call: Callable[[], T]) -> T:

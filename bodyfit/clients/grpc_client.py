@@ -23,7 +23,14 @@ from bodyfit.api import bodyfit_pb2 as pb
 from bodyfit.api import bodyfit_pb2_grpc as pb_grpc
 from bodyfit.api.grpc_wire import STATUS_KINDS, from_proto, to_proto
 from bodyfit.clients.errors import ERRORS, BodyfitClientError, ConnectionFailedError, ServerError
-from bodyfit.clients.results import MeshFitResult, ModelInfo, ProgressCallback, SequenceResult, Synthesis
+from bodyfit.clients.results import (
+    MeshFitResult,
+    ModelInfo,
+    ProgressCallback,
+    SequenceResult,
+    Synthesis,
+    UpgradeOutput,
+)
 
 DEFAULT_TARGET = "127.0.0.1:50051"
 DEFAULT_TIMEOUT = 30.0
@@ -124,12 +131,19 @@ def sequence_request(frames: np.ndarray, weights: np.ndarray | None, chunk: int)
     return req
 
 
+def upgrade_request(sequence: str | os.PathLike[str] | bytes, chunk: int) -> pb.UpgradeRequest:
+    if isinstance(sequence, bytes | bytearray):
+        return pb.UpgradeRequest(data=bytes(sequence), filename="sequence.npz", chunk=chunk)
+    path = Path(sequence)
+    return pb.UpgradeRequest(data=path.read_bytes(), filename=path.name, chunk=chunk)
+
+
 class _Events:
     """Folds streamed events into a result, forwarding progress."""
 
     def __init__(self, progress: ProgressCallback | None) -> None:
         self.progress = progress
-        self.chunks: list[pb.SequenceChunk] = []
+        self.chunks: list[Any] = []
         self.result: Any = None
 
     def feed(self, event: Any) -> None:
@@ -165,6 +179,23 @@ class _Events:
             joint_names=tuple(r.joint_names),
             stats=json.loads(r.stats_json),
             limit_violations=int(r.limit_violations),
+            **arrays,
+        )
+
+    def upgrade(self) -> UpgradeOutput:
+        r = self._final()
+        chunks = sorted(self.chunks, key=lambda c: c.start)
+        arrays = {
+            k: np.concatenate([from_proto(getattr(c, k), k) for c in chunks])
+            for k in ("coordinates", "root", "joints", "error_mm", "bad_frames")
+        }
+        return UpgradeOutput(
+            shape=from_proto(r.shape, "shape"),
+            scales=from_proto(r.scales, "scales"),
+            dof_names=tuple(r.dof_names),
+            joint_names=tuple(r.joint_names),
+            summary=json.loads(r.summary_json),
+            files={ext: bytes(data) for ext, data in r.files.items()},
             **arrays,
         )
 
@@ -274,6 +305,16 @@ class GrpcClient:
         events = self._stub.FitSequence(sequence_request(frames, weights, chunk), timeout=self.fit_timeout)
         return self._stream(events, _Events(progress)).sequence()
 
+    def upgrade(
+        self,
+        sequence: str | os.PathLike[str] | bytes,
+        progress: ProgressCallback | None = None,
+        chunk: int = 256,
+    ) -> UpgradeOutput:
+        """Upgrade an AMASS-style .npz (path or bytes) to biomechanical coordinates and OpenSim files."""
+        events = self._stub.Upgrade(upgrade_request(sequence, chunk), timeout=self.fit_timeout)
+        return self._stream(events, _Events(progress)).upgrade()
+
 
 class AsyncGrpcClient:
     """Asynchronous gRPC client (grpc.aio); the same methods as :class:`GrpcClient`, awaited."""
@@ -352,3 +393,12 @@ class AsyncGrpcClient:
     ) -> SequenceResult:
         call = self._stub.FitSequence(sequence_request(frames, weights, chunk), timeout=self.fit_timeout)
         return (await self._stream(call, _Events(progress))).sequence()
+
+    async def upgrade(
+        self,
+        sequence: str | os.PathLike[str] | bytes,
+        progress: ProgressCallback | None = None,
+        chunk: int = 256,
+    ) -> UpgradeOutput:
+        call = self._stub.Upgrade(upgrade_request(sequence, chunk), timeout=self.fit_timeout)
+        return (await self._stream(call, _Events(progress))).upgrade()

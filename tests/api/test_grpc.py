@@ -173,3 +173,18 @@ def test_generated_modules_match_the_proto(tmp_path: Path) -> None:
         assert (tmp_path / name).read_text() == (ROOT / "bodyfit" / "api" / name).read_text(), (
             f"{name} is stale: run scripts/gen_proto.sh"
         )
+
+
+def test_upgrade_over_grpc(client: GrpcClient, target: str, tmp_path: Path) -> None:
+    sequence = ROOT / "tests" / "data" / "smpl_format" / "cmu_131_smpl.npz"
+    out = client.upgrade(sequence, chunk=16)
+    assert out.coordinates.shape == (60, 46) and out.summary["path"] == "a"
+    assert out.summary["limit_violations"] == 0 and set(out.files) == {"npz", "json", "osim", "mot"}
+    assert np.allclose(np.load(out.save(tmp_path, "walk")["npz"])["coordinates"], out.coordinates)
+    with grpc.insecure_channel(target) as channel, pytest.raises(grpc.RpcError) as err:
+        list(
+            pb_grpc.BodyfitStub(channel).Upgrade(
+                pb.UpgradeRequest(data=b"\x80", filename="walk.pkl"), timeout=10
+            )
+        )
+    assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "unpickle" in err.value.details()
