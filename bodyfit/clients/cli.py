@@ -279,6 +279,38 @@ def upgrade(
     typer.echo("wrote " + ", ".join(str(p) for p in paths.values()))
 
 
+@app.command("batch-upgrade")
+def batch_upgrade_command(
+    dataset: Annotated[
+        Path, typer.Argument(help="Folder of AMASS-style .npz sequences (searched recursively).")
+    ],
+    out: Annotated[Path, typer.Argument(help="Output folder (the dataset's layout is kept).")],
+    concurrency: Annotated[int, typer.Option(min=1, help="Sequences in flight at once.")] = 1,
+    backend: Annotated[
+        str, typer.Option(help="local, a server URL (http://host:8000), ray, or ray://host:10001.")
+    ] = "local",
+    smpl_model: Annotated[
+        Path | None,
+        typer.Option(help="SMPL-family model file for local / ray (default $BODYFIT_SMPL_MODEL)."),
+    ] = None,
+) -> None:
+    """Upgrade a whole dataset tree; resumes (finished sequences are skipped) and reports failures at the end
+    without stopping. Writes <out>/<relative path>.npz, .json, .osim and .mot per sequence."""
+    from bodyfit.clients.batch import batch_upgrade
+    from bodyfit.clients.errors import BodyfitClientError
+
+    try:
+        report = batch_upgrade(dataset, out, concurrency, backend, smpl_model)
+    except (BodyfitClientError, OSError, ValueError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    for path, why in sorted(report.failed.items()):
+        typer.echo(f"FAILED {path}: {why}", err=True)
+    typer.echo(report.summary())
+    if report.failed:
+        raise typer.Exit(1)
+
+
 @app.command()
 def demo(
     out: Annotated[Path, typer.Option(help="Output folder.")] = Path("out/demo"),

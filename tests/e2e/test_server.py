@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -17,6 +18,7 @@ import httpx
 import numpy as np
 import pytest
 
+from bodyfit.clients.batch import batch_upgrade
 from bodyfit.clients.errors import InvalidRequestError, RequestTooLargeError
 from bodyfit.clients.grpc_client import GrpcClient
 from bodyfit.clients.rest_client import Client
@@ -33,7 +35,13 @@ def free_port() -> int:
 @pytest.fixture(scope="module")
 def server() -> Iterator[tuple[str, str, subprocess.Popen[bytes]]]:
     rest, grpc = free_port(), free_port()
-    env = {**os.environ, "BODYFIT_MAX_UPLOAD_MB": "1", "BODYFIT_THREADS": "1"}
+    smpl = ROOT / "tests" / "data" / "smpl_format" / "smpl_like_model.npz"
+    env = {
+        **os.environ,
+        "BODYFIT_MAX_UPLOAD_MB": "1",
+        "BODYFIT_THREADS": "1",
+        "BODYFIT_SMPL_MODEL": str(smpl),
+    }
     cmd = [
         sys.executable,
         "-m",
@@ -93,6 +101,20 @@ def test_grpc_operations_through_the_sdk(server: tuple[str, str, subprocess.Pope
             grpc_client.synthesize(coordinates={"ankle_angle_l": 3.0})
     metrics = httpx.get(f"{url}/metrics").text
     assert 'operation="Synthesize",outcome="OK",transport="grpc"' in metrics
+
+
+def test_batch_upgrade_against_the_server(
+    server: tuple[str, str, subprocess.Popen[bytes]], tmp_path: Path
+) -> None:
+    url, _, _ = server
+    (tmp_path / "data" / "s1").mkdir(parents=True)
+    shutil.copy(
+        ROOT / "tests" / "data" / "smpl_format" / "cmu_131_smpl.npz", tmp_path / "data" / "s1" / "walk.npz"
+    )
+    (tmp_path / "data" / "s1" / "bad.npz").write_bytes(b"not an npz")
+    report = batch_upgrade(tmp_path / "data", tmp_path / "out", concurrency=2, backend=url, progress=False)
+    assert report.done == ["s1/walk.npz"] and "not a readable .npz" in report.failed["s1/bad.npz"]
+    assert np.load(tmp_path / "out" / "s1" / "walk.npz")["coordinates"].shape == (60, 46)
 
 
 def test_sigterm_stops_the_server(server: tuple[str, str, subprocess.Popen[bytes]]) -> None:

@@ -1,0 +1,62 @@
+"""batch_upgrade: walks an AMASS-style tree, resumes, reports failures without stopping; local, callable and
+Ray back-ends."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bodyfit.clients.batch import batch_upgrade, find_sequences
+from bodyfit.models.upgrade.smpl_io import read_smpl_sequence
+from bodyfit.service.core import BodyService
+
+DATA = Path(__file__).resolve().parents[1] / "data" / "smpl_format"
+
+
+def dataset(root: Path) -> Path:
+    """subject_a/walk.npz (good), subject_a/shape.npz (AMASS betas file), subject_b/broken.npz (no poses)."""
+    (root / "subject_a").mkdir(parents=True)
+    (root / "subject_b").mkdir()
+    shutil.copy(DATA / "cmu_131_smpl.npz", root / "subject_a" / "walk.npz")
+    np.savez(root / "subject_a" / "shape.npz", betas=np.zeros(16))
+    np.savez(root / "subject_b" / "broken.npz", trans=np.zeros((3, 3)))
+    return root
+
+
+def test_resumes_and_reports_failures(body_service: BodyService, tmp_path: Path) -> None:
+    root = dataset(tmp_path / "amass")
+    assert [p.name for p in find_sequences(root)] == ["walk.npz", "broken.npz"]
+    calls: list[str] = []
+
+    def upgrade(path: Path) -> dict[str, bytes]:
+        calls.append(path.name)
+        return body_service.upgrade_files(body_service.upgrade(read_smpl_sequence(path)), path.stem)
+
+    out = tmp_path / "out"
+    first = batch_upgrade(root, out, concurrency=2, backend=upgrade, progress=False)
+    assert first.done == ["subject_a/walk.npz"] and list(first.failed) == ["subject_b/broken.npz"]
+    assert "poses" in first.failed["subject_b/broken.npz"]
+    for ext in ("npz", "json", "osim", "mot"):
+        assert (out / "subject_a" / f"walk.{ext}").stat().st_size > 0
+    assert not list(out.rglob("*.part"))
+    calls.clear()
+    again = batch_upgrade(root, out, backend=upgrade, progress=False)
+    assert again.skipped == ["subject_a/walk.npz"] and calls == ["broken.npz"] and not again.done
+
+
+def test_ray_backend(tmp_path: Path) -> None:
+    ray = pytest.importorskip("ray")
+    root = tmp_path / "amass"
+    (root / "s").mkdir(parents=True)
+    shutil.copy(DATA / "cmu_131_smpl.npz", root / "s" / "walk.npz")
+    ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False)
+    try:
+        report = batch_upgrade(root, tmp_path / "out", 1, "ray", DATA / "smpl_like_model.npz", progress=False)
+    finally:
+        ray.shutdown()
+    assert report.done == ["s/walk.npz"] and not report.failed
+    saved = np.load(tmp_path / "out" / "s" / "walk.npz")
+    assert saved["coordinates"].shape == (60, 46)
