@@ -1,0 +1,187 @@
+"""SMPL upgrade benchmark (path a): ours against a SKEL-style aligner on our own model, same data, one run.
+
+What is measured
+----------------
+* Input: CMU subject 131 retargeted onto our skeleton and turned into SMPL joint rotations, posed by the
+  SMPL-format test model (``tests/data/smpl_format``, made from open data: see its SOURCES.md). Quick: the
+  60-frame test sequence; full: trial 1 from ``../shared/data/cmu_bvh`` (all frames), made the same way.
+* Ours: :func:`bodyfit.models.upgrade.upgrade.upgrade_with_model` (SMPL forward pass, correspondence,
+  one shape per sequence, per-frame coordinates from warm-started keyframes), float32, torch's default
+  threads; time: the whole upgrade.
+* SKEL-style aligner (written here on our model, following SKEL's published recipe): batches of frames
+  (``SKEL_BATCH``), 4 stages (root; + spine; + every coordinate; + shape shared by the batch), each
+  torch L-BFGS (strong Wolfe) run as 10 steps of 20 iterations, squared vertex distance to the same
+  targets, coordinates through the same bounded mapping (so within limits).
+* Accuracy: ``v2v_mean_mm``: every SMPL vertex's distance to our fitted skin surface, mean over vertices and
+  frames; ``v2v_max_mm``: the worst frame's mean; ``v2v_p95_mm``: 95th percentile over vertices and frames.
+  ``limit_violations``: coordinate values outside their limits; ``max_frame_jump_deg``: largest
+  frame-to-frame change of any coordinate (the input's own is ``input_max_frame_jump_deg``).
+* Targets (issue 5): v2v mean <= 10 mm, max <= 30 mm, >= 200 frames/s.
+
+Usage::
+
+    python benchmarks/upgrade.py [--quick] [--json]
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from bodyfit.models.body.model import BodyModel
+from bodyfit.models.fitting.registered import RegisteredFitter
+from bodyfit.models.fitting.retarget import wrap_pelvis
+from bodyfit.models.fitting.sequence import SequenceFitter
+from bodyfit.models.fitting.smpl_topology import SMPL_TO_BODY, smpl_map
+from bodyfit.models.fitting.surface import point_to_surface
+from bodyfit.models.upgrade.smpl_io import SmplSequence, read_smpl_sequence, smpl_sequence
+from bodyfit.models.upgrade.smpl_model import SmplModel, load_smpl_model
+from bodyfit.models.upgrade.upgrade import upgrade_with_model
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / "tests" / "data" / "smpl_format"
+FULL_TRIAL = ROOT.parent / "shared" / "data" / "cmu_bvh" / "cmu_131_01.bvh"
+SKEL_BATCH = 256
+SPINE = ("lumbar", "thorax", "thoracic", "cervical", "neck")
+
+
+def sequence(model: BodyModel, smpl: SmplModel, quick: bool) -> SmplSequence:
+    if quick or not FULL_TRIAL.exists():
+        return read_smpl_sequence(DATA / "cmu_131_smpl.npz")
+    from bodyfit.models.upgrade.testdata import build_smpl_like_model, cmu_smpl_sequence
+
+    _, fitted = build_smpl_like_model(model)
+    return smpl_sequence(cmu_smpl_sequence(model, smpl, fitted, FULL_TRIAL), FULL_TRIAL.name)
+
+
+def skel_style(model: BodyModel, targets: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, ...]:
+    """SKEL-style staged L-BFGS per batch of frames; returns coordinates (T, n_dof), root, shape per frame."""
+    skel = model.skeleton
+    names = skel.dof_names
+    pelvis = [i for i, n in enumerate(names) if n.startswith("pelvis")]
+    spine = [i for i, n in enumerate(names) if any(s in n for s in SPINE)]
+    T = len(targets)
+    q_all, r_all, c_all = np.zeros((T, skel.n_dof)), np.zeros((T, 3)), np.zeros((T, model.n_shape))
+    for lo in range(0, T, SKEL_BATCH):
+        x = torch.as_tensor(targets[lo : lo + SKEL_BATCH], dtype=torch.float32) * 1000.0
+        w = torch.as_tensor(weights[lo : lo + SKEL_BATCH], dtype=torch.float32)
+        B = len(x)
+        u = torch.zeros(B, skel.n_dof, requires_grad=True)
+        root = (x.mean(1) / 1000.0).clone().requires_grad_(True)
+        c = torch.zeros(1, model.n_shape, requires_grad=True)
+        stages = [
+            (pelvis, False),
+            (pelvis + spine, False),
+            (list(range(skel.n_dof)), False),
+            (list(range(skel.n_dof)), True),
+        ]
+        for dofs, with_shape in stages:
+            mask = torch.zeros(skel.n_dof)
+            mask[dofs] = 1.0
+            _skel_stage(model, x, w, u, root, c, mask, with_shape)
+        with torch.no_grad():
+            q_all[lo : lo + B] = skel.from_unbounded(u).numpy()
+            r_all[lo : lo + B] = root.numpy()
+            c_all[lo : lo + B] = c.numpy()
+    return q_all, r_all, c_all
+
+
+def _skel_stage(
+    model: BodyModel,
+    x: torch.Tensor,
+    w: torch.Tensor,
+    u: torch.Tensor,
+    root: torch.Tensor,
+    c: torch.Tensor,
+    mask: torch.Tensor,
+    with_shape: bool,
+) -> None:
+    """One stage: 10 L-BFGS steps of 20 iterations on the masked coordinates (and the shape)."""
+    skel, dec = model.skeleton, model.decoder(torch.float32)
+    opt = torch.optim.LBFGS(
+        [u, root, c] if with_shape else [u, root], lr=1.0, max_iter=20, line_search_fn="strong_wolfe"
+    )
+
+    def closure() -> torch.Tensor:
+        opt.zero_grad()
+        v, _, _, _ = dec(c.expand(len(x), -1), skel.from_unbounded(u), root)
+        loss = (((v * 1000.0 - x) ** 2).sum(-1) * w).mean() + (c**2).sum()
+        loss.backward()
+        assert u.grad is not None
+        u.grad *= mask
+        return loss
+
+    for _ in range(10):
+        opt.step(closure)
+
+
+def surface_error(
+    model: BodyModel, smpl_body: np.ndarray, shape: np.ndarray, q: np.ndarray, root: np.ndarray
+) -> np.ndarray:
+    """(T, 6890) distance (mm) of every SMPL vertex to our skin at the given parameters."""
+    with torch.no_grad():
+        v = model.forward(np.broadcast_to(shape, (len(q), model.n_shape)), q, root).vertices.numpy()
+    return np.stack([point_to_surface(smpl_body[t], v[t], model.faces) for t in range(len(q))]) * 1000.0
+
+
+def run(quick: bool) -> dict[str, Any]:
+    torch.manual_seed(0)
+    model = BodyModel.load()
+    smpl = load_smpl_model(DATA / "smpl_like_model.npz")
+    seq = sequence(model, smpl, quick)
+    fitter = SequenceFitter(RegisteredFitter(model))
+    upgrade_with_model(
+        smpl_sequence({"poses": seq.poses[:3].reshape(3, 72), "mocap_framerate": 30}), smpl, fitter
+    )
+    began = time.perf_counter()
+    ours = upgrade_with_model(seq, smpl, fitter)
+    ours_s = time.perf_counter() - began
+
+    verts, _ = smpl.forward(seq.poses, seq.betas, seq.trans)
+    body = verts.astype(np.float64) @ SMPL_TO_BODY.T
+    tmap = smpl_map()
+    began = time.perf_counter()
+    targets = tmap.transfer(body)
+    weights = np.broadcast_to(tmap.weight, targets.shape[:2]).copy()
+    q_s, r_s, c_s = skel_style(model, targets, weights)
+    skel_s = time.perf_counter() - began
+
+    q_ours = wrap_pelvis(ours.coordinates, model.skeleton)
+    d_ours = surface_error(model, body, ours.shape, q_ours, ours.root)
+    d_skel = surface_error(model, body, c_s, q_s, r_s)
+    jumps = np.degrees(np.abs(np.diff(ours.coordinates, axis=0))).max()
+    T = len(seq.poses)
+    result = {
+        "frames": T,
+        "v2v_mean_mm": round(float(d_ours.mean()), 2),
+        "v2v_max_mm": round(float(d_ours.mean(1).max()), 2),
+        "v2v_p95_mm": round(float(np.percentile(d_ours, 95)), 2),
+        "fps": round(T / ours_s, 1),
+        "skel_style_v2v_mean_mm": round(float(d_skel.mean()), 2),
+        "skel_style_v2v_max_mm": round(float(d_skel.mean(1).max()), 2),
+        "skel_style_fps": round(T / skel_s, 1),
+        "ratio": round(skel_s / ours_s, 2),
+        "limit_violations": ours.limit_violations,
+        "max_frame_jump_deg": round(float(jumps), 2),
+    }
+    if "truth_coordinates" in np.load(DATA / "cmu_131_smpl.npz").files and quick:
+        truth = np.load(DATA / "cmu_131_smpl.npz")["truth_coordinates"]
+        result["input_max_frame_jump_deg"] = round(float(np.degrees(np.abs(np.diff(truth, axis=0))).max()), 2)
+    result["met"] = bool(result["v2v_mean_mm"] <= 10 and result["v2v_max_mm"] <= 30 and result["fps"] >= 200)
+    return result
+
+
+def main(argv: list[str] | None = None) -> None:
+    from benchmarks.bench_cli import bench_main
+
+    bench_main(run, "SMPL upgrade (path a) against a SKEL-style aligner.", "the 60-frame test sequence", argv)
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(ROOT))
+    main()
