@@ -16,6 +16,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from concurrent import futures
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -228,13 +229,15 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
         return self._stream("Upgrade", context, work, lambda p: pb.UpgradeEvent(progress=_progress(p)))
 
     # -- plumbing --------------------------------------------------------------------------------------
-    def _unary(self, name: str, context: grpc.ServicerContext, call: Callable[[], T]) -> T:
+    @contextmanager
+    def _served(self, name: str, context: grpc.ServicerContext) -> Iterator[None]:
+        """Metrics around a call, and its errors as statuses (context.abort raises for gRPC)."""
         began = time.perf_counter()
         outcome = "OK"
         self.metrics.in_flight.labels("grpc").inc()
         try:
             try:
-                return call()
+                yield
             except WireError as exc:
                 raise InvalidInputError(exc.detail, exc.field) from None
         except ServiceError as exc:
@@ -245,8 +248,15 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
             LOG.exception("unhandled error in %s", name)
             context.abort(grpc.StatusCode.INTERNAL, _BUG)
         finally:
-            self._record(name, outcome, began)
-        raise AssertionError("unreachable")  # context.abort raises
+            m = self.metrics
+            m.in_flight.labels("grpc").dec()
+            m.latency.labels("grpc", name).observe(time.perf_counter() - began)
+            m.requests.labels("grpc", name, outcome).inc()
+
+    def _unary(self, name: str, context: grpc.ServicerContext, call: Callable[[], T]) -> T:
+        with self._served(name, context):
+            return call()
+        raise AssertionError("unreachable")  # _served aborts (raises) on every error
 
     def _stream(
         self,
@@ -272,26 +282,16 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
             finally:
                 events.put(None)
 
-        began = time.perf_counter()
-        outcome = "OK"
-        self.metrics.in_flight.labels("grpc").inc()
-        threading.Thread(target=run, name=f"bodyfit-{name}", daemon=True).start()
-        try:
-            while (p := events.get()) is not None:
-                yield progress_event(p)
-            if failure:
-                raise failure[0]
-            yield from result
-        except ServiceError as exc:
-            outcome = STATUS.get(exc.kind, grpc.StatusCode.INTERNAL).name
-            self._abort(context, exc)
-        except Exception:
-            outcome = "INTERNAL"
-            LOG.exception("unhandled error in %s", name)
-            context.abort(grpc.StatusCode.INTERNAL, _BUG)
-        finally:
-            job.cancel()
-            self._record(name, outcome, began)
+        with self._served(name, context):
+            threading.Thread(target=run, name=f"bodyfit-{name}", daemon=True).start()
+            try:
+                while (p := events.get()) is not None:
+                    yield progress_event(p)
+                if failure:
+                    raise failure[0]
+                yield from result
+            finally:
+                job.cancel()
 
     def _abort(self, context: grpc.ServicerContext, exc: ServiceError) -> None:
         metadata = [("bodyfit-kind", exc.kind)]
@@ -299,12 +299,6 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
             metadata.append(("bodyfit-field", exc.field))
         context.set_trailing_metadata(tuple(metadata))
         context.abort(STATUS.get(exc.kind, grpc.StatusCode.INTERNAL), exc.detail)
-
-    def _record(self, name: str, outcome: str, began: float) -> None:
-        m = self.metrics
-        m.in_flight.labels("grpc").dec()
-        m.latency.labels("grpc", name).observe(time.perf_counter() - began)
-        m.requests.labels("grpc", name, outcome).inc()
 
 
 def create_grpc_server(
