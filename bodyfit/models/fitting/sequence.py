@@ -222,7 +222,7 @@ class SequenceFitter:
         cfg = self.config
         heading, origin = self.headings(x, w)
         G = _yaw(-heading)  # world -> canonical
-        xc = np.einsum("tij,tvj->tvi", G, x - origin[:, None])
+        xc = (x - origin[:, None]) @ np.swapaxes(G, -1, -2)  # G applied to every vertex (batched BLAS)
 
         # Shape on keyframes spread over the sequence, then frozen.
         shape_keys = np.unique(np.linspace(0, T - 1, min(cfg.keyframes, T)).round().astype(np.int64))

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy import sparse
 
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.errors import ShapeError
@@ -52,8 +53,16 @@ class TopologyMap:
 
     def transfer(self, other: np.ndarray) -> np.ndarray:
         """Meshes (B, N_other, 3) in the other topology -> (B, V, 3) points at our vertices."""
-        tri = self.faces[self.face]  # (V, 3)
-        return np.einsum("vk,bvkd->bvd", self.bary, other[:, tri])
+        B, N, _ = other.shape
+        flat = np.moveaxis(np.asarray(other), 0, 1).reshape(N, B * 3)  # one sparse product for every mesh
+        return np.moveaxis((self.matrix(N) @ flat).reshape(-1, B, 3), 1, 0)
+
+    def matrix(self, n_other: int) -> sparse.csr_matrix:
+        """(V, n_other) sparse interpolation matrix: three barycentric weights per row."""
+        rows = np.repeat(np.arange(len(self.face)), 3)
+        return sparse.csr_matrix(
+            (self.bary.ravel(), (rows, self.faces[self.face].ravel())), shape=(len(self.face), n_other)
+        )
 
     def save(self, path: Path) -> None:
         np.savez_compressed(path, faces=self.faces, face=self.face, bary=self.bary, weight=self.weight)

@@ -89,26 +89,27 @@ class SmplModel:
         return vertices, joints
 
     def _forward(self, p: np.ndarray, b: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        v_shaped = self.v_template[None] + np.einsum("nck,bk->bnc", self.shapedirs, b)
-        J = np.einsum("jn,bnc->bjc", self.J_regressor, v_shaped)
+        B, N = len(p), len(self.v_template)
+        v_shaped = self.v_template[None] + (b @ self.shapedirs.reshape(N * 3, -1).T).reshape(B, N, 3)
+        J = self.J_regressor @ v_shaped  # (B, J, 3)
         R = rodrigues(p)  # (B, J, 3, 3)
         if self.posedirs is not None:
-            feat = (R[:, 1:] - np.eye(3)).reshape(len(p), -1)
-            v_shaped = v_shaped + np.einsum("ncp,bp->bnc", self.posedirs, feat)
-        G = np.zeros((len(p), self.n_joints, 4, 4))
+            feat = (R[:, 1:] - np.eye(3)).reshape(B, -1)
+            v_shaped = v_shaped + (feat @ self.posedirs.reshape(N * 3, -1).T).reshape(B, N, 3)
+        G = np.zeros((B, self.n_joints, 4, 4))
         for j in range(self.n_joints):
-            local = np.zeros((len(p), 4, 4))
+            local = np.zeros((B, 4, 4))
             local[:, :3, :3] = R[:, j]
             parent = self.parents[j]
             local[:, :3, 3] = J[:, j] - (J[:, parent] if parent >= 0 else 0.0)
             local[:, 3, 3] = 1.0
             G[:, j] = local if parent < 0 else G[:, parent] @ local
         posed_joints = G[:, :, :3, 3].copy()
-        # Transforms relative to the rest pose: A_j = G_j [I, -J_j].
-        A = G.copy()
-        A[:, :, :3, 3] -= np.einsum("bjcd,bjd->bjc", G[:, :, :3, :3], J)
-        Tv = np.einsum("nj,bjcd->bncd", self.weights, A[:, :, :3, :])  # (B, N, 3, 4)
-        verts = np.einsum("bncd,bnd->bnc", Tv[..., :3], v_shaped) + Tv[..., 3]
+        # Transforms relative to the rest pose, A_j = G_j [I, -J_j], blended per vertex by one BLAS product.
+        A = G[:, :, :3, :].copy()
+        A[:, :, :, 3] -= (G[:, :, :3, :3] @ J[..., None])[..., 0]
+        Tv = (self.weights @ A.reshape(B, self.n_joints, 12)).reshape(B, N, 3, 4)
+        verts = (Tv[..., :3] @ v_shaped[..., None])[..., 0] + Tv[..., 3]
         return verts + t[:, None], posed_joints + t[:, None]
 
 
