@@ -43,7 +43,6 @@ STATUS = {
     "unavailable": grpc.StatusCode.UNAVAILABLE,
     "deadline_exceeded": grpc.StatusCode.DEADLINE_EXCEEDED,
     "cancelled": grpc.StatusCode.CANCELLED,
-    "failed_precondition": grpc.StatusCode.FAILED_PRECONDITION,
 }
 FORMATS = {pb.NPZ: "npz", pb.PLY: "ply", pb.OBJ: "obj", pb.GLB: "glb", pb.JSON: "json"}
 _BUG = "the server failed unexpectedly; the error is logged on the server. Please report it."

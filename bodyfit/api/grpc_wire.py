@@ -17,7 +17,6 @@ STATUS_KINDS = {
     "UNAVAILABLE": "unavailable",
     "DEADLINE_EXCEEDED": "deadline_exceeded",
     "CANCELLED": "cancelled",
-    "FAILED_PRECONDITION": "failed_precondition",
     "UNIMPLEMENTED": "not_found",
     "NOT_FOUND": "not_found",
 }

@@ -20,7 +20,6 @@ STATUS = {
     "unavailable": 503,
     "deadline_exceeded": 504,
     "cancelled": 499,
-    "failed_precondition": 501,
     "not_found": 404,
     "internal": 500,
 }

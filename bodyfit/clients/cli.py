@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
@@ -240,7 +241,8 @@ def upgrade(
     ] = None,
     out: Annotated[Path, typer.Option(help="Output folder.")] = Path("out/upgrade"),
 ) -> None:
-    """Upgrade an SMPL-format sequence to biomechanical coordinates (path a: with an SMPL-family model file).
+    """Upgrade an SMPL-format sequence to biomechanical coordinates: path (a) with an SMPL-family model file,
+    else path (b) from the joint rotations alone (shape: the population mean; the summary says which ran).
 
     Writes <name>.npz (coordinates with their names, root, joints, bone scales, per-frame error, bad-frame
     flags), <name>.json (summary: v2v error, frames/s, limit violations, largest frame-to-frame jump) and
@@ -253,28 +255,35 @@ def upgrade(
     from bodyfit.models.fitting.registered import RegisteredFitter
     from bodyfit.models.fitting.sequence import SequenceFitter
     from bodyfit.models.upgrade.smpl_io import read_smpl_sequence
-    from bodyfit.models.upgrade.smpl_model import load_smpl_model
-    from bodyfit.models.upgrade.upgrade import upgrade_with_model, write_upgrade
+    from bodyfit.models.upgrade.smpl_model import ENV_VAR, load_smpl_model
+    from bodyfit.models.upgrade.upgrade import upgrade_from_rotations, upgrade_with_model, write_upgrade
 
     try:
         seq = read_smpl_sequence(sequence)
-        smpl = load_smpl_model(smpl_model)
+        given = smpl_model or os.environ.get(ENV_VAR)
+        smpl = load_smpl_model(given) if given else None
         model = BodyModel.load()
         with tqdm(total=seq.n_frames, unit="frame", desc=sequence.name) as bar:
 
             def progress(done: int, total: int) -> None:
                 bar.update(done - bar.n)
 
-            result = upgrade_with_model(seq, smpl, SequenceFitter(RegisteredFitter(model)), progress=progress)
+            if smpl is None:
+                typer.echo("no SMPL-family model file: path (b), from the joint rotations alone", err=True)
+                result = upgrade_from_rotations(seq, model, progress=progress)
+            else:
+                result = upgrade_with_model(
+                    seq, smpl, SequenceFitter(RegisteredFitter(model)), progress=progress
+                )
     except (BodyfitError, OSError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
     paths = write_upgrade(result, model, out, sequence.stem)
     summary = result.summary()
+    v2v = "" if summary["v2v_mean_mm"] is None else f"v2v {summary['v2v_mean_mm']:.1f} mm, "
     typer.echo(
-        f"{sequence.name}: {summary['frames']} frames, path ({result.path}), "
-        f"v2v {summary['v2v_mean_mm']:.1f} mm, {summary['fps']:.0f} frames/s, "
-        f"{summary['limit_violations']} limit violations"
+        f"{sequence.name}: {summary['frames']} frames, path ({result.path}), {v2v}{summary['fps']:.0f} "
+        f"frames/s, {summary['limit_violations']} limit violations"
     )
     typer.echo("wrote " + ", ".join(str(p) for p in paths.values()))
 

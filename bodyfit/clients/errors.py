@@ -58,12 +58,6 @@ class NotFoundError(BodyfitClientError):
     kind = "not_found"
 
 
-class NotAvailableError(BodyfitClientError):
-    """The server was not set up for the operation (e.g. no SMPL-family model file for upgrades)."""
-
-    kind = "failed_precondition"
-
-
 class ServerError(BodyfitClientError):
     """The server failed unexpectedly (a bug; the server's logs have the details)."""
 
@@ -86,7 +80,6 @@ ERRORS: dict[str, type[BodyfitClientError]] = {
         RequestTimeoutError,
         RequestCancelledError,
         NotFoundError,
-        NotAvailableError,
         ServerError,
     )
 }

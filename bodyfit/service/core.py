@@ -35,9 +35,14 @@ from bodyfit.models.fitting.sequence import SequenceFit, SequenceFitter
 from bodyfit.models.fitting.smpl_topology import SMPL_VERTICES, fit_smpl_meshes
 from bodyfit.models.upgrade.smpl_io import SmplSequence, read_smpl_npz
 from bodyfit.models.upgrade.smpl_model import SmplModel, load_smpl_model
-from bodyfit.models.upgrade.upgrade import UpgradeResult, upgrade_with_model, write_upgrade
+from bodyfit.models.upgrade.upgrade import (
+    UpgradeResult,
+    upgrade_from_rotations,
+    upgrade_with_model,
+    write_upgrade,
+)
 from bodyfit.service.batching import Outputs, SynthBatcher
-from bodyfit.service.errors import BusyError, InvalidInputError, LimitExceededError, NotConfiguredError
+from bodyfit.service.errors import BusyError, InvalidInputError, LimitExceededError
 from bodyfit.service.formats import Bodies
 from bodyfit.service.jobs import Job
 from bodyfit.service.limits import Limits
@@ -440,17 +445,12 @@ class BodyService:
         return sequence
 
     def upgrade(self, sequence: SmplSequence, job: Job | None = None) -> UpgradeResult:
-        """Upgrade an SMPL-format sequence with the server's SMPL-family model file (path a).
+        """Upgrade an SMPL-format sequence: path (a) with the server's SMPL-family model file, else path (b)
+        from the joint rotations (the result's notes say which ran).
 
         Raises:
-            NotConfiguredError: the server has no model file; BusyError, JobCancelledError,
-            DeadlineExceededError.
+            BusyError, JobCancelledError, DeadlineExceededError.
         """
-        if self._smpl is None:
-            raise NotConfiguredError(
-                "this server has no SMPL-family model file, which the upgrade needs (path a); the operator "
-                "sets BODYFIT_SMPL_MODEL to one (the upgrade from joint rotations only is not available yet)"
-            )
         job = job or Job(timeout_s=self.limits.max_seconds)
         with self._slot():
             job.report("upgrade", 0, sequence.n_frames, "posing the SMPL meshes")
@@ -459,6 +459,8 @@ class BodyService:
                 job.report("upgrade", done, total, f"{done}/{total} frames")
 
             with invalid_input("file"):
+                if self._smpl is None:
+                    return upgrade_from_rotations(sequence, self.model, progress=progress)
                 return upgrade_with_model(sequence, self._smpl, self.fitters.sequence, progress=progress)
 
     def upgrade_files(self, result: UpgradeResult, name: str) -> dict[str, bytes]:

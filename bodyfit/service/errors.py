@@ -37,13 +37,6 @@ class LimitExceededError(ServiceError):
     title = "Request too large"
 
 
-class NotConfiguredError(ServiceError):
-    """The operation needs something this server was not set up with (REST 501, gRPC FAILED_PRECONDITION)."""
-
-    kind = "failed_precondition"
-    title = "Not available on this server"
-
-
 class BusyError(ServiceError):
     """Every worker slot is taken; safe to retry later (REST 503, gRPC RESOURCE_EXHAUSTED)."""
 

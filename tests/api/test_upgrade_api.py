@@ -12,7 +12,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from bodyfit.api.rest.app import create_app
-from bodyfit.clients.errors import InvalidRequestError, NotAvailableError
+from bodyfit.clients.errors import InvalidRequestError
 from bodyfit.clients.rest_client import Client
 from bodyfit.service.core import BodyService
 
@@ -48,8 +48,12 @@ def test_upgrade_errors(client: Client, body_service: BodyService, tmp_path: Pat
     np.savez(buf, poses=np.zeros((3, 70)), mocap_framerate=30)
     with pytest.raises(InvalidRequestError, match=r"\(T, 72\)"):
         client.upgrade(buf.getvalue())
+
+
+def test_a_server_without_a_model_file_runs_path_b(body_service: BodyService) -> None:
     unconfigured = dataclasses.replace(body_service, _smpl=None)
     with Client("http://t", http_client=TestClient(create_app(service=unconfigured))) as bare:
-        with pytest.raises(NotAvailableError, match="BODYFIT_SMPL_MODEL") as err:
-            bare.upgrade(SEQUENCE)
-        assert err.value.status == 501
+        out = bare.upgrade(SEQUENCE)
+    assert out.summary["path"] == "b" and out.summary["v2v_mean_mm"] is None
+    assert any("betas were not used" in note for note in out.summary["notes"])
+    assert out.coordinates.shape == (60, 46) and out.summary["limit_violations"] == 0

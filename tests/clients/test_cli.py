@@ -138,5 +138,10 @@ def test_upgrade_writes_opensim_files(tmp_path: Path) -> None:
     summary = json.loads((tmp_path / "cmu_131_smpl.json").read_text())
     assert summary["path"] == "a" and summary["frames"] == 60 and summary["limit_violations"] == 0
     assert (tmp_path / "cmu_131_smpl.osim").exists() and (tmp_path / "cmu_131_smpl.mot").exists()
-    missing = runner.invoke(app, ["upgrade", str(data / "cmu_131_smpl.npz")], env={"BODYFIT_SMPL_MODEL": ""})
-    assert missing.exit_code == 2 and "--smpl-model" in missing.output
+    rotations = runner.invoke(
+        app,
+        ["upgrade", str(data / "cmu_131_smpl.npz"), "--out", str(tmp_path / "b")],
+        env={"BODYFIT_SMPL_MODEL": ""},
+    )
+    assert rotations.exit_code == 0 and "path (b)" in rotations.output
+    assert json.loads((tmp_path / "b" / "cmu_131_smpl.json").read_text())["path"] == "b"

@@ -1,11 +1,13 @@
 """Upgrading an SMPL-format sequence to our biomechanical model.
 
-Path (a), with the user's SMPL-family model file: the sequence's posed SMPL meshes are computed
-(:class:`SmplModel`), carried to our topology through the stored SMPL-topology correspondence, and fitted
-as one person's registered sequence (:class:`SequenceFitter`: one shape and one set of bone scales for the
-whole sequence, per-frame coordinates from warm-started keyframes, no seams, unwrapped pelvis angles, every
-frame within the joint limits). Frames the input marks bad (NaN) are left out of the fit, given the
-coordinates interpolated from their neighbours, and flagged.
+Path (a), with the user's SMPL-family model file (:func:`upgrade_with_model`): the sequence's posed SMPL
+meshes are computed (:class:`SmplModel`), carried to our topology through the stored SMPL-topology
+correspondence, and fitted as one person's registered sequence (:class:`SequenceFitter`: one shape and one
+set of bone scales for the whole sequence, per-frame coordinates from warm-started keyframes, no seams,
+unwrapped pelvis angles, every frame within the joint limits). Frames the input marks bad (NaN) are left out
+of the fit, given the coordinates interpolated from their neighbours, and flagged.
+
+Path (b), without one (:func:`upgrade_from_rotations`): see :mod:`bodyfit.models.upgrade.proxy`.
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -22,9 +24,11 @@ import torch
 
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting.report import count_limit_violations
+from bodyfit.models.fitting.retarget import retarget
 from bodyfit.models.fitting.sequence import SequenceFitter
 from bodyfit.models.fitting.smpl_topology import SMPL_TO_BODY, SMPL_VERTICES, TopologyMap, smpl_map
 from bodyfit.models.skeleton.opensim_export import write_mot, write_osim
+from bodyfit.models.upgrade.proxy import SMPL_MAP, proxy_motion, proxy_rest_joints
 from bodyfit.models.upgrade.smpl_io import SmplSequence
 from bodyfit.models.upgrade.smpl_model import SmplModel, SmplModelError
 
@@ -64,7 +68,7 @@ class UpgradeResult:
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready numbers."""
-        good = self.error_mm[~self.bad_frames]
+        good = self.error_mm[~self.bad_frames & np.isfinite(self.error_mm)]
         jumps = np.abs(np.diff(self.coordinates, axis=0)) if len(self.coordinates) > 1 else np.zeros((1, 1))
         return {
             "path": self.path,
@@ -73,8 +77,8 @@ class UpgradeResult:
             "frame_rate": self.rate,
             "seconds": round(self.seconds, 3),
             "fps": round(self.fps, 2),
-            "v2v_mean_mm": float(good.mean()),
-            "v2v_max_frame_mm": float(good.max()),
+            "v2v_mean_mm": float(good.mean()) if len(good) else None,  # None: no input mesh (path b)
+            "v2v_max_frame_mm": float(good.max()) if len(good) else None,
             "limit_violations": self.limit_violations,
             "max_frame_jump_deg": float(np.degrees(jumps.max())),
             "notes": list(self.notes),
@@ -111,19 +115,56 @@ def upgrade_with_model(
     notes = [f"path (a): posed with the SMPL-family model {Path(smpl.source).name or '(given)'}"]
     if len(sequence.betas) > smpl.n_betas:
         notes.append(f"the model has {smpl.n_betas} shape directions; betas beyond those were ignored")
-    return _result("a", sequence, model, fit, good, notes, began)
+    errors = np.array([r.distances.mean for r in fit.reports])
+    arrays = (fit.coordinates, fit.root, fit.joints, errors)
+    return _result("a", sequence, model, fit.shape, arrays, good, notes, began)
+
+
+def upgrade_from_rotations(
+    sequence: SmplSequence, model: BodyModel, progress: Callable[[int, int], None] | None = None
+) -> UpgradeResult:
+    """Path (b), without an SMPL model file: the joint rotations drive a proxy skeleton in SMPL's
+    conventions, retargeted onto ours (see :mod:`bodyfit.models.upgrade.proxy`). Shape: the population mean
+    (betas cannot be used without SMPL's shape directions). ``error_mm`` is NaN (there is no input mesh);
+    ``extra["residual_deg"]`` is the mean angle between the proxy's bone directions and ours."""
+    began = time.perf_counter()
+    good = np.flatnonzero(~sequence.bad_frames)
+    shape = np.zeros(model.n_shape)
+    with torch.no_grad():
+        scales = model.forward(shape[None]).scales.numpy()[0]
+    motion = proxy_motion(sequence.poses[good], sequence.trans[good], proxy_rest_joints(model), sequence.fps)
+    if progress is not None:
+        progress(0, len(good))
+    moved = retarget(motion, model.skeleton, scales, SMPL_MAP)
+    if progress is not None:
+        progress(len(good), len(good))
+    with torch.no_grad():
+        joints = model.forward(
+            np.broadcast_to(shape, (len(good), model.n_shape)), moved.in_range(model.skeleton), moved.root
+        ).joints.numpy()
+    notes = [
+        "path (b): no SMPL-family model file; the SMPL joint rotations drove a proxy skeleton in SMPL's "
+        "conventions, retargeted onto ours",
+        "betas were not used (no SMPL shape directions): the shape is the population mean",
+    ]
+    arrays = (moved.coordinates, moved.root, joints, np.full(len(good), np.nan))
+    result = _result("b", sequence, model, shape, arrays, good, notes, began)
+    residual = float(np.mean(moved.residual_deg))
+    return replace(result, extra={**result.extra, "residual_deg": round(residual, 3)})
 
 
 def _result(
     path: str,
     sequence: SmplSequence,
     model: BodyModel,
-    fit: Any,
+    shape: np.ndarray,
+    arrays: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
     good: np.ndarray,
     notes: list[str],
     began: float,
 ) -> UpgradeResult:
-    """Fill bad frames by interpolation from the fitted ones and assemble the result."""
+    """Fill bad frames by interpolation from the fitted ones and assemble the result. ``arrays``:
+    coordinates, root, joints and per-frame error of the good frames."""
     T = sequence.n_frames
     frames = np.arange(T)
 
@@ -134,11 +175,11 @@ def _result(
         out = np.stack([np.interp(frames, good, flat[:, k]) for k in range(flat.shape[1])], axis=1)
         return out.reshape(T, *a.shape[1:])
 
-    coordinates, root, joints = fill(fit.coordinates), fill(fit.root), fill(fit.joints)
+    coordinates, root, joints = (fill(a) for a in arrays[:3])
     error = np.full(T, np.nan)
-    error[good] = [r.distances.mean for r in fit.reports]
+    error[good] = arrays[3]
     with torch.no_grad():
-        scales = model.forward(fit.shape[None]).scales.numpy()[0]
+        scales = model.forward(shape[None]).scales.numpy()[0]
     skel = model.skeleton
     in_range = coordinates.copy()
     pelvis = [skel.dof_index(n) for n in ("pelvis_tilt", "pelvis_list", "pelvis_rotation")]
@@ -150,7 +191,7 @@ def _result(
         coordinates=coordinates,
         root=root,
         joints=joints,
-        shape=fit.shape,
+        shape=shape,
         scales=scales,
         error_mm=error,
         bad_frames=sequence.bad_frames.copy(),
