@@ -7,7 +7,7 @@ finished (the JSON is written last, after the other files are in place) and is s
 run resumes where it stopped. Back-ends:
 
 * a server URL (``"http://host:8000"``): the REST SDK, ``concurrency`` requests at once;
-* ``"local"``: in this process (needs the ``server`` extra and an SMPL-family model file);
+* ``"local"``: in this process (needs the ``server`` extra; path (b) without an SMPL-family model file);
 * ``"ray"`` / ``"ray://host:10001"``: a pool of ``concurrency`` Ray actors, each holding one loaded
   model (needs the ``ray`` extra; ``ray`` alone starts a local Ray).
 """
@@ -110,11 +110,12 @@ def _ray_upgrades(
     import ray
     from ray.util import ActorPool
 
-    from bodyfit.models.upgrade.smpl_model import model_path
+    from bodyfit.models.upgrade.smpl_model import ENV_VAR, model_path
 
     if not ray.is_initialized():
         ray.init(address=address, ignore_reinit_error=True, log_to_driver=False)
-    model_file = str(model_path(smpl_model))
+    given = smpl_model or os.environ.get(ENV_VAR)
+    model_file = str(model_path(given)) if given else None
 
     @ray.remote
     class Worker:

@@ -131,8 +131,7 @@ def model_path(path: str | os.PathLike[str] | None) -> Path:
     chosen = path or os.environ.get(ENV_VAR)
     if not chosen:
         raise SmplModelError(
-            f"no SMPL-family model file given: pass its path (--smpl-model) or set {ENV_VAR} (the upgrade "
-            "without a model file, from the joint rotations only, is not available yet)"
+            f"no SMPL-family model file given: pass its path (--smpl-model) or set {ENV_VAR}"
         )
     p = Path(chosen)
     if not p.is_file():
