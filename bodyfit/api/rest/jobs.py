@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import json
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncGenerator, Callable
 from typing import Any
 
 from fastapi import Request
@@ -29,7 +29,7 @@ def _line(doc: dict[str, Any]) -> bytes:
     return (json.dumps(doc, separators=(",", ":")) + "\n").encode()
 
 
-async def stream(work: Work, job: Job) -> AsyncIterator[bytes]:
+async def stream(work: Work, job: Job) -> AsyncGenerator[bytes, None]:
     """NDJSON lines: ``progress`` events while the work runs, then its result events, or one ``error``
     event (a problem document) if it failed. Closing the stream early cancels the job."""
     loop = asyncio.get_running_loop()
