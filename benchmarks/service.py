@@ -5,11 +5,15 @@ What is measured
 ----------------
 * A real server (``bodyfit serve`` in a subprocess, REST + gRPC on 127.0.0.1, ``--threads 1``, upload
   limit 4 MiB) is started and waited for (``/readyz``).
+* The load generators run in this process, on the same 2 cores as the server, so whatever CPU they
+  spend is taken from the server and shows in its latency.
 * Load: C concurrent clients each send ``synthesize`` requests for one body (16 fixed random poses and
   shapes, npz response without faces) until the level's request count or time budget is spent; C = 1, 8
-  and 32. REST: C asyncio tasks on one ``httpx.AsyncClient`` with the JSON bodies encoded beforehand (a
-  load generator, so that the client's own CPU stays small next to the server's on the shared cores); the
-  SDK's ``Client`` at C = 1 as well (``rest_sdk_*``). gRPC: C threads with one ``GrpcClient`` each.
+  and 32. REST: C asyncio tasks, each writing prebuilt HTTP/1.1 requests on its own keep-alive
+  connection (a lean load generator, as wrk or hey: about 0.1 ms of client CPU per request); for
+  comparison the same load from one ``httpx.AsyncClient`` at C = 8 (``rest_httpx_*``: httpx costs about
+  1 ms of CPU per request, and on 2 shared cores that shows in the tail) and the SDK's ``Client`` at
+  C = 1 (``rest_sdk_*``). gRPC: C threads with one ``GrpcClient`` each.
   Reported per level and transport: p50 / p99 latency (ms), throughput (requests/s), errors.
 * In-process baseline: ``BodyService.synthesize`` + npz encoding, one thread, median ms: what the wire,
   the framework and the concurrency add to is ``rest_p50_ms_c1 / inproc_ms``.
@@ -141,16 +145,67 @@ def load(
 def rest_load(
     url: str, params: list[dict[str, np.ndarray]], clients: int, count: int, seconds: float
 ) -> dict[str, float]:
-    """REST load from asyncio tasks sharing one connection pool, request bodies encoded beforehand."""
+    """REST load from ``clients`` asyncio tasks, each on its own keep-alive connection, writing prebuilt
+    HTTP/1.1 requests and reading the ``Content-Length`` answer (what wrk or hey do: the generator's CPU
+    stays small next to the server's on the shared cores). Anything but a 200 counts as an error."""
     import asyncio
-    import json
 
-    from bodyfit.clients.rest_client import synth_body
-
-    bodies = [
-        json.dumps(synth_body(p["shape"], p["coordinates"], None, False, "npz", False, None)).encode()
-        for p in params
+    host, port = url.removeprefix("http://").rsplit(":", 1)
+    requests = [
+        b"POST /v1/synthesize HTTP/1.1\r\nHost: %s\r\nContent-Type: application/json\r\n"
+        b"Content-Length: %d\r\n\r\n" % (host.encode(), len(body)) + body
+        for body in _json_bodies(params)
     ]
+    latencies: list[float] = []
+    errors = 0
+
+    async def exchange(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, request: bytes) -> bool:
+        writer.write(request)
+        await writer.drain()
+        head = await reader.readuntil(b"\r\n\r\n")
+        length = re.search(rb"(?im)^content-length:\s*(\d+)", head)
+        await reader.readexactly(int(length.group(1)) if length else 0)
+        return head.startswith(b"HTTP/1.1 200 ")
+
+    async def worker(k: int) -> None:
+        nonlocal errors
+        reader, writer = await asyncio.open_connection(host, int(port))
+        try:
+            await exchange(reader, writer, requests[k % len(requests)])  # connection set-up, not timed
+            stop = time.monotonic() + seconds
+            for i in range(max(1, count // clients)):
+                if time.monotonic() > stop:
+                    break
+                t = time.perf_counter()
+                try:
+                    ok = await exchange(reader, writer, requests[(k + i) % len(requests)])
+                except (OSError, asyncio.IncompleteReadError, asyncio.LimitOverrunError):
+                    errors += 1
+                    return
+                if ok:
+                    latencies.append(time.perf_counter() - t)
+                else:
+                    errors += 1
+        finally:
+            writer.close()
+
+    async def main() -> float:
+        began = time.perf_counter()
+        await asyncio.gather(*(worker(k) for k in range(clients)))
+        return time.perf_counter() - began
+
+    wall = asyncio.run(main())
+    return summary(latencies, wall, errors)
+
+
+def httpx_load(
+    url: str, params: list[dict[str, np.ndarray]], clients: int, count: int, seconds: float
+) -> dict[str, float]:
+    """The same load from asyncio tasks sharing one ``httpx.AsyncClient`` pool: what a Python caller sees
+    with httpx on the same cores (its own CPU included)."""
+    import asyncio
+
+    bodies = _json_bodies(params)
     headers = {"content-type": "application/json"}
     latencies: list[float] = []
     errors = 0
@@ -186,6 +241,18 @@ def rest_load(
 
     wall = asyncio.run(main())
     return summary(latencies, wall, errors)
+
+
+def _json_bodies(params: list[dict[str, np.ndarray]]) -> list[bytes]:
+    """The synthesize request bodies the SDK would send, encoded once."""
+    import json
+
+    from bodyfit.clients.rest_client import synth_body
+
+    return [
+        json.dumps(synth_body(p["shape"], p["coordinates"], None, False, "npz", False, None)).encode()
+        for p in params
+    ]
 
 
 def summary(latencies: list[float], wall: float, errors: int) -> dict[str, float]:
@@ -290,6 +357,7 @@ def run(quick: bool) -> dict[str, Any]:
         runs: list[tuple[str, int, Callable[[int], dict[str, float]]]] = [
             ("rest_sdk", 1, lambda c: load(rest_call(url), params, c, count // 4, seconds)),
             *(("rest", c, lambda c: rest_load(url, params, c, count, seconds)) for c in LEVELS),
+            ("rest_httpx", 8, lambda c: httpx_load(url, params, c, count, seconds)),
             *(("grpc", c, lambda c: load(grpc_call(target), params, c, count, seconds)) for c in LEVELS),
         ]
         for name, c, measure in runs:
