@@ -174,7 +174,7 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
                     stop=hi,
                     coordinates=to_proto(fit.coordinates[lo:hi]),
                     root=to_proto(fit.root[lo:hi]),
-                    vertices=to_proto(fit.vertices[lo:hi].astype(np.float32)),
+                    vertices=to_proto(fit.registration(lo, hi)),
                     joints=to_proto(fit.joints[lo:hi].astype(np.float32)),
                     error_mm=to_proto(errors),
                 )

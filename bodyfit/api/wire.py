@@ -59,7 +59,7 @@ def sequence_chunks(fit: SequenceFit, chunk: int) -> list[dict[str, Any]]:
                 "arrays": {
                     "coordinates": encode_array(fit.coordinates[lo:hi]),
                     "root": encode_array(fit.root[lo:hi]),
-                    "vertices": encode_array(fit.vertices[lo:hi].astype(np.float32)),
+                    "vertices": encode_array(fit.registration(lo, hi)),
                     "joints": encode_array(fit.joints[lo:hi].astype(np.float32)),
                     "error_mm": encode_array(errors),
                 },

@@ -18,7 +18,7 @@ from bodyfit.models.fitting.bvh import CMU_UNITS, BvhMotion, read_bvh
 from bodyfit.models.fitting.mocap_io import MocapFormatError
 from bodyfit.models.fitting.registered import RegisteredFitter, Stage
 from bodyfit.models.fitting.retarget import Retargeted, retarget, wrap_pelvis
-from bodyfit.models.fitting.sequence import SequenceConfig, SequenceFit, SequenceFitter, jitter
+from bodyfit.models.fitting.sequence import JitterSum, SequenceConfig, SequenceFit, SequenceFitter, jitter
 
 CLIP = Path(__file__).resolve().parents[1] / "data" / "cmu_bvh" / "cmu_131_01_clip.bvh"
 LEGS_AND_TRUNK = ("pelvis_", "hip_", "knee_", "lumbar_", "thorax_")
@@ -195,12 +195,57 @@ def test_model_sequence_and_progress(model: BodyModel, moved: Retargeted, seq_fi
     assert np.degrees(np.abs(fit.coordinates - moved.coordinates[:T])[:, :3]).max() < 3.0
 
 
+def test_frame_source_streams_in_chunks_and_matches_the_array_fit(
+    model: BodyModel, moved: Retargeted, seq_fitter: SequenceFitter
+) -> None:
+    """A sequence given chunk by chunk through a frame source is fitted as the same sequence in memory,
+    the source is never asked for more than one chunk, and the vertices are dropped unless asked for."""
+    T = 150
+    q = moved.in_range(model.skeleton)[:T]
+    shape = np.full((T, model.n_shape), 0.3)
+    x = model.forward(shape, q, moved.root[:T], dtype=torch.float64).vertices.numpy()
+    w = np.ones(x.shape[:2])
+    w[:, :50] = 0.0  # missing vertices carry through the source too
+    asked: list[np.ndarray] = []
+
+    def source(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        asked.append(idx)
+        return x[idx], w[idx]
+
+    streamed = seq_fitter.fit_frames(source, T)
+    in_memory = seq_fitter.fit(x, w)
+    assert streamed.vertices is None and in_memory.vertices is not None
+    with pytest.raises(ValueError, match="keep_vertices"):
+        streamed.registration()
+    np.testing.assert_allclose(streamed.coordinates, in_memory.coordinates, atol=1e-9)
+    np.testing.assert_allclose(streamed.joints, in_memory.joints, atol=1e-9)
+    assert [r.distances for r in streamed.reports] == [r.distances for r in in_memory.reports]
+    assert streamed.stats.jitter_fit_mm == pytest.approx(jitter(in_memory.registration(), w))
+    assert streamed.stats.mean_mm == pytest.approx(in_memory.stats.mean_mm)
+    assert max(len(i) for i in asked) <= CHUNK
+    assert np.array_equal(np.concatenate(asked[-3:]), np.arange(T))  # the last pass: every frame once
+
+    def short(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        return x[idx][:-1], None
+
+    with pytest.raises(ShapeError, match="gave 7 frames for 8"):
+        seq_fitter.fit_frames(short, T)
+    with pytest.raises(ShapeError, match="at least one frame"):
+        seq_fitter.fit_frames(source, 0)
+
+
 def test_jitter_definition() -> None:
     t = np.arange(5.0)
     x = np.zeros((5, 2, 3))
     x[:, 0, 0] = t**2 / 1000.0  # constant acceleration: second difference 2 mm
     assert jitter(x) == pytest.approx(1.0)  # mean over the two points: (2 + 0) / 2
     assert np.isnan(jitter(x[:2]))
+    rng = np.random.default_rng(0)
+    y, w = rng.normal(size=(11, 4, 3)), rng.integers(0, 2, size=(11, 4)).astype(float)
+    running = JitterSum()
+    for part in np.array_split(np.arange(11), [1, 2, 6]):  # chunks of 1, 1, 4 and 5 frames
+        running.add(y[part], w[part])
+    assert running.mm() == pytest.approx(jitter(y, w))
 
 
 def test_bad_sequences_raise(model: BodyModel, seq_fitter: SequenceFitter) -> None:

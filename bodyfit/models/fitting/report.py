@@ -26,6 +26,17 @@ class DistanceStats:
             return cls(float("nan"), float("nan"), float("nan"), float("nan"))
         return cls(float(d.mean()), float(np.median(d)), float(np.percentile(d, 95)), float(d.max()))
 
+    @classmethod
+    def of_rows(cls, metres: np.ndarray, keep: np.ndarray) -> list[DistanceStats]:
+        """One :meth:`of` per row of distances (k, N) metres, over the entries where ``keep`` (k, N) is
+        true; all rows at once when every entry is kept and finite."""
+        if keep.all() and np.isfinite(metres).all():
+            d = np.asarray(metres, np.float64) * 1000.0
+            mean, peak = d.mean(axis=1), d.max(axis=1)
+            median, p95 = np.percentile(d, [50, 95], axis=1)
+            return [cls(*map(float, row)) for row in zip(mean, median, p95, peak, strict=True)]
+        return [cls.of(row[k]) for row, k in zip(metres, keep, strict=True)]
+
 
 @dataclass(frozen=True)
 class FitReport:

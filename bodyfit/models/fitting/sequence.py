@@ -13,7 +13,9 @@ How (:class:`SequenceFitter`):
 4. Every frame starts from the linear interpolation of its two neighbouring keyframes (a warm start within
    ``stride / 2`` frames of a fitted pose) and gets a short pose-only fit. Frames are independent problems
    given the shape and the keyframes, so splitting them into chunks (memory) changes nothing: there are no
-   seams between chunks.
+   seams between chunks. :meth:`SequenceFitter.fit_frames` asks a :data:`FrameSource` for the frames chunk
+   by chunk, so a sequence never has to be held whole: memory stays bounded by the chunk size whatever
+   the length.
 5. Back in the world frame the pelvis angles are recomputed from the pelvis orientation and unwrapped over
    time, so ``pelvis_rotation`` is continuous even when the subject turns round (it may then leave
    [-pi, pi]; :meth:`SequenceFit.coordinates_in_range` folds it back).
@@ -44,6 +46,10 @@ from bodyfit.models.fitting.report import DistanceStats, FitReport
 from bodyfit.models.fitting.retarget import unwrap_pelvis, wrap_pelvis
 from bodyfit.models.rotations import kabsch, zxy_angles
 from bodyfit.models.skeleton.model import PELVIS_ROTATIONS
+
+FrameSource = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray | None]]
+"""``source(frames)`` for frame indices (k,) in time order gives their meshes (k, V, 3) in our template's
+vertex order, metres, and per-vertex weights (k, V) (None: ones)."""
 
 KEY_STAGES = (Stage("key_pose", "all", "none", "subset", 40),)
 FRAME_STAGES = (Stage("pose", "all", "none", "subset", 12),)
@@ -93,19 +99,30 @@ class SequenceFit:
     """One person over T frames.
 
     shape: (n_shape,) for every frame; coordinates: (T, n_dof), the pelvis angles unwrapped over time (see
-    :meth:`coordinates_in_range`); root: (T, 3); vertices: (T, V, 3) float32, the registration; joints:
-    (T, J, 3); reports: one :class:`FitReport` per frame; stats: :class:`SequenceStats`.
+    :meth:`coordinates_in_range`); root: (T, 3); vertices: (T, V, 3) float32, the registration, or None
+    when the fit was asked not to keep them; joints: (T, J, 3); reports: one :class:`FitReport` per frame;
+    stats: :class:`SequenceStats`.
     """
 
     shape: np.ndarray
     coordinates: np.ndarray
     root: np.ndarray
-    vertices: np.ndarray
+    vertices: np.ndarray | None
     joints: np.ndarray
     reports: list[FitReport]
     stats: SequenceStats
     dof_names: tuple[str, ...] = field(default=(), repr=False)
     _in_range: np.ndarray | None = field(default=None, repr=False)
+
+    def registration(self, lo: int = 0, hi: int | None = None) -> np.ndarray:
+        """Fitted vertices of frames lo:hi (k, V, 3) float32.
+
+        Raises:
+            ValueError: the fit was run without keeping its vertices.
+        """
+        if self.vertices is None:
+            raise ValueError("this fit did not keep its vertices; fit with keep_vertices=True")
+        return self.vertices[lo:hi]
 
     def coordinates_in_range(self) -> np.ndarray:
         """(T, n_dof) with the pelvis angles folded into [-pi, pi]: valid input to :meth:`BodyModel.forward`
@@ -114,16 +131,41 @@ class SequenceFit:
         return self._in_range
 
 
+class JitterSum:
+    """Running mean second difference in time of trajectories fed chunk by chunk, in time order (the
+    :func:`jitter` of the whole sequence, without holding it)."""
+
+    def __init__(self) -> None:
+        self._tail: tuple[np.ndarray, np.ndarray | None] | None = None
+        self._total = 0.0
+        self._count = 0
+
+    def add(self, x: np.ndarray, weights: np.ndarray | None = None) -> None:
+        """The next frames x (k, N, 3) metres, with weights (k, N) (None: all count)."""
+        if self._tail is not None:
+            prev_x, prev_w = self._tail
+            x = np.concatenate([prev_x, x])
+            weights = None if weights is None or prev_w is None else np.concatenate([prev_w, weights])
+        if len(x) >= 3:
+            acc = np.linalg.norm(x[2:] - 2.0 * x[1:-1] + x[:-2], axis=-1)
+            if weights is not None:
+                ok = (weights[2:] > 0) & (weights[1:-1] > 0) & (weights[:-2] > 0)
+                acc = acc[ok]
+            self._total += float(acc.sum())
+            self._count += acc.size
+        self._tail = (x[-2:], None if weights is None else weights[-2:])
+
+    def mm(self) -> float:
+        """The mean so far in mm; NaN before three frames."""
+        return self._total / self._count * 1000.0 if self._count else float("nan")
+
+
 def jitter(x: np.ndarray, weights: np.ndarray | None = None) -> float:
     """Mean second difference in time of trajectories x (T, N, 3) metres, in mm; over points with positive
     weight (T, N) in all three frames; NaN for fewer than 3 frames."""
-    if len(x) < 3:
-        return float("nan")
-    acc = np.linalg.norm(x[2:] - 2.0 * x[1:-1] + x[:-2], axis=-1)
-    if weights is not None:
-        ok = (weights[2:] > 0) & (weights[1:-1] > 0) & (weights[:-2] > 0)
-        return float(acc[ok].mean() * 1000.0) if ok.any() else float("nan")
-    return float(acc.mean() * 1000.0)
+    total = JitterSum()
+    total.add(x, weights)
+    return total.mm()
 
 
 def _yaw(angle: np.ndarray) -> np.ndarray:
@@ -199,60 +241,86 @@ class SequenceFitter:
         weights: np.ndarray | None = None,
         progress: Callable[[int, int], None] | None = None,
     ) -> SequenceFit:
-        """Fit a sequence.
+        """Fit a sequence held in memory.
 
         Args:
             frames: (T, V, 3) meshes in our template's vertex order, metres, T >= 1, in time order.
             weights: (T, V) per-vertex confidence (0 = missing), default ones.
             progress: called as ``progress(frames_done, T)`` after each chunk of the last pass.
         Returns:
-            :class:`SequenceFit`.
+            :class:`SequenceFit` with the fitted vertices.
         Raises:
             ShapeError / NonFiniteError: bad input (wrong shape, no frames, NaN, bad weights).
         """
-        start = time.perf_counter()
-        x_in = np.asarray(frames)
-        if x_in.ndim != 3 or len(x_in) == 0:
+        x = np.asarray(frames)
+        if x.ndim != 3 or len(x) == 0:
             raise ShapeError(
                 f"a sequence must have shape (T, {self.model.n_vertices}, 3) with T >= 1 frames; "
-                f"got {x_in.shape}"
+                f"got {x.shape}"
             )
-        x, w = self.fitter.validate(x_in, weights)
-        T = len(x)
+        w = None if weights is None else np.asarray(weights)
+        if w is not None and w.shape != x.shape[:2]:
+            raise ShapeError(f"vertex weights must have shape {x.shape[:2]}; got {w.shape}")
+
+        def source(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+            return x[idx], None if w is None else w[idx]
+
+        return self.fit_frames(source, len(x), progress, keep_vertices=True)
+
+    def fit_frames(
+        self,
+        source: FrameSource,
+        n_frames: int,
+        progress: Callable[[int, int], None] | None = None,
+        keep_vertices: bool = False,
+    ) -> SequenceFit:
+        """Fit a sequence of ``n_frames`` frames that ``source`` gives a chunk at a time (see
+        :data:`FrameSource`): the shape keyframes, then the pose keyframes, then every frame once, in
+        chunks of ``config.chunk`` frames. Memory is bounded by the chunk, not the sequence, unless
+        ``keep_vertices``.
+
+        Raises:
+            ShapeError / NonFiniteError: bad frames from the source (wrong shape, NaN, bad weights).
+        """
+        start = time.perf_counter()
+        T = int(n_frames)
+        if T < 1:
+            raise ShapeError(f"a sequence needs at least one frame; got {T}")
         cfg = self.config
-        heading, origin = self.headings(x, w)
-        G = _yaw(-heading)  # world -> canonical
-        xc = (x - origin[:, None]) @ np.swapaxes(G, -1, -2)  # G applied to every vertex (batched BLAS)
+        n_dof = self.model.skeleton.n_dof
 
         # Shape on keyframes spread over the sequence, then frozen.
         shape_keys = np.unique(np.linspace(0, T - 1, min(cfg.keyframes, T)).round().astype(np.int64))
-        shape_fit = self.fitter.fit(xc[shape_keys], w[shape_keys], shared_shape=True)
-        c = shape_fit.shape[:1]
+        _, w_s, xc_s, _, _ = self._canonical(source, shape_keys)
+        c = self.fitter.fit(xc_s, w_s, shared_shape=True).shape[:1]
 
         # Pose keyframes with the frozen shape, then every frame from their interpolation.
         keys = np.unique(np.r_[np.arange(0, T, cfg.stride), T - 1])
-        q_key, r_key = np.empty((len(keys), self.model.skeleton.n_dof)), np.empty((len(keys), 3))
+        q_key, r_key = np.empty((len(keys), n_dof)), np.empty((len(keys), 3))
         for lo in range(0, len(keys), cfg.chunk):
             k = keys[lo : lo + cfg.chunk]
-            q0, r0 = self.fitter.bone_start(xc[k], w[k])
+            _, w_k, xc_k, _, _ = self._canonical(source, k)
+            q0, r0 = self.fitter.bone_start(xc_k, w_k)
             q_key[lo : lo + len(k)], r_key[lo : lo + len(k)] = self._pose(
-                xc[k], w[k], c, q0, r0, cfg.key_stages
+                xc_k, w_k, c, q0, r0, cfg.key_stages
             )
-        q_init = np.stack([np.interp(np.arange(T), keys, q_key[:, j]) for j in range(q_key.shape[1])], 1)
+        q_init = np.stack([np.interp(np.arange(T), keys, q_key[:, j]) for j in range(n_dof)], 1)
         r_init = np.stack([np.interp(np.arange(T), keys, r_key[:, j]) for j in range(3)], 1)
 
-        q_c = np.empty_like(q_init)
-        root_c = np.empty((T, 3))
-        verts = np.empty((T, self.model.n_vertices, 3), np.float32)
+        q_c, root_c = np.empty_like(q_init), np.empty((T, 3))
+        G, origin = np.empty((T, 3, 3)), np.empty((T, 3))
+        verts = np.empty((T, self.model.n_vertices, 3), np.float32) if keep_vertices else None
         joints = np.empty((T, len(self.model.joint_names), 3))
+        dist_sum, dist_count = 0.0, 0
+        j_in, j_fit = JitterSum(), JitterSum()
+        frame_stats: list[DistanceStats] = []
         decoder = self.pose_fitter.decoder
         dtype = self.pose_fitter.config.dtype
         ct = torch.as_tensor(c, dtype=dtype)
         for lo in range(0, T, cfg.chunk):
             hi = min(T, lo + cfg.chunk)
-            q_c[lo:hi], root_c[lo:hi] = self._pose(
-                xc[lo:hi], w[lo:hi], c, q_init[lo:hi], r_init[lo:hi], cfg.frame_stages
-            )
+            x, w, xc, G[lo:hi], origin[lo:hi] = self._canonical(source, np.arange(lo, hi))
+            q_c[lo:hi], root_c[lo:hi] = self._pose(xc, w, c, q_init[lo:hi], r_init[lo:hi], cfg.frame_stages)
             with torch.no_grad():
                 v, j, _, _ = decoder(
                     ct.expand(hi - lo, -1),
@@ -262,8 +330,16 @@ class SequenceFitter:
             # World = G^T canonical + origin, on row vectors: v @ G + origin.
             Gk = torch.as_tensor(G[lo:hi], dtype=dtype)
             o = torch.as_tensor(origin[lo:hi, None], dtype=dtype)
-            verts[lo:hi] = (v @ Gk + o).numpy()
+            v_world = (v @ Gk + o).numpy().astype(np.float32, copy=False)
             joints[lo:hi] = (j @ Gk + o).double().numpy()
+            if verts is not None:
+                verts[lo:hi] = v_world
+            dist = np.linalg.norm(v_world - x.astype(np.float32), axis=-1)
+            used = dist[w > 0]
+            dist_sum, dist_count = dist_sum + float(used.sum(dtype=np.float64)), dist_count + used.size
+            frame_stats.extend(DistanceStats.of_rows(dist, w > 0))
+            j_in.add(x, w)
+            j_fit.add(v_world, w)
             if progress is not None:
                 progress(hi, T)
         iterations = sum(st.iterations for st in cfg.frame_stages)
@@ -276,22 +352,34 @@ class SequenceFitter:
         q = unwrap_pelvis(q, self.model.skeleton)
         seconds = time.perf_counter() - start
 
-        dist = np.linalg.norm(verts - x.astype(np.float32), axis=-1).astype(np.float64)
         q_range = wrap_pelvis(q, self.model.skeleton)
-        reports = [self._report(dist[t], w[t], q_range[t], iterations, seconds / T) for t in range(T)]
-        used = dist[w > 0]
-        j_in, j_fit = jitter(x, w), jitter(verts, w)
+        reports = [self._report(st, q_range[t], iterations, seconds / T) for t, st in enumerate(frame_stats)]
         stats = SequenceStats(
             frames=T,
             seconds=seconds,
             fps=T / seconds,
-            mean_mm=float(used.mean() * 1000.0),
-            jitter_input_mm=j_in,
-            jitter_fit_mm=j_fit,
-            jitter_ratio=j_fit / j_in if j_in > 0 else float("nan"),
+            mean_mm=dist_sum / max(dist_count, 1) * 1000.0,
+            jitter_input_mm=j_in.mm(),
+            jitter_fit_mm=j_fit.mm(),
+            jitter_ratio=j_fit.mm() / j_in.mm() if j_in.mm() > 0 else float("nan"),
             shape_keyframes=tuple(int(k) for k in shape_keys),
         )
         return SequenceFit(c[0], q, root, verts, joints, reports, stats, tuple(self.model.dof_names), q_range)
+
+    def _canonical(
+        self, source: FrameSource, idx: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Frames idx (k,) from the source, checked, and turned into their canonical frames (step 1).
+        Returns x (k, V, 3) and w (k, V) as given, xc (k, V, 3) canonical, G (k, 3, 3) world -> canonical
+        and the pelvis origins (k, 3)."""
+        x, w = source(idx)
+        x, w = self.fitter.validate(x, w)
+        if len(x) != len(idx):
+            raise ShapeError(f"the frame source gave {len(x)} frames for {len(idx)} requested")
+        heading, origin = self.headings(x, w)
+        G = _yaw(-heading)
+        xc = (x - origin[:, None]) @ np.swapaxes(G, -1, -2)  # G applied to every vertex (batched BLAS)
+        return x, w, xc, G, origin
 
     def _pose(
         self,
@@ -315,10 +403,7 @@ class SequenceFitter:
         _, q, root = fitter.parameters(z)
         return q.numpy(), root.numpy()
 
-    def _report(
-        self, dist: np.ndarray, w: np.ndarray, q: np.ndarray, iterations: int, seconds: float
-    ) -> FitReport:
-        stats = DistanceStats.of(dist[w > 0])
+    def _report(self, stats: DistanceStats, q: np.ndarray, iterations: int, seconds: float) -> FitReport:
         reasons = []
         if stats.mean > CONFIDENT_MEAN_MM:
             reasons.append(

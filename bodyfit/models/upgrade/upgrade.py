@@ -107,11 +107,15 @@ def upgrade_with_model(
     model = fitter.model
     tmap = topology or smpl_map()
     good = np.flatnonzero(~sequence.bad_frames)
-    verts, _ = smpl.forward(sequence.poses[good], sequence.betas, sequence.trans[good])
-    body = verts.astype(np.float64) @ SMPL_TO_BODY.T
-    targets = tmap.transfer(body)
-    weights = np.broadcast_to(tmap.weight, targets.shape[:2]).copy()
-    fit = fitter.fit(targets, weights, progress=progress)
+
+    def source(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Our-topology targets of good frames idx: SMPL forward, axes, correspondence (chunk by chunk)."""
+        frames = good[idx]
+        verts, _ = smpl.forward(sequence.poses[frames], sequence.betas, sequence.trans[frames])
+        targets = tmap.transfer(verts.astype(np.float64) @ SMPL_TO_BODY.T)
+        return targets, np.repeat(tmap.weight[None], len(targets), axis=0)
+
+    fit = fitter.fit_frames(source, len(good), progress=progress)
     notes = [f"path (a): posed with the SMPL-family model {Path(smpl.source).name or '(given)'}"]
     if len(sequence.betas) > smpl.n_betas:
         notes.append(f"the model has {smpl.n_betas} shape directions; betas beyond those were ignored")
