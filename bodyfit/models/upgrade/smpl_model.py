@@ -89,28 +89,44 @@ class SmplModel:
         return vertices, joints
 
     def _forward(self, p: np.ndarray, b: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        B, N = len(p), len(self.v_template)
-        v_shaped = self.v_template[None] + (b @ self.shapedirs.reshape(N * 3, -1).T).reshape(B, N, 3)
-        J = self.J_regressor @ v_shaped  # (B, J, 3)
+        B, N, n_j = len(p), len(self.v_template), self.n_joints
+        # One shape for every frame (a sequence's betas) is shaped and regressed once.
+        betas = b[:1] if (b == b[:1]).all() else b
+        v_shaped = self.v_template[None] + (betas @ self.shapedirs.reshape(N * 3, -1).T).reshape(-1, N, 3)
+        J = np.einsum("jn,bnk->bjk", self.J_regressor, v_shaped)  # (1 or B, J, 3)
         R = rodrigues(p)  # (B, J, 3, 3)
+        rest = v_shaped[0]  # (N, 3) the first frame's shaped body; offsets from it are blended separately
+        offsets = v_shaped - rest if len(v_shaped) > 1 else None  # (B, N, 3) or None
         if self.posedirs is not None:
             feat = (R[:, 1:] - np.eye(3)).reshape(B, -1)
-            v_shaped = v_shaped + (feat @ self.posedirs.reshape(N * 3, -1).T).reshape(B, N, 3)
-        G = np.zeros((B, self.n_joints, 4, 4))
-        for j in range(self.n_joints):
+            pose_offsets = (feat @ self.posedirs.reshape(N * 3, -1).T).reshape(B, N, 3)
+            offsets = pose_offsets if offsets is None else offsets + pose_offsets
+        G = np.zeros((B, n_j, 4, 4))
+        for j in range(n_j):
             local = np.zeros((B, 4, 4))
             local[:, :3, :3] = R[:, j]
             parent = self.parents[j]
             local[:, :3, 3] = J[:, j] - (J[:, parent] if parent >= 0 else 0.0)
             local[:, 3, 3] = 1.0
             G[:, j] = local if parent < 0 else G[:, parent] @ local
-        posed_joints = G[:, :, :3, 3].copy()
-        # Transforms relative to the rest pose, A_j = G_j [I, -J_j], blended per vertex by one BLAS product.
+        posed_joints = G[:, :, :3, 3] + t[:, None]
+        # Transforms relative to the rest pose, A_j = G_j [I, -J_j] (+ translation), blended in float32
+        # (sub-micrometre at body scale). The rest body goes through one product of per-vertex features
+        # w_nj [v_n, 1] (N, 4 J) with the transforms (4 J, 3 B); offsets, where there are any, through the
+        # blended rotations.
         A = G[:, :, :3, :].copy()
         A[:, :, :, 3] -= (G[:, :, :3, :3] @ J[..., None])[..., 0]
-        Tv = (self.weights @ A.reshape(B, self.n_joints, 12)).reshape(B, N, 3, 4)
-        verts = (Tv[..., :3] @ v_shaped[..., None])[..., 0] + Tv[..., 3]
-        return verts + t[:, None], posed_joints + t[:, None]
+        A[:, :, :, 3] += t[:, None]
+        A32 = A.astype(np.float32)
+        weights = self.weights.astype(np.float32)
+        rest_h = np.concatenate([rest, np.ones((N, 1))], axis=1).astype(np.float32)
+        features = (weights[:, :, None] * rest_h[:, None, :]).reshape(N, n_j * 4)
+        transforms = A32.transpose(1, 3, 0, 2).reshape(n_j * 4, B * 3)  # [j k, b i] = A[b, j, i, k]
+        verts = (features @ transforms).reshape(N, B, 3)
+        if offsets is not None:
+            rotations = (weights @ A32[..., :3].transpose(1, 0, 2, 3).reshape(n_j, B * 9)).reshape(N, B, 3, 3)
+            verts += np.einsum("nbij,nbj->nbi", rotations, np.moveaxis(offsets, 0, 1).astype(np.float32))
+        return np.moveaxis(verts, 0, 1), posed_joints
 
 
 def rodrigues(axis_angle: np.ndarray) -> np.ndarray:
