@@ -121,7 +121,7 @@ def test_held_out_sequence_fits_within_three_millimetres(
 ) -> None:
     fit, x = held_out_fit, held_out["vertices"]
     T = len(x)
-    assert fit.vertices.shape == x.shape and len(fit.reports) == T
+    assert fit.registration().shape == x.shape and len(fit.reports) == T
     errors = np.array([r.distances.mean for r in fit.reports])
     assert fit.stats.mean_mm <= 3.0 and errors.max() < 10.0, (fit.stats.mean_mm, errors.max())
     np.testing.assert_allclose(errors.mean(), fit.stats.mean_mm, rtol=1e-6)
@@ -129,9 +129,9 @@ def test_held_out_sequence_fits_within_three_millimetres(
     # Frame-to-frame jitter no larger than the input's (within 10%), and no lag: each fitted frame is
     # closest to its own input frame, not to a neighbour.
     assert fit.stats.jitter_ratio < 1.1, fit.stats
-    d0 = np.linalg.norm(fit.vertices[1:-1] - x[1:-1], axis=-1).mean()
+    d0 = np.linalg.norm(fit.registration(1, -1) - x[1:-1], axis=-1).mean()
     for shift in (-1, 1):
-        assert d0 < np.linalg.norm(fit.vertices[1:-1] - x[1 + shift : T - 1 + shift], axis=-1).mean()
+        assert d0 < np.linalg.norm(fit.registration(1, -1) - x[1 + shift : T - 1 + shift], axis=-1).mean()
 
 
 def test_one_shape_for_the_whole_sequence(model: BodyModel, held_out_fit: SequenceFit) -> None:
@@ -167,7 +167,8 @@ def test_no_seams_between_chunks(
     seams = np.arange(CHUNK, T, CHUNK)
     at_seams = np.r_[seams - 1, seams]
     assert errors[at_seams].max() < 2.0 * np.median(errors) + 1.0, errors[at_seams]
-    acc = np.linalg.norm(fit.vertices[2:] - 2 * fit.vertices[1:-1] + fit.vertices[:-2], axis=-1).mean(1)
+    v = fit.registration()
+    acc = np.linalg.norm(v[2:] - 2 * v[1:-1] + v[:-2], axis=-1).mean(1)
     acc_in = np.linalg.norm(x[2:] - 2 * x[1:-1] + x[:-2], axis=-1).mean(1)
     # Second difference centred on each seam frame (index t - 1 in acc): no larger than the input's there
     # beyond what frames away from the seams show.
@@ -176,7 +177,7 @@ def test_no_seams_between_chunks(
     # Chunks only split the work: one chunk for the whole clip gives the same fit.
     whole = SequenceFitter(seq_fitter.fitter, SequenceConfig(chunk=T)).fit(x[:100])
     chunked = seq_fitter.fit(x[:100])
-    assert np.abs(whole.vertices - chunked.vertices).max() < 1e-4
+    assert np.abs(whole.registration() - chunked.registration()).max() < 1e-4
 
 
 def test_model_sequence_and_progress(model: BodyModel, moved: Retargeted, seq_fitter: SequenceFitter) -> None:

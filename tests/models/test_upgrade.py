@@ -120,7 +120,7 @@ def _reference_forward(m: SmplModel, poses: np.ndarray, betas: np.ndarray, trans
         R = rodrigues(p)
         if m.posedirs is not None:
             v = v + np.einsum("ncp,p->nc", m.posedirs, (R[1:] - np.eye(3)).ravel())
-        G = []
+        G: list[np.ndarray] = []
         for j in range(len(J)):
             local = np.eye(4)
             local[:3, :3] = R[j]
