@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from scipy import sparse
 
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting.registered import RegisteredFitter
@@ -162,7 +163,15 @@ def test_smpl_forward_matches_the_written_out_skinning(smpl: SmplModel, per_fram
     )
     trans = rng.normal(size=(T, 3))
     v, _ = m.forward(poses, betas, trans, chunk=2)
-    assert np.abs(v - _reference_forward(m, poses, betas, trans)).max() < 1e-5
+    reference = _reference_forward(m, poses, betas, trans)
+    assert np.abs(v - reference).max() < 1e-5
+    # Through a linear map of the vertices (a correspondence): the mapped points, without the vertices.
+    at = sparse.random(40, 300, density=0.01, random_state=4, format="csr") + sparse.eye(40, 300)
+    mapped, _ = m.forward(poses, betas, trans, chunk=2, at=at)
+    assert mapped.shape == (T, 40, 3)
+    assert np.abs(mapped - np.einsum("mn,tnc->tmc", at.toarray(), reference)).max() < 1e-5
+    with pytest.raises(SmplModelError, match="columns"):
+        m.forward(poses, betas, trans, at=sparse.eye(40, 299))
 
 
 def test_model_file_errors(tmp_path: Path) -> None:

@@ -29,9 +29,11 @@ class DistanceStats:
     @classmethod
     def of_rows(cls, metres: np.ndarray, keep: np.ndarray) -> list[DistanceStats]:
         """One :meth:`of` per row of distances (k, N) metres, over the entries where ``keep`` (k, N) is
-        true; all rows at once when every entry is kept and finite."""
-        if keep.all() and np.isfinite(metres).all():
-            d = np.asarray(metres, np.float64) * 1000.0
+        true; all rows at once when every row keeps the same entries and they are finite."""
+        columns = keep[0]
+        chosen = np.asarray(metres)[:, columns]
+        if (keep == columns).all() and np.isfinite(chosen).all() and chosen.shape[1] > 0:
+            d = chosen * 1000.0  # float32 distances stay float32 (sub-micrometre at this scale)
             mean, peak = d.mean(axis=1), d.max(axis=1)
             median, p95 = np.percentile(d, [50, 95], axis=1)
             return [cls(*map(float, row)) for row in zip(mean, median, p95, peak, strict=True)]

@@ -136,24 +136,33 @@ class JitterSum:
     :func:`jitter` of the whole sequence, without holding it)."""
 
     def __init__(self) -> None:
-        self._tail: tuple[np.ndarray, np.ndarray | None] | None = None
+        self._tail: tuple[np.ndarray, np.ndarray] | None = None  # the last two frames and their masks
         self._total = 0.0
         self._count = 0
 
     def add(self, x: np.ndarray, weights: np.ndarray | None = None) -> None:
         """The next frames x (k, N, 3) metres, with weights (k, N) (None: all count)."""
-        if self._tail is not None:
-            prev_x, prev_w = self._tail
-            x = np.concatenate([prev_x, x])
-            weights = None if weights is None or prev_w is None else np.concatenate([prev_w, weights])
-        if len(x) >= 3:
-            acc = np.linalg.norm(x[2:] - 2.0 * x[1:-1] + x[:-2], axis=-1)
-            if weights is not None:
-                ok = (weights[2:] > 0) & (weights[1:-1] > 0) & (weights[:-2] > 0)
-                acc = acc[ok]
-            self._total += float(acc.sum())
-            self._count += acc.size
-        self._tail = (x[-2:], None if weights is None else weights[-2:])
+        seen = np.ones(x.shape[:2], bool) if weights is None else np.asarray(weights) > 0
+        if self._tail is not None:  # the differences across the join with the previous chunk
+            prev_x, prev_seen = self._tail
+            self._sum(np.concatenate([prev_x, x[:2]]), np.concatenate([prev_seen, seen[:2]]))
+            x_end, seen_end = np.concatenate([prev_x, x[-2:]]), np.concatenate([prev_seen, seen[-2:]])
+        else:
+            x_end, seen_end = x, seen
+        self._sum(x, seen)
+        self._tail = (x_end[-2:].copy(), seen_end[-2:].copy())
+
+    def _sum(self, x: np.ndarray, seen: np.ndarray) -> None:
+        if len(x) < 3:
+            return
+        d = x[2:] - x[1:-1]
+        d -= x[1:-1]
+        d += x[:-2]
+        acc = _lengths(d)
+        ok = seen[2:] & seen[1:-1] & seen[:-2]
+        acc = acc if ok.all() else acc[ok]
+        self._total += float(acc.sum(dtype=np.float64))
+        self._count += acc.size
 
     def mm(self) -> float:
         """The mean so far in mm; NaN before three frames."""
@@ -174,6 +183,16 @@ def _yaw(angle: np.ndarray) -> np.ndarray:
     R = np.zeros((len(angle), 3, 3))
     R[:, 0, 0], R[:, 0, 2], R[:, 1, 1], R[:, 2, 0], R[:, 2, 2] = c, s, 1.0, -s, c
     return R
+
+
+def _lengths(d: np.ndarray) -> np.ndarray:
+    """Lengths of vectors d (..., 3), in d's dtype."""
+    return np.sqrt(np.einsum("...i,...i->...", d, d))
+
+
+def _turn(x: np.ndarray, G: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """Points x (T, N, 3) into their frames' canonical frames: G (T, 3, 3) applied about origin (T, 3)."""
+    return (x - origin[:, None]) @ np.swapaxes(G, -1, -2)  # batched BLAS
 
 
 def _zxy_matrix(a: np.ndarray) -> np.ndarray:
@@ -291,18 +310,18 @@ class SequenceFitter:
 
         # Shape on keyframes spread over the sequence, then frozen.
         shape_keys = np.unique(np.linspace(0, T - 1, min(cfg.keyframes, T)).round().astype(np.int64))
-        _, w_s, xc_s, _, _ = self._canonical(source, shape_keys)
-        c = self.fitter.fit(xc_s, w_s, shared_shape=True).shape[:1]
+        x_s, w_s, G_s, o_s = self._frames(source, shape_keys)
+        c = self.fitter.fit(_turn(x_s, G_s, o_s), w_s, shared_shape=True).shape[:1]
 
         # Pose keyframes with the frozen shape, then every frame from their interpolation.
         keys = np.unique(np.r_[np.arange(0, T, cfg.stride), T - 1])
         q_key, r_key = np.empty((len(keys), n_dof)), np.empty((len(keys), 3))
         for lo in range(0, len(keys), cfg.chunk):
             k = keys[lo : lo + cfg.chunk]
-            _, w_k, xc_k, _, _ = self._canonical(source, k)
-            q0, r0 = self.fitter.bone_start(xc_k, w_k)
+            x_k, w_k, G_k, o_k = self._frames(source, k)
+            q0, r0 = self.fitter.bone_start(_turn(x_k, G_k, o_k), w_k)
             q_key[lo : lo + len(k)], r_key[lo : lo + len(k)] = self._pose(
-                xc_k, w_k, c, q0, r0, cfg.key_stages
+                x_k, w_k, G_k, o_k, c, q0, r0, cfg.key_stages
             )
         q_init = np.stack([np.interp(np.arange(T), keys, q_key[:, j]) for j in range(n_dof)], 1)
         r_init = np.stack([np.interp(np.arange(T), keys, r_key[:, j]) for j in range(3)], 1)
@@ -319,8 +338,10 @@ class SequenceFitter:
         ct = torch.as_tensor(c, dtype=dtype)
         for lo in range(0, T, cfg.chunk):
             hi = min(T, lo + cfg.chunk)
-            x, w, xc, G[lo:hi], origin[lo:hi] = self._canonical(source, np.arange(lo, hi))
-            q_c[lo:hi], root_c[lo:hi] = self._pose(xc, w, c, q_init[lo:hi], r_init[lo:hi], cfg.frame_stages)
+            x, w, G[lo:hi], origin[lo:hi] = self._frames(source, np.arange(lo, hi))
+            q_c[lo:hi], root_c[lo:hi] = self._pose(
+                x, w, G[lo:hi], origin[lo:hi], c, q_init[lo:hi], r_init[lo:hi], cfg.frame_stages
+            )
             with torch.no_grad():
                 v, j, _, _ = decoder(
                     ct.expand(hi - lo, -1),
@@ -334,11 +355,12 @@ class SequenceFitter:
             joints[lo:hi] = (j @ Gk + o).double().numpy()
             if verts is not None:
                 verts[lo:hi] = v_world
-            dist = np.linalg.norm(v_world - x.astype(np.float32), axis=-1)
+            x32 = x.astype(np.float32)
+            dist = _lengths(v_world - x32)
             used = dist[w > 0]
             dist_sum, dist_count = dist_sum + float(used.sum(dtype=np.float64)), dist_count + used.size
             frame_stats.extend(DistanceStats.of_rows(dist, w > 0))
-            j_in.add(x, w)
+            j_in.add(x32, w)
             j_fit.add(v_world, w)
             if progress is not None:
                 progress(hi, T)
@@ -366,38 +388,38 @@ class SequenceFitter:
         )
         return SequenceFit(c[0], q, root, verts, joints, reports, stats, tuple(self.model.dof_names), q_range)
 
-    def _canonical(
+    def _frames(
         self, source: FrameSource, idx: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Frames idx (k,) from the source, checked, and turned into their canonical frames (step 1).
-        Returns x (k, V, 3) and w (k, V) as given, xc (k, V, 3) canonical, G (k, 3, 3) world -> canonical
-        and the pelvis origins (k, 3)."""
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Frames idx (k,) from the source, checked, with their canonical frames (step 1): x (k, V, 3) and
+        w (k, V) as given, G (k, 3, 3) world -> canonical rotations and the pelvis origins (k, 3)."""
         x, w = source(idx)
         x, w = self.fitter.validate(x, w)
         if len(x) != len(idx):
             raise ShapeError(f"the frame source gave {len(x)} frames for {len(idx)} requested")
         heading, origin = self.headings(x, w)
-        G = _yaw(-heading)
-        xc = (x - origin[:, None]) @ np.swapaxes(G, -1, -2)  # G applied to every vertex (batched BLAS)
-        return x, w, xc, G, origin
+        return x, w, _yaw(-heading), origin
 
     def _pose(
         self,
         x: np.ndarray,
         w: np.ndarray,
+        G: np.ndarray,
+        origin: np.ndarray,
         c: np.ndarray,
         q0: np.ndarray,
         r0: np.ndarray,
         stages: tuple[Stage, ...],
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Pose-only fit of frames x (B, V, 3) with the shape c (1, n_shape) frozen, from q0 (B, n_dof) and
-        r0 (B, 3): one problem per frame. Returns coordinates (B, n_dof) and root (B, 3)."""
+        """Pose-only fit, in the canonical frames (G, origin), of world frames x (B, V, 3) with weights
+        w (B, V), the shape c (1, n_shape) frozen, from q0 (B, n_dof) and r0 (B, 3): one problem per frame.
+        Only the stages' vertices are turned. Returns coordinates (B, n_dof) and root (B, 3)."""
         fitter = self.pose_fitter
         dtype = fitter.config.dtype
         z = fitter.start_state(q0, r0, np.repeat(c, len(x), axis=0))
         for stage in stages:
             idx = fitter.index[stage.vertices]
-            xt = torch.as_tensor(x[:, idx] * 1000.0, dtype=dtype)
+            xt = torch.as_tensor(_turn(x[:, idx], G, origin) * 1000.0, dtype=dtype)
             wt = torch.as_tensor(w[:, idx] / w.mean(axis=1, keepdims=True), dtype=dtype)
             fitter.optimise(stage, z, vertex_term(xt, wt))
         _, q, root = fitter.parameters(z)

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy import sparse
 
 from bodyfit.models.errors import BodyfitError
 
@@ -59,6 +60,7 @@ class SmplModel:
         betas: np.ndarray | None = None,
         trans: np.ndarray | None = None,
         chunk: int = 256,
+        at: sparse.sparray | sparse.spmatrix | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Posed meshes.
 
@@ -67,8 +69,10 @@ class SmplModel:
             betas: (K',) or (T, K') shape coefficients; K' <= K are used, missing ones are 0.
             trans: (T, 3) metres.
             chunk: frames per batch (memory).
+            at: optional (M, N) linear map of the vertices (a correspondence to another topology, say);
+                the result is then the M mapped points, computed without the N posed vertices.
         Returns:
-            vertices (T, N, 3) and joints (T, J, 3), float32, in SMPL's frame.
+            vertices (T, N or M, 3) float32 and joints (T, J, 3), in SMPL's frame.
         """
         p = np.asarray(poses, np.float64)
         T = len(p)
@@ -81,14 +85,20 @@ class SmplModel:
             k = min(bb.shape[1], self.n_betas)
             b[:, :k] = bb[:, :k]
         t = np.zeros((T, 3)) if trans is None else np.asarray(trans, np.float64)
-        vertices = np.empty((T, len(self.v_template), 3), np.float32)
+        if at is not None and at.shape[1] != len(self.v_template):
+            raise SmplModelError(
+                f"the map has {at.shape[1]} columns for the model's {len(self.v_template)} vertices"
+            )
+        vertices = np.empty((T, len(self.v_template) if at is None else at.shape[0], 3), np.float32)
         joints = np.empty((T, self.n_joints, 3), np.float32)
         for lo in range(0, T, chunk):
             hi = min(T, lo + chunk)
-            vertices[lo:hi], joints[lo:hi] = self._forward(p[lo:hi], b[lo:hi], t[lo:hi])
+            vertices[lo:hi], joints[lo:hi] = self._forward(p[lo:hi], b[lo:hi], t[lo:hi], at)
         return vertices, joints
 
-    def _forward(self, p: np.ndarray, b: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _forward(
+        self, p: np.ndarray, b: np.ndarray, t: np.ndarray, at: sparse.sparray | sparse.spmatrix | None
+    ) -> tuple[np.ndarray, np.ndarray]:
         B, N, n_j = len(p), len(self.v_template), self.n_joints
         # One shape for every frame (a sequence's betas) is shaped and regressed once.
         betas = b[:1] if (b == b[:1]).all() else b
@@ -113,7 +123,7 @@ class SmplModel:
         # Transforms relative to the rest pose, A_j = G_j [I, -J_j] (+ translation), blended in float32
         # (sub-micrometre at body scale). The rest body goes through one product of per-vertex features
         # w_nj [v_n, 1] (N, 4 J) with the transforms (4 J, 3 B); offsets, where there are any, through the
-        # blended rotations.
+        # blended rotations. A map ``at`` is applied to the features and offsets (it is linear).
         A = G[:, :, :3, :].copy()
         A[:, :, :, 3] -= (G[:, :, :3, :3] @ J[..., None])[..., 0]
         A[:, :, :, 3] += t[:, None]
@@ -121,11 +131,14 @@ class SmplModel:
         weights = self.weights.astype(np.float32)
         rest_h = np.concatenate([rest, np.ones((N, 1))], axis=1).astype(np.float32)
         features = (weights[:, :, None] * rest_h[:, None, :]).reshape(N, n_j * 4)
+        if at is not None:
+            features = np.asarray(at @ features, np.float32)
         transforms = A32.transpose(1, 3, 0, 2).reshape(n_j * 4, B * 3)  # [j k, b i] = A[b, j, i, k]
-        verts = (features @ transforms).reshape(N, B, 3)
+        verts = (features @ transforms).reshape(-1, B, 3)
         if offsets is not None:
             rotations = (weights @ A32[..., :3].transpose(1, 0, 2, 3).reshape(n_j, B * 9)).reshape(N, B, 3, 3)
-            verts += np.einsum("nbij,nbj->nbi", rotations, np.moveaxis(offsets, 0, 1).astype(np.float32))
+            moved = np.einsum("nbij,nbj->nbi", rotations, np.moveaxis(offsets, 0, 1).astype(np.float32))
+            verts += moved if at is None else np.asarray(at @ moved.reshape(N, B * 3)).reshape(-1, B, 3)
         return np.moveaxis(verts, 0, 1), posed_joints
 
 

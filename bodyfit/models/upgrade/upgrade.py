@@ -107,12 +107,13 @@ def upgrade_with_model(
     model = fitter.model
     tmap = topology or smpl_map()
     good = np.flatnonzero(~sequence.bad_frames)
+    transfer = tmap.matrix(SMPL_VERTICES)  # SMPL vertices -> points at ours, applied inside the forward pass
 
     def source(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Our-topology targets of good frames idx: SMPL forward, axes, correspondence (chunk by chunk)."""
         frames = good[idx]
-        verts, _ = smpl.forward(sequence.poses[frames], sequence.betas, sequence.trans[frames])
-        targets = tmap.transfer(verts.astype(np.float64) @ SMPL_TO_BODY.T)
+        mapped, _ = smpl.forward(sequence.poses[frames], sequence.betas, sequence.trans[frames], at=transfer)
+        targets = mapped.astype(np.float64) @ SMPL_TO_BODY.T
         return targets, np.repeat(tmap.weight[None], len(targets), axis=0)
 
     fit = fitter.fit_frames(source, len(good), progress=progress)
