@@ -173,11 +173,11 @@ class RegisteredFitter:
                 f"registered meshes must have shape (B, {V}, 3) (our template's vertices in its order, "
                 f"metres); got {x.shape}. Fit other topologies as scans or through a stored correspondence."
             )
-        check_finite("mesh vertices", torch.as_tensor(x))
+        check_finite("mesh vertices", x)
         w = np.ones(x.shape[:2]) if weights is None else np.asarray(weights, np.float64)
         if w.shape != x.shape[:2]:
             raise ShapeError(f"vertex weights must have shape {x.shape[:2]}; got {w.shape}")
-        check_finite("vertex weights", torch.as_tensor(w))
+        check_finite("vertex weights", w)
         if (w < 0).any() or (w.sum(axis=1) <= 0).any():
             raise ShapeError("vertex weights must be non-negative with at least one positive weight per mesh")
         return x, w

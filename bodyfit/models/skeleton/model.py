@@ -242,9 +242,11 @@ class Skeleton:
         return self.kinematics(qt.dtype)(qt, rt, st)
 
 
-def check_finite(what: str, t: torch.Tensor) -> None:
-    if not bool(torch.isfinite(t).all()):
-        bad = torch.nonzero(~torch.isfinite(t))[0].tolist()
+def check_finite(what: str, t: torch.Tensor | np.ndarray) -> None:
+    """Raise :class:`NonFiniteError` naming ``what`` and the first bad index if t holds NaN or inf."""
+    ok = np.isfinite(t) if isinstance(t, np.ndarray) else torch.isfinite(t).numpy(force=True)
+    if not ok.all():
+        bad = [int(i) for i in np.argwhere(~ok)[0]]
         raise NonFiniteError(
             f"{what} contain NaN or infinite values (first at index {bad}); send finite numbers"
         )
