@@ -42,14 +42,12 @@ import numpy as np
 import torch
 
 from bodyfit.models.body.model import BodyModel
-from bodyfit.models.fitting.registered import RegisteredFitter
 from bodyfit.models.fitting.retarget import wrap_pelvis
-from bodyfit.models.fitting.sequence import SequenceFitter
 from bodyfit.models.fitting.smpl_topology import SMPL_TO_BODY, smpl_map
 from bodyfit.models.fitting.surface import point_to_surface
 from bodyfit.models.upgrade.smpl_io import SmplSequence, read_smpl_sequence, smpl_sequence
 from bodyfit.models.upgrade.smpl_model import SmplModel, load_smpl_model
-from bodyfit.models.upgrade.upgrade import upgrade_with_model
+from bodyfit.models.upgrade.upgrade import upgrade_fitter, upgrade_with_model
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data" / "smpl_format"
@@ -151,7 +149,7 @@ def long_child(frames: int) -> None:
         return np.concatenate([a, a[::-1]] * reps)[:frames]
 
     seq = replace(seq, poses=tile(seq.poses), trans=tile(seq.trans), bad_frames=tile(seq.bad_frames))
-    result = upgrade_with_model(seq, smpl, SequenceFitter(RegisteredFitter(model)))
+    result = upgrade_with_model(seq, smpl, upgrade_fitter(model))
     peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # Linux: kilobytes
     print(
         json.dumps(
@@ -177,7 +175,7 @@ def run(quick: bool) -> dict[str, Any]:
     model = BodyModel.load()
     smpl = load_smpl_model(DATA / "smpl_like_model.npz")
     seq = sequence(model, smpl, quick)
-    fitter = SequenceFitter(RegisteredFitter(model))
+    fitter = upgrade_fitter(model)
     upgrade_with_model(
         smpl_sequence({"poses": seq.poses[:3].reshape(3, 72), "mocap_framerate": 30}), smpl, fitter
     )

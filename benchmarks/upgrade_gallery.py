@@ -13,14 +13,17 @@ import numpy as np
 import torch
 
 from bodyfit.models.body.model import BodyModel
-from bodyfit.models.fitting.registered import RegisteredFitter
 from bodyfit.models.fitting.retarget import wrap_pelvis
-from bodyfit.models.fitting.sequence import SequenceFitter
 from bodyfit.models.fitting.smpl_topology import SMPL_TO_BODY
 from bodyfit.models.render import RenderMesh, render, save_png, tile
 from bodyfit.models.upgrade.smpl_io import read_smpl_sequence
 from bodyfit.models.upgrade.smpl_model import load_smpl_model
-from bodyfit.models.upgrade.upgrade import UpgradeResult, upgrade_from_rotations, upgrade_with_model
+from bodyfit.models.upgrade.upgrade import (
+    UpgradeResult,
+    upgrade_fitter,
+    upgrade_from_rotations,
+    upgrade_with_model,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data" / "smpl_format"
@@ -37,7 +40,7 @@ def main(out: Path) -> None:
     model = BodyModel.load()
     smpl = load_smpl_model(DATA / "smpl_like_model.npz")
     seq = read_smpl_sequence(DATA / "cmu_131_smpl.npz")
-    a = upgrade_with_model(seq, smpl, SequenceFitter(RegisteredFitter(model)))
+    a = upgrade_with_model(seq, smpl, upgrade_fitter(model))
     b = upgrade_from_rotations(seq, model)
     meshes, _ = smpl.forward(seq.poses, seq.betas, seq.trans)
     images = []

@@ -252,11 +252,14 @@ def upgrade(
 
     from bodyfit.models.body.model import BodyModel
     from bodyfit.models.errors import BodyfitError
-    from bodyfit.models.fitting.registered import RegisteredFitter
-    from bodyfit.models.fitting.sequence import SequenceFitter
     from bodyfit.models.upgrade.smpl_io import read_smpl_sequence
     from bodyfit.models.upgrade.smpl_model import ENV_VAR, load_smpl_model
-    from bodyfit.models.upgrade.upgrade import upgrade_from_rotations, upgrade_with_model, write_upgrade
+    from bodyfit.models.upgrade.upgrade import (
+        upgrade_fitter,
+        upgrade_from_rotations,
+        upgrade_with_model,
+        write_upgrade,
+    )
 
     try:
         seq = read_smpl_sequence(sequence)
@@ -272,9 +275,7 @@ def upgrade(
                 typer.echo("no SMPL-family model file: path (b), from the joint rotations alone", err=True)
                 result = upgrade_from_rotations(seq, model, progress=progress)
             else:
-                result = upgrade_with_model(
-                    seq, smpl, SequenceFitter(RegisteredFitter(model)), progress=progress
-                )
+                result = upgrade_with_model(seq, smpl, upgrade_fitter(model), progress=progress)
     except (BodyfitError, OSError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc

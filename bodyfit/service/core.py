@@ -38,6 +38,7 @@ from bodyfit.models.upgrade.smpl_io import SmplSequence, read_smpl_npz
 from bodyfit.models.upgrade.smpl_model import SmplModel, load_smpl_model
 from bodyfit.models.upgrade.upgrade import (
     UpgradeResult,
+    upgrade_fitter,
     upgrade_from_rotations,
     upgrade_with_model,
     write_upgrade,
@@ -144,6 +145,7 @@ class _Fitters:
     registered: RegisteredFitter
     scan: ScanFitter
     sequence: SequenceFitter
+    upgrade: SequenceFitter
 
 
 @dataclass
@@ -205,10 +207,12 @@ class BodyService:
 
     @property
     def fitters(self) -> _Fitters:
-        """The registered, scan and sequence fitters (built on first use)."""
+        """The registered, scan, sequence and upgrade fitters (built on first use)."""
         if self._fitters is None:
             registered = RegisteredFitter(self.model)
-            self._fitters = _Fitters(registered, ScanFitter(self.model), SequenceFitter(registered))
+            self._fitters = _Fitters(
+                registered, ScanFitter(self.model), SequenceFitter(registered), upgrade_fitter(registered)
+            )
         return self._fitters
 
     # -- info ------------------------------------------------------------------------------------------
@@ -490,7 +494,7 @@ class BodyService:
             with invalid_input("file"):
                 if self._smpl is None:
                     return upgrade_from_rotations(sequence, self.model, progress=progress)
-                return upgrade_with_model(sequence, self._smpl, self.fitters.sequence, progress=progress)
+                return upgrade_with_model(sequence, self._smpl, self.fitters.upgrade, progress=progress)
 
     def upgrade_files(self, result: UpgradeResult, name: str) -> dict[str, bytes]:
         """The upgrade's files as bytes: npz, json (summary), osim and mot (see ``write_upgrade``)."""

@@ -235,6 +235,27 @@ def test_frame_source_streams_in_chunks_and_matches_the_array_fit(
         seq_fitter.fit_frames(source, 0)
 
 
+def test_blend_is_centred_and_leaves_the_pelvis(
+    model: BodyModel, moved: Retargeted, seq_fitter: SequenceFitter
+) -> None:
+    """The blend acts after the per-frame fits: the blended joint coordinates are exactly the centred
+    three-frame blend of the unblended ones, across chunks too; the pelvis and the end frames are kept."""
+    T = CHUNK + 36
+    x = model.forward(
+        np.zeros((T, model.n_shape)), moved.in_range(model.skeleton)[:T], moved.root[:T], dtype=torch.float64
+    ).vertices.numpy()
+    b = 0.2
+    raw = SequenceFitter(seq_fitter.fitter, replace(seq_fitter.config, blend=0.0)).fit(x).coordinates
+    blended = SequenceFitter(seq_fitter.fitter, replace(seq_fitter.config, blend=b)).fit(x).coordinates
+    pelvis = np.array([n.startswith("pelvis_") for n in model.dof_names])
+    expected = (1 - 2 * b) * raw[1:-1] + b * (raw[:-2] + raw[2:])
+    np.testing.assert_allclose(blended[1:-1, ~pelvis], expected[:, ~pelvis], atol=1e-9)
+    np.testing.assert_allclose(blended[:, pelvis], raw[:, pelvis], atol=1e-9)
+    np.testing.assert_allclose(blended[[0, -1]], raw[[0, -1]], atol=1e-9)
+    with pytest.raises(ValueError, match="blend"):
+        SequenceFitter(model, SequenceConfig(blend=0.5))
+
+
 def test_jitter_definition() -> None:
     t = np.arange(5.0)
     x = np.zeros((5, 2, 3))

@@ -52,7 +52,7 @@ FrameSource = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray | None]]
 vertex order, metres, and per-vertex weights (k, V) (None: ones)."""
 
 KEY_STAGES = (Stage("key_pose", "all", "none", "subset", 40),)
-FRAME_STAGES = (Stage("pose", "all", "none", "subset", 12),)
+FRAME_STAGES = (Stage("pose", "all", "none", "subset", 24),)
 PELVIS_WEIGHT = 0.5  # skinning weight above which a vertex belongs to the pelvis, for the heading
 
 
@@ -61,7 +61,10 @@ class SequenceConfig:
     """keyframes: frames (spread evenly) the shape is fitted on; stride: frames between pose keyframes;
     chunk: frames fitted together (memory only: frames are independent given the keyframes);
     pose_subset: vertices of the farthest-point subset the pose stages ("subset") fit;
-    key_stages / frame_stages: pose-only stages (shape "none") for pose keyframes and for every frame."""
+    key_stages / frame_stages: pose-only stages (shape "none") for pose keyframes and for every frame;
+    blend: weight b of the centred three-frame blend of the joint coordinates (all but the pelvis's) after
+    the per-frame fits, ``q[t] <- (1 - 2 b) q[t] + b (q[t-1] + q[t+1])``: symmetric in time, so it adds
+    no lag; a convex combination, so it stays within the limits; 0 turns it off."""
 
     keyframes: int = 8
     stride: int = 8
@@ -69,6 +72,7 @@ class SequenceConfig:
     pose_subset: int = 400
     key_stages: tuple[Stage, ...] = KEY_STAGES
     frame_stages: tuple[Stage, ...] = FRAME_STAGES
+    blend: float = 0.02
 
 
 @dataclass(frozen=True)
@@ -169,6 +173,27 @@ class JitterSum:
         return self._total / self._count * 1000.0 if self._count else float("nan")
 
 
+class _Totals:
+    """What the frame pass accumulates chunk by chunk: distance sums, per-frame statistics, jitter."""
+
+    def __init__(self) -> None:
+        self.distance_sum = 0.0
+        self.distance_count = 0
+        self.frames: list[DistanceStats] = []
+        self.jitter_input = JitterSum()
+        self.jitter_fit = JitterSum()
+
+    def add(self, x: np.ndarray, fitted: np.ndarray, w: np.ndarray) -> None:
+        """Input frames x (k, V, 3), fitted skins (k, V, 3), weights (k, V); float32 metres."""
+        dist = _lengths(fitted - x)
+        used = dist[w > 0]
+        self.distance_sum += float(used.sum(dtype=np.float64))
+        self.distance_count += used.size
+        self.frames.extend(DistanceStats.of_rows(dist, w > 0))
+        self.jitter_input.add(x, w)
+        self.jitter_fit.add(fitted, w)
+
+
 def jitter(x: np.ndarray, weights: np.ndarray | None = None) -> float:
     """Mean second difference in time of trajectories x (T, N, 3) metres, in mm; over points with positive
     weight (T, N) in all three frames; NaN for fewer than 3 frames."""
@@ -221,12 +246,15 @@ class SequenceFitter:
                 raise ValueError(f"sequence pose stages keep the shape frozen; stage {stage.name!r} fits it")
         if self.config.stride < 1 or self.config.keyframes < 1 or self.config.chunk < 1:
             raise ValueError("keyframes, stride and chunk must be at least 1")
+        if not 0.0 <= self.config.blend < 0.5:
+            raise ValueError(f"blend must be in [0, 0.5); got {self.config.blend}")
         self.fitter = fitter if isinstance(fitter, RegisteredFitter) else RegisteredFitter(fitter)
         base: RegisteredFitConfig = self.fitter.config
         # Pose fits run on their own (smaller) vertex subset; the shape fit keeps the given fitter's.
         self.pose_fitter = RegisteredFitter(self.model, replace(base, subset_size=self.config.pose_subset))
         skel = self.model.skeleton
         self.pelvis_dofs = [skel.dof_index(n) for n in PELVIS_ROTATIONS]
+        self._joint_dofs = np.array([k for k, n in enumerate(skel.dof_names) if not n.startswith("pelvis_")])
         self.pelvis_vertices = np.flatnonzero(self.model.data["weights"][:, 0] > PELVIS_WEIGHT)
         fk = skel.kinematics(torch.float64)
         scales = torch.as_tensor(self.model.data["scale_mean"], dtype=torch.float64)[None]
@@ -327,25 +355,21 @@ class SequenceFitter:
         r_init = np.stack([np.interp(np.arange(T), keys, r_key[:, j]) for j in range(3)], 1)
 
         q_c, root_c = np.empty_like(q_init), np.empty((T, 3))
+        q_s = np.empty_like(q_init)  # after the blend
         G, origin = np.empty((T, 3, 3)), np.empty((T, 3))
         verts = np.empty((T, self.model.n_vertices, 3), np.float32) if keep_vertices else None
         joints = np.empty((T, len(self.model.joint_names), 3))
-        dist_sum, dist_count = 0.0, 0
-        j_in, j_fit = JitterSum(), JitterSum()
-        frame_stats: list[DistanceStats] = []
-        decoder = self.pose_fitter.decoder
+        totals = _Totals()
         dtype = self.pose_fitter.config.dtype
         ct = torch.as_tensor(c, dtype=dtype)
-        for lo in range(0, T, cfg.chunk):
-            hi = min(T, lo + cfg.chunk)
-            x, w, G[lo:hi], origin[lo:hi] = self._frames(source, np.arange(lo, hi))
-            q_c[lo:hi], root_c[lo:hi] = self._pose(
-                x, w, G[lo:hi], origin[lo:hi], c, q_init[lo:hi], r_init[lo:hi], cfg.frame_stages
-            )
+
+        def finish(lo: int, hi: int, x: np.ndarray, w: np.ndarray) -> None:
+            """Blend, skin and measure frames lo:hi (every neighbour's pose is known by now)."""
+            q_s[lo:hi] = self._blend(q_c, lo, hi)
             with torch.no_grad():
-                v, j, _, _ = decoder(
+                v, j, _, _ = self.pose_fitter.decoder(
                     ct.expand(hi - lo, -1),
-                    torch.as_tensor(q_c[lo:hi], dtype=dtype),
+                    torch.as_tensor(q_s[lo:hi], dtype=dtype),
                     torch.as_tensor(root_c[lo:hi], dtype=dtype),
                 )
             # World = G^T canonical + origin, on row vectors: v @ G + origin.
@@ -355,38 +379,63 @@ class SequenceFitter:
             joints[lo:hi] = (j @ Gk + o).double().numpy()
             if verts is not None:
                 verts[lo:hi] = v_world
-            x32 = x.astype(np.float32)
-            dist = _lengths(v_world - x32)
-            used = dist[w > 0]
-            dist_sum, dist_count = dist_sum + float(used.sum(dtype=np.float64)), dist_count + used.size
-            frame_stats.extend(DistanceStats.of_rows(dist, w > 0))
-            j_in.add(x32, w)
-            j_fit.add(v_world, w)
+            totals.add(x.astype(np.float32), v_world, w)
             if progress is not None:
                 progress(hi, T)
+
+        pending: tuple[int, int, np.ndarray, np.ndarray] | None = None
+        for lo in range(0, T, cfg.chunk):
+            hi = min(T, lo + cfg.chunk)
+            x, w, G[lo:hi], origin[lo:hi] = self._frames(source, np.arange(lo, hi))
+            q_c[lo:hi], root_c[lo:hi] = self._pose(
+                x, w, G[lo:hi], origin[lo:hi], c, q_init[lo:hi], r_init[lo:hi], cfg.frame_stages
+            )
+            if pending is not None:  # one chunk behind: its last frame's blend needs this chunk's first
+                finish(*pending)
+            pending = (lo, hi, x, w)
+        if pending is not None:
+            finish(*pending)
         iterations = sum(st.iterations for st in cfg.frame_stages)
 
         # Back to the world: root and pelvis orientation turned back, pelvis angles unwrapped.
         Gt = np.swapaxes(G, -1, -2)
         root = np.einsum("tij,tj->ti", Gt, root_c) + origin
-        q = q_c.copy()
-        q[:, self.pelvis_dofs] = zxy_angles(Gt @ _zxy_matrix(q_c[:, self.pelvis_dofs]))
+        q = q_s.copy()
+        q[:, self.pelvis_dofs] = zxy_angles(Gt @ _zxy_matrix(q_s[:, self.pelvis_dofs]))
         q = unwrap_pelvis(q, self.model.skeleton)
         seconds = time.perf_counter() - start
 
         q_range = wrap_pelvis(q, self.model.skeleton)
-        reports = [self._report(st, q_range[t], iterations, seconds / T) for t, st in enumerate(frame_stats)]
+        reports = [
+            self._report(st, q_range[t], iterations, seconds / T) for t, st in enumerate(totals.frames)
+        ]
+        j_in, j_fit = totals.jitter_input.mm(), totals.jitter_fit.mm()
         stats = SequenceStats(
             frames=T,
             seconds=seconds,
             fps=T / seconds,
-            mean_mm=dist_sum / max(dist_count, 1) * 1000.0,
-            jitter_input_mm=j_in.mm(),
-            jitter_fit_mm=j_fit.mm(),
-            jitter_ratio=j_fit.mm() / j_in.mm() if j_in.mm() > 0 else float("nan"),
+            mean_mm=totals.distance_sum / max(totals.distance_count, 1) * 1000.0,
+            jitter_input_mm=j_in,
+            jitter_fit_mm=j_fit,
+            jitter_ratio=j_fit / j_in if j_in > 0 else float("nan"),
             shape_keyframes=tuple(int(k) for k in shape_keys),
         )
         return SequenceFit(c[0], q, root, verts, joints, reports, stats, tuple(self.model.dof_names), q_range)
+
+    def _blend(self, q: np.ndarray, lo: int, hi: int) -> np.ndarray:
+        """Rows lo:hi of q (T, n_dof) after the centred blend of the joint coordinates (see
+        :class:`SequenceConfig`); the first and last frames and the pelvis are kept."""
+        out = q[lo:hi].copy()
+        b = self.config.blend
+        inner = np.arange(max(lo, 1), min(hi, len(q) - 1))
+        if b == 0.0 or len(inner) == 0:
+            return out
+        joints = self._joint_dofs
+        rows = inner - lo
+        out[np.ix_(rows, joints)] = (1.0 - 2.0 * b) * q[np.ix_(inner, joints)] + b * (
+            q[np.ix_(inner - 1, joints)] + q[np.ix_(inner + 1, joints)]
+        )
+        return out
 
     def _frames(
         self, source: FrameSource, idx: np.ndarray
