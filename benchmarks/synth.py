@@ -135,7 +135,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def settings_for(args: argparse.Namespace) -> Settings:
-    warmup, repeats_b1, repeats_b64 = (2, 20, 3) if args.quick else (5, 200, 20)
+    warmup, repeats_b1, repeats_b64 = (3, 50, 15) if args.quick else (5, 200, 40)
     return Settings(warmup, repeats_b1, repeats_b64, 1000, args.seed, args.quick, args.assets)
 
 

@@ -9,6 +9,18 @@ import numpy as np
 import torch
 
 
+def cm_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Matrix product in the component-major layout: (I, L, ...) @ (L, K, ...) -> (I, K, ...), the batch
+    dimensions last (broadcast). Batches of 3 x 3 or 4 x 4 products become a few large elementwise
+    operations instead of thousands of tiny GEMMs (5x faster in ONNX Runtime, 2x in torch)."""
+    return (a.unsqueeze(2) * b.unsqueeze(0)).sum(1)
+
+
+def cm_matvec(a: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Matrix-vector product in the component-major layout: (I, L, ...) @ (L, ...) -> (I, ...)."""
+    return (a * v.unsqueeze(0)).sum(1)
+
+
 def axis_angle_matrix(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
     """Rotation by ``angle`` about unit ``axis`` (Rodrigues).
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 
@@ -24,8 +25,36 @@ def skinning_transforms(frames: torch.Tensor, bind_frames: torch.Tensor) -> torc
     return (frames @ rigid_inverse(bind_frames))[..., :3, :]
 
 
-def linear_blend(vertices: torch.Tensor, weights: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
-    """Linear blend skinning.
+def blend_rows(transforms: torch.Tensor) -> torch.Tensor:
+    """Skinning transforms, component-major (3, 4, n, B), as the left factor of :func:`blend_block`'s
+    GEMM: (3 * B * 4, n), rows ordered (row, batch, column)."""
+    n = transforms.shape[2]
+    return transforms.permute(0, 3, 1, 2).reshape(-1, n)
+
+
+def blend_block(rest_h: torch.Tensor, weights_t: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """Linear blend skinning of one block of vertices by the bodies that carry it.
+
+    The blended 3x4 matrices of every vertex come from one GEMM, (3 * B * 4, n) @ (n, V), so that applying
+    them to the homogeneous rest positions is one broadcast product and one sum over a middle axis: few,
+    large, contiguous operations in torch and ONNX Runtime alike.
+
+    Args:
+        rest_h: (B, 4, V) bind-pose vertices x, y, z, 1 (coordinates before vertices).
+        weights_t: (n, V) skinning weights of these vertices on n bodies, transposed.
+        rows: (3 * B * 4, n) those bodies' transforms from :func:`blend_rows`.
+    Returns:
+        (B, V, 3) posed vertices.
+    """
+    B, _, V = rest_h.shape
+    blended = (rows @ weights_t).reshape(3, B, 4, V)
+    return (blended * rest_h).sum(2).permute(1, 2, 0)
+
+
+def linear_blend(
+    vertices: torch.Tensor, weights: torch.Tensor, transforms: torch.Tensor, chunk: int = 128
+) -> torch.Tensor:
+    """Linear blend skinning of whole meshes, ``chunk`` meshes at a time.
 
     Args:
         vertices: (B, V, 3) bind-pose vertices.
@@ -34,33 +63,60 @@ def linear_blend(vertices: torch.Tensor, weights: torch.Tensor, transforms: torc
     Returns:
         (B, V, 3) posed vertices.
     """
-    return linear_blend_coordinate_major(vertices.permute(2, 0, 1), weights.T, transforms)
+    rest_h = torch.cat([vertices, torch.ones_like(vertices[..., :1])], dim=-1).transpose(1, 2)
+    parts = [
+        blend_block(
+            rest_h[i : i + chunk], weights.T, blend_rows(transforms[i : i + chunk].permute(2, 3, 1, 0))
+        )
+        for i in range(0, len(vertices), chunk)
+    ]
+    return torch.cat(parts)
 
 
-def linear_blend_coordinate_major(
-    rest: torch.Tensor, weights_t: torch.Tensor, transforms: torch.Tensor
-) -> torch.Tensor:
-    """Linear blend skinning in the fast layout: coordinates outermost, vertices innermost.
+def blend_blocks(weights: np.ndarray, n_blocks: int, step: int = 64) -> list[tuple[int, int, np.ndarray]]:
+    """Split the vertices into ``n_blocks`` contiguous ranges that each depend on few bodies.
 
-    Each column of the blended 3x4 matrices is one GEMM (3 B, n) @ (n, V) laid out (3, B, V), so applying
-    them is three broadcast multiply-adds over contiguous arrays: no slicing, gathering or tiny batched
-    matmuls, fast in torch and ONNX Runtime at any batch size.
+    Skinning a block costs about (its vertices) x (the bodies with weight on any of them); the ranges
+    (cut at multiples of ``step``) minimise the sum of that by dynamic programming. Neighbouring template
+    vertices mostly belong to the same limb, so the blocks need about a third of the dense blend's work.
 
     Args:
-        rest: (3, B, V) bind-pose vertex coordinates x, y, z.
-        weights_t: (n_body, V) skinning weights, transposed.
-        transforms: (B, n_body, 3, 4) from :func:`skinning_transforms`.
+        weights: (V, n_body) skinning weights.
     Returns:
-        (B, V, 3) posed vertices.
+        [(start, stop, bodies)] covering 0..V in order; bodies: indices of the bodies with weight in
+        ``start:stop`` (at least one).
     """
-    B, n = transforms.shape[:2]
-    V = weights_t.shape[1]
-    flat = transforms.permute(3, 2, 0, 1).reshape(4, 3 * B, n)  # (column c, row r * batch b, body)
-    # Translation column, then x, y, z columns times the vertex coordinates: one GEMM each.
-    posed = (flat[3] @ weights_t).reshape(3, B, V)
-    for c in range(3):
-        posed = posed + (flat[c] @ weights_t).reshape(3, B, V) * rest[c]
-    return posed.permute(1, 2, 0)
+    V = weights.shape[0]
+    cuts = np.unique(np.r_[np.arange(0, V, step), V])
+    used = weights != 0
+    # counts[i, j]: vertices of range i that use body j; support of cuts[i]:cuts[k] from prefix sums.
+    prefix = np.concatenate(
+        [
+            np.zeros((1, used.shape[1]), np.int64),
+            np.cumsum(np.add.reduceat(used.astype(np.int64), cuts[:-1], axis=0), axis=0),
+        ]
+    )
+    m = len(cuts)
+    cost = np.full((m, m), np.inf)
+    for i in range(m - 1):
+        support = ((prefix[i + 1 :] - prefix[i]) > 0).sum(axis=1)
+        cost[i, i + 1 :] = (cuts[i + 1 :] - cuts[i]) * np.maximum(support, 1)
+    n_blocks = max(1, min(n_blocks, m - 1))
+    best = np.full((n_blocks + 1, m), np.inf)
+    best[0, 0] = 0.0
+    arg = np.zeros((n_blocks + 1, m), np.int64)
+    for k in range(1, n_blocks + 1):
+        total = best[k - 1][:, None] + cost  # (from, to)
+        arg[k] = np.argmin(total, axis=0)
+        best[k] = total[arg[k], np.arange(m)]
+    blocks = []
+    j = m - 1
+    for k in range(n_blocks, 0, -1):
+        i = int(arg[k, j])
+        bodies = np.flatnonzero(used[cuts[i] : cuts[j]].any(axis=0))
+        blocks.append((int(cuts[i]), int(cuts[j]), bodies if len(bodies) else np.zeros(1, np.int64)))
+        j = i
+    return blocks[::-1]
 
 
 def normalised_weights(raw: torch.Tensor, mask: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:

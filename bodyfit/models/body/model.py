@@ -2,7 +2,8 @@
 
     scales   s = s_mean + c_b P_b                          (BLSM eq. 4; per segment, x y z)
     template V = V_mean + c_b P_bc + c_s P_s                (BLSM eq. 1, 7, 8; in the bind pose)
-    frames   T(q, s), bind frames T(q_bind, s)              (the skeleton's forward kinematics)
+    frames   T(q, s)                                        (the skeleton's forward kinematics)
+    bind     T(q_bind, s): fixed rotations, origins affine in c_b (no second forward kinematics)
     skin     v = sum_j w_j T_j T_bind,j^-1 V                (LBS, BLSM eq. 12)
     joints   anatomical joint centres, fixed points of the skeleton's bodies
 
@@ -22,8 +23,9 @@ import torch
 from torch import nn
 
 from bodyfit.models.assets import verified_asset
-from bodyfit.models.body.lbs import linear_blend_coordinate_major, skinning_transforms
+from bodyfit.models.body.lbs import blend_block, blend_blocks, blend_rows
 from bodyfit.models.errors import AssetError, ShapeError
+from bodyfit.models.rotations import cm_matmul, cm_matvec
 from bodyfit.models.skeleton.model import Skeleton, check_finite
 from bodyfit.models.skeleton.spec import SkeletonSpec
 
@@ -90,6 +92,75 @@ def body_points(
     return (T[..., :3, :3] @ p.unsqueeze(-1)).squeeze(-1) + T[..., :3, 3]
 
 
+def bind_frames_affine(skeleton: Skeleton, data: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Bind-pose body frames as an affine function of the bone coefficients c_b.
+
+    At a fixed pose a body's origin is a sum of rotated, scaled joint offsets, so it is linear in the
+    segment scales and hence in c_b, and the orientations do not depend on them: the forward pass then
+    needs forward kinematics for the pose only. Checked against forward kinematics here.
+
+    Returns:
+        base (n_body, 4, 4) frames at c_b = 0; delta (n_bone, n_body, 3) origin change per coefficient;
+        float64.
+    """
+    fk = skeleton.kinematics(torch.float64)
+    mean = torch.as_tensor(np.asarray(data["scale_mean"], np.float64))
+    basis = torch.as_tensor(np.asarray(data["scale_basis"], np.float64))
+    q_bind = torch.as_tensor(np.asarray(data["bind_q"], np.float64))
+    nb = basis.shape[0]
+
+    def frames(c_b: torch.Tensor) -> torch.Tensor:
+        scales = mean + torch.einsum("nk,kjc->njc", c_b, basis)
+        return fk(q_bind.expand(len(c_b), -1), None, scales).frames
+
+    with torch.no_grad():
+        F = frames(torch.cat([torch.zeros(1, nb), torch.eye(nb)]).double())
+        base, delta = F[0], F[1:, :, :3, 3] - F[0, :, :3, 3]
+        probe = torch.as_tensor(np.random.default_rng(0).normal(size=(4, nb)) * 2.0)
+        linear = base[:, :3, 3] + torch.einsum("nk,kjc->njc", probe, delta)
+        exact = frames(probe)
+    if float((exact[..., :3, 3] - linear).abs().max()) > 1e-9 or not torch.allclose(
+        exact[..., :3, :3], base[:, :3, :3].expand_as(exact[..., :3, :3])
+    ):
+        raise AssertionError("bind-pose frames are not affine in the bone coefficients")
+    return base.numpy(), delta.numpy()
+
+
+# Vertices per skinning block (see :func:`blend_blocks`): about 12 blocks for the whole template.
+_BLOCK_VERTICES = 1100
+
+
+class SkinBlock(nn.Module):
+    """Buffers of one block of vertices: the bodies that carry them, their weights on those bodies and
+    their homogeneous template basis, rest_h (B, 4, V_k) = [1, c] @ basis."""
+
+    bodies: torch.Tensor
+    weights_t: torch.Tensor
+    basis: torch.Tensor
+
+    def __init__(
+        self, bodies: np.ndarray, weights_t: np.ndarray, basis: np.ndarray, dtype: torch.dtype
+    ) -> None:
+        """bodies (m,); weights_t (m, V_k); basis (1 + K, 4, V_k)."""
+        super().__init__()
+        self.register_buffer("bodies", torch.as_tensor(bodies, dtype=torch.long))
+        self.register_buffer("weights_t", torch.as_tensor(np.ascontiguousarray(weights_t)).to(dtype))
+        self.register_buffer("basis", torch.as_tensor(basis.reshape(len(basis), -1)).to(dtype))
+
+    def forward(self, coeffs: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        """coeffs (B, 1 + K); rows (3 * B * 4, n_body) from :func:`blend_rows` -> (B, V_k, 3)."""
+        rest_h = (coeffs @ self.basis).reshape(coeffs.shape[0], 4, self.weights_t.shape[1])
+        return blend_block(rest_h, self.weights_t, rows[:, self.bodies])
+
+
+def skin_blocks(basis: np.ndarray, weights: np.ndarray, dtype: torch.dtype) -> nn.ModuleList:
+    """The skin split into :class:`SkinBlock` s. basis (1 + K, 4, V); weights (V, n_body)."""
+    blocks = blend_blocks(weights, max(1, round(weights.shape[0] / _BLOCK_VERTICES)))
+    return nn.ModuleList(
+        SkinBlock(bodies, weights[a:b, bodies].T, basis[:, :, a:b], dtype) for a, b, bodies in blocks
+    )
+
+
 class BodyDecoder(nn.Module):
     """Buffers-only torch module: (shape, coordinates, root) -> skin vertices, joints, frames, scales.
 
@@ -98,10 +169,8 @@ class BodyDecoder(nn.Module):
 
     scale_mean: torch.Tensor
     scale_basis: torch.Tensor
-    shape_basis: torch.Tensor
-    weights_t: torch.Tensor
-    skinned_bodies: torch.Tensor
-    bind_q: torch.Tensor
+    bind_rot_t: torch.Tensor
+    bind_shift: torch.Tensor
     joint_local: torch.Tensor
     joint_body: torch.Tensor
     joint_segment: torch.Tensor
@@ -119,16 +188,21 @@ class BodyDecoder(nn.Module):
 
         buf("scale_mean", data["scale_mean"].reshape(n_seg * 3))
         buf("scale_basis", data["scale_basis"].reshape(self.n_bone, n_seg * 3))
-        # Template, coordinate-major: rest (3, B, V) = [1, c] (B, 1 + K) @ shape_basis (3, 1 + K, V).
-        mean = data["vertices_mean"][None]
-        basis = np.concatenate([mean, data["bone_correctives"], data["identity_basis"]])
-        buf("shape_basis", basis.transpose(2, 0, 1))
-        # Only bodies that carry skin enter the blend.
-        W = np.asarray(data["weights"], np.float64)
-        skinned = np.flatnonzero(W.sum(axis=0) > 0)
-        buf("weights_t", W[:, skinned].T)
-        self.register_buffer("skinned_bodies", torch.as_tensor(skinned, dtype=torch.long))
-        buf("bind_q", data["bind_q"].reshape(1, -1))
+        # Template: rest_h (B, 4, V) = [1, c] (B, 1 + K) @ basis (1 + K, 4, V), the 4th coordinate 1.
+        basis = np.concatenate(
+            [data["vertices_mean"][None], data["bone_correctives"], data["identity_basis"]]
+        )
+        ones = np.zeros((len(basis), 1, basis.shape[1]))
+        ones[0] = 1.0
+        self._basis = np.concatenate([basis.transpose(0, 2, 1), ones], axis=1)
+        self._weights = np.asarray(data["weights"], np.float64)
+        self.skin = skin_blocks(self._basis, self._weights, dtype)
+        # inv(bind) = [Rb^T, -Rb^T tb]: Rb^T is fixed and Rb^T tb = [1, c_b] @ bind_shift.
+        base, delta = bind_frames_affine(skeleton, data)
+        rot_t = base[:, :3, :3].transpose(0, 2, 1)
+        origins = np.concatenate([base[None, :, :3, 3], delta])  # (1 + n_bone, n_body, 3)
+        buf("bind_rot_t", rot_t.transpose(1, 2, 0)[..., None])  # component-major (3, 3, n_body, 1)
+        buf("bind_shift", np.einsum("sij,ksj->ksi", rot_t, origins).reshape(1 + self.n_bone, -1))
         buf("joint_local", local)
         self.register_buffer("joint_body", torch.as_tensor(bodies, dtype=torch.long))
         self.register_buffer("joint_segment", torch.as_tensor(seg_of_body[bodies], dtype=torch.long))
@@ -136,39 +210,32 @@ class BodyDecoder(nn.Module):
     def restricted(self, vertices: np.ndarray) -> BodyDecoder:
         """A decoder that outputs only ``vertices`` (V',) template indices, sharing every other buffer.
         Fitting runs its early iterations on such a subset."""
-        index = torch.as_tensor(np.asarray(vertices, np.int64))
+        index = np.asarray(vertices, np.int64)
         sub = copy.copy(self)
-        sub._buffers = dict(self._buffers)
-        sub.shape_basis = self.shape_basis[:, :, index].contiguous()
-        sub.weights_t = self.weights_t[:, index].contiguous()
+        sub._modules = dict(self._modules)
+        sub.skin = skin_blocks(self._basis[:, :, index], self._weights[index], self.bind_rot_t.dtype)
         return sub
 
     def forward(
-        self, shape: torch.Tensor, q: torch.Tensor, root: torch.Tensor, bind: torch.Tensor | None = None
+        self, shape: torch.Tensor, q: torch.Tensor, root: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Args:
             shape: (B, n_shape) coefficients [bone, identity]; q: (B, n_dof); root: (B, 3).
-            bind: (B, n_body, 4, 4) the body frames in the bind pose for these shapes, when the caller has
-                them (fitting does); computed by forward kinematics otherwise.
         Returns:
             vertices (B, V, 3), joints (B, J, 3), frames (B, n_body, 4, 4), scales (B, n_seg, 3).
         """
         B = shape.shape[0]
         scales = (self.scale_mean + shape[:, : self.n_bone] @ self.scale_basis).reshape(B, self.n_seg, 3)
         coeffs = torch.cat([torch.ones_like(shape[:, :1]), shape], dim=1)  # (B, 1 + n_shape)
-        rest = coeffs.unsqueeze(0) @ self.shape_basis  # (3, B, V)
-        if bind is None:
-            # One FK call for the pose and the bind pose of every body.
-            both = self.fk(
-                torch.cat([q, self.bind_q.expand(B, -1)]),
-                torch.cat([root, torch.zeros_like(root)]),
-                torch.cat([scales, scales]),
-            ).frames
-            frames, bind = both[:B], both[B:]
-        else:
-            frames = self.fk(q, root, scales).frames
-        transforms = skinning_transforms(frames[:, self.skinned_bodies], bind[:, self.skinned_bodies])
-        vertices = linear_blend_coordinate_major(rest, self.weights_t, transforms)
+        world = self.fk.frames_cm(q, root, scales)  # (4, 4, n_body, B)
+        # Skinning transforms T inv(T_bind) = [R Rb^T, t - R (Rb^T tb)], component-major.
+        R, t = world[:3, :3], world[:3, 3]
+        shift = (coeffs[:, : 1 + self.n_bone] @ self.bind_shift).reshape(B, self.bind_rot_t.shape[2], 3)
+        shift = shift.permute(2, 1, 0)
+        transforms = torch.cat([cm_matmul(R, self.bind_rot_t), (t - cm_matvec(R, shift)).unsqueeze(1)], 1)
+        rows = blend_rows(transforms)
+        vertices = torch.cat([block(coeffs, rows) for block in self.skin], dim=1)
+        frames = world.permute(3, 2, 0, 1).contiguous()
         joints = body_points(frames, scales, self.joint_body, self.joint_segment, self.joint_local)
         return vertices, joints, frames, scales
 

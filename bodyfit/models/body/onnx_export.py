@@ -29,10 +29,10 @@ class _SkinAndJoints(torch.nn.Module):
 def export_body_onnx(decoder: BodyDecoder, n_shape: int, path: str | Path | None = None) -> bytes:
     """Inputs shape (B, n_shape), coordinates (B, n_dof), root (B, 3); outputs vertices (B, V, 3) and
     joints (B, J, 3). Returns the model bytes (also written to ``path`` when given)."""
-    dtype = decoder.shape_basis.dtype
+    dtype = decoder.bind_rot_t.dtype
     args = (
         torch.zeros(2, n_shape, dtype=dtype),
-        decoder.bind_q.expand(2, -1).clone(),
+        torch.zeros(2, decoder.fk.n_dof, dtype=dtype),
         torch.zeros(2, 3, dtype=dtype),
     )
     return export_module(_SkinAndJoints(decoder), args, INPUTS, OUTPUTS, path)

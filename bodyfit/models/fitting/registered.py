@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from bodyfit.models.body.model import BodyDecoder, BodyModel
+from bodyfit.models.body.model import BodyDecoder, BodyModel, bind_frames_affine
 from bodyfit.models.errors import ShapeError
 from bodyfit.models.fitting.lbfgs import batched_lbfgs
 from bodyfit.models.fitting.report import DistanceStats, FitReport
@@ -154,9 +154,7 @@ class RegisteredFitter:
             if len(own) >= MIN_PART_VERTICES:
                 self._part_bodies.append(j)
                 self._part_index.append(own)
-        base, delta = self._linear_bind()
-        self._bind_frames = base.numpy()  # (n_body, 4, 4) the mean body's bind pose, float64
-        self._bind_base, self._bind_delta = base.to(dtype), delta.to(dtype)
+        self._bind_frames = bind_frames_affine(skel, model.data)[0]  # (n_body, 4, 4) the mean body's, float64
         self._scales = self._preconditioner()
 
     # -- input -----------------------------------------------------------------------------------------
@@ -328,45 +326,6 @@ class RegisteredFitter:
         scale = 1.0 / rms
         return scale[:n_dof], scale[n_dof : n_dof + 3], scale[n_dof + 3 :]
 
-    def _linear_bind(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Bind-pose body frames as an affine function of the bone coefficients c_b.
-
-        At a fixed pose a body's origin is a sum of rotated, scaled joint offsets, so it is linear in the
-        segment scales and hence in c_b, and the orientations do not depend on them: the fit then needs
-        forward kinematics for the pose only. Checked against forward kinematics here.
-
-        Returns:
-            base (n_body, 4, 4) frames at c_b = 0; delta (n_bone, n_body, 3) origin change per coefficient;
-            float64.
-        """
-        skel, nb = self.model.skeleton, self.model.n_bone
-        fk = skel.kinematics(torch.float64)
-        mean = torch.as_tensor(self.model.data["scale_mean"], dtype=torch.float64)
-        basis = torch.as_tensor(self.model.data["scale_basis"], dtype=torch.float64)
-
-        def frames(c_b: torch.Tensor) -> torch.Tensor:
-            scales = mean + torch.einsum("nk,kjc->njc", c_b, basis)
-            return fk(torch.as_tensor(self.model.bind_coordinates).expand(len(c_b), -1), None, scales).frames
-
-        F = frames(torch.cat([torch.zeros(1, nb), torch.eye(nb)]).double())
-        base, delta = F[0], F[1:, :, :3, 3] - F[0, :, :3, 3]
-        probe = torch.as_tensor(np.random.default_rng(0).normal(size=(4, nb)) * 2.0)
-        linear = base[:, :3, 3] + torch.einsum("nk,kjc->njc", probe, delta)
-        exact = frames(probe)
-        if float((exact[..., :3, 3] - linear).abs().max()) > 1e-9 or not torch.allclose(
-            exact[..., :3, :3], base[:, :3, :3].expand_as(exact[..., :3, :3])
-        ):
-            raise AssertionError("bind-pose frames are not affine in the bone coefficients")
-        return base, delta
-
-    def _bind(self, c: torch.Tensor) -> torch.Tensor:
-        """(B, n_body, 4, 4) bind-pose frames for shape coefficients c (B, n_shape)."""
-        t = self._bind_base[:, :3, 3] + torch.einsum(
-            "bk,kjc->bjc", c[:, : self.model.n_bone], self._bind_delta
-        )
-        base = self._bind_base.expand(len(c), -1, -1, -1)
-        return torch.cat([torch.cat([base[..., :3, :3], t.unsqueeze(-1)], -1), base[..., 3:, :]], -2)
-
     def optimise(self, stage: Stage, z: State, data_term: DataTerm) -> tuple[int, float]:
         """Minimise ``data_term`` + shape prior over the stage's parameters by :func:`batched_lbfgs`: one
         problem per mesh, or one for the whole batch when the shape is shared. Updates ``z`` (u: (B, n_dof),
@@ -400,7 +359,7 @@ class RegisteredFitter:
             u, r, c = unpack(Z)
             c_full = c * s_c
             c_mesh = c_full.repeat_interleave(per_row, 0)
-            verts = decoder(c_mesh, skel.from_unbounded(u * s_u), r * s_r, self._bind(c_mesh))[0]
+            verts = decoder(c_mesh, skel.from_unbounded(u * s_u), r * s_r)[0]
             err = data_term(verts * 1000.0)  # (B,)
             return err.reshape(rows, per_row).sum(1) + prior * (c_full**2).sum(1)
 

@@ -106,6 +106,7 @@ class FunctionTable:
     coef: np.ndarray  # (A, P, 4)
     sine: np.ndarray  # (A, 3): amplitude, omega, phase
     arc: np.ndarray  # (A, 2): a, b
+    multi: np.ndarray  # (S,) int64: the functions with more than one piece (splines)
 
     @staticmethod
     def compile(functions: list[Function]) -> FunctionTable:
@@ -139,11 +140,12 @@ class FunctionTable:
                 arc[i] = [fn.params["a"], fn.params["b"]]
         # Local polynomial origin: the piece start, except the unbounded first piece (its upper end, or 0).
         anchor = np.where(lower <= -_FAR, np.where(upper >= _FAR, 0.0, upper), lower)
-        return FunctionTable(lower, upper, anchor, coef, sine, arc)
+        multi = np.flatnonzero((lower < _FAR).sum(axis=1) > 1).astype(np.int64)
+        return FunctionTable(lower, upper, anchor, coef, sine, arc, multi)
 
     def evaluate_numpy(self, x: np.ndarray) -> np.ndarray:
         """(B, A) coordinate values -> (B, A) function values, float64."""
-        t = {k: torch.as_tensor(v) for k, v in self.__dict__.items()}
+        t = {k: torch.as_tensor(v) for k, v in self.__dict__.items()}  # multi stays int64
         return evaluate_table(torch.as_tensor(x), **t).numpy()
 
 
@@ -173,20 +175,30 @@ def evaluate_table(
     coef: torch.Tensor,
     sine: torch.Tensor,
     arc: torch.Tensor,
+    multi: torch.Tensor,
 ) -> torch.Tensor:
     """Evaluate A compiled functions at their coordinate values.
 
+    Every function is first evaluated on its first piece (the only one of constants, lines, sines and
+    arcs); the S splines among them are then evaluated piece by piece and written over that.
+
     Args:
         x: (B, A) the coordinate value feeding each function.
-        lower, upper, anchor (A, P), coef (A, P, 4), sine (A, 3), arc (A, 2): see :class:`FunctionTable`.
+        lower, upper, anchor (A, P), coef (A, P, 4), sine (A, 3), arc (A, 2), multi (S,): see
+            :class:`FunctionTable`.
     Returns:
         (B, A) function values.
     """
-    xe = x.unsqueeze(-1)  # (B, A, 1)
-    t = xe - anchor
-    poly = coef[..., 0] + t * (coef[..., 1] + t * (coef[..., 2] + t * coef[..., 3]))
-    inside = (xe >= lower) & (xe < upper)
-    out = torch.where(inside, poly, torch.zeros_like(poly)).sum(-1)
+    c = coef[:, 0]
+    t = x - anchor[:, 0]
+    out = c[:, 0] + t * (c[:, 1] + t * (c[:, 2] + t * c[:, 3]))
+    if len(multi):
+        xe = x[:, multi].unsqueeze(-1)  # (B, S, 1)
+        c = coef[multi]
+        t = xe - anchor[multi]
+        poly = c[..., 0] + t * (c[..., 1] + t * (c[..., 2] + t * c[..., 3]))
+        inside = (xe >= lower[multi]) & (xe < upper[multi])
+        out = out.index_copy(1, multi, torch.where(inside, poly, torch.zeros_like(poly)).sum(-1))
     out = out + sine[:, 0] * torch.sin(sine[:, 1] * x + sine[:, 2])
     g1, g2 = arc_basis(x)
     return out + arc[:, 0] * g1 + arc[:, 1] * g2

@@ -1,7 +1,7 @@
 """Batched, differentiable forward kinematics of a :class:`SkeletonSpec` (torch, ONNX-exportable).
 
-The module holds buffers only. The tree is composed level by level (all bodies of one depth at once) with
-constant gather indices, so there is no data-dependent control flow.
+The module holds buffers only. The tree is composed by pointer jumping (every body at once, about log2(depth)
+rounds) with constant gather indices, so there is no data-dependent control flow.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from bodyfit.models.rotations import axis_angle_matrix, euler_xyz_body_fixed
+from bodyfit.models.rotations import cm_matmul, cm_matvec, euler_xyz_body_fixed
 from bodyfit.models.skeleton.functions import FunctionTable, evaluate_table
 from bodyfit.models.skeleton.spec import SkeletonSpec, translation_scale_weights
 
@@ -33,12 +33,9 @@ def _unit(v: tuple[float, float, float]) -> list[float]:
     return list(a / np.linalg.norm(a))
 
 
-def _levels(parents: list[int]) -> list[list[int]]:
-    depth: list[int] = []
-    for i, p in enumerate(parents):
-        depth.append(0 if p < 0 else depth[p] + 1)
-        assert p < i, "joints must be in topological order"
-    return [[i for i, d in enumerate(depth) if d == lvl] for lvl in range(max(depth) + 1)]
+def _cm(constant: torch.Tensor) -> torch.Tensor:
+    """A per-joint constant in the component-major layout: (J, 3, 3) -> (3, 3, J, 1), (J, 3) -> (3, J, 1)."""
+    return constant.permute(*range(1, constant.dim()), 0).unsqueeze(-1)
 
 
 class SkeletonKinematics(nn.Module):
@@ -53,6 +50,7 @@ class SkeletonKinematics(nn.Module):
     fn_coef: torch.Tensor
     fn_sine: torch.Tensor
     fn_arc: torch.Tensor
+    fn_multi: torch.Tensor
     rot_axes: torch.Tensor
     trans_axes: torch.Tensor
     trans_scale_w: torch.Tensor
@@ -64,7 +62,9 @@ class SkeletonKinematics(nn.Module):
     p_seg: torch.Tensor
     c_seg: torch.Tensor
     f_seg: torch.Tensor
-    inv_order: torch.Tensor
+    rot_outer: torch.Tensor
+    rot_perp: torch.Tensor
+    rot_cross: torch.Tensor
 
     def __init__(self, spec: SkeletonSpec, dtype: torch.dtype = torch.float32) -> None:
         super().__init__()
@@ -89,14 +89,17 @@ class SkeletonKinematics(nn.Module):
             trans_w.append([translation_scale_weights(a.axis, a.function) for a in j.translations])
         table = FunctionTable.compile(fns)
 
+        # Bodies compose by pointer jumping: each round replaces a body's transform (into its current
+        # ancestor's frame) by the ancestor's transform composed with it, and its ancestor by the
+        # ancestor's ancestor; index n_body is the ground (identity). ceil(log2(depth + 1)) rounds.
         parents = spec.body_parent_index
-        levels = _levels(parents)
-        order = [i for lvl in levels for i in lvl]  # concatenation order of the level outputs
-        pos_in_order = {b: k for k, b in enumerate(order)}
-        self._levels = [torch.tensor(lvl) for lvl in levels]
-        self._level_parents = [torch.tensor([pos_in_order.get(parents[i], 0) for i in lvl]) for lvl in levels]
-        self._has_parent = [parents[lvl[0]] >= 0 for lvl in levels]
-        assert all(all((parents[i] >= 0) == hp for i in lvl) for lvl, hp in zip(levels, self._has_parent))
+        n = self.n_body
+        pointer = np.array([n if p < 0 else p for p in parents] + [n])
+        jumps = []
+        while (pointer[:n] != n).any():
+            jumps.append(pointer)
+            pointer = pointer[pointer]
+        self._jumps = [torch.as_tensor(j) for j in jumps]
 
         def buf(name: str, value: np.ndarray | torch.Tensor, as_dtype: bool = True) -> None:
             t = torch.as_tensor(value)
@@ -104,8 +107,18 @@ class SkeletonKinematics(nn.Module):
 
         buf("cols", np.array(cols), as_dtype=False)
         for k, v in table.__dict__.items():
-            buf(f"fn_{k}", v)
-        buf("rot_axes", np.array(rot_axes, np.float64))  # (J, 3, 3)
+            buf(f"fn_{k}", v, as_dtype=k != "multi")
+        axes = np.array(rot_axes, np.float64)  # (J, 3, 3): axis k of joint j
+        buf("rot_axes", axes)
+        # Rodrigues R = u u^T + (I - u u^T) cos + [u]x sin, component-major (axis k, 3, 3, J, 1).
+        outer = np.einsum("jka,jkb->kabj", axes, axes)[..., None]
+        cross = np.zeros((3, 3, 3, len(axes)))
+        x, y, z = axes.transpose(2, 1, 0)  # (3, J) each
+        cross[:, 0, 1], cross[:, 0, 2], cross[:, 1, 2] = -z, y, -x
+        cross[:, 1, 0], cross[:, 2, 0], cross[:, 2, 1] = z, -y, x
+        buf("rot_outer", outer)
+        buf("rot_perp", np.eye(3)[None, :, :, None, None] - outer)
+        buf("rot_cross", cross[..., None])
         buf("trans_axes", np.array(trans_axes, np.float64))  # (J, 3, 3)
         # Translation function k is multiplied by w_k . s (see translation_scale_weights); 1 if unscaled.
         w = np.array(trans_w, np.float64)  # (J, 3, 3)
@@ -122,7 +135,6 @@ class SkeletonKinematics(nn.Module):
         buf("p_seg", np.array([body_seg[p] if p >= 0 else -1 for p in parents]), as_dtype=False)
         buf("c_seg", np.array(body_seg), as_dtype=False)
         buf("f_seg", np.array([seg_idx.get(j.scale_segment, -1) for j in spec.joints]), as_dtype=False)
-        buf("inv_order", torch.as_tensor(np.argsort(order)), as_dtype=False)
 
     def forward(
         self, q: torch.Tensor, root: torch.Tensor | None = None, scales: torch.Tensor | None = None
@@ -134,56 +146,67 @@ class SkeletonKinematics(nn.Module):
         Returns:
             :class:`Pose`.
         """
+        frames = self.frames_cm(q, root, scales)
+        _, s_c, _ = self._scale_factors(scales, q)
+        centres = frames[:3, 3] + cm_matvec(frames[:3, :3], _cm(self.c_trans) * s_c)
+        return Pose(frames.permute(3, 2, 0, 1).contiguous(), centres.permute(2, 1, 0).contiguous())
+
+    def _scale_factors(
+        self, scales: torch.Tensor | None, q: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Scale factors of the parent offsets, child offsets and translation functions, (3, J, B) each
+        (or (3, 1, 1) ones). The ground (segment index -1) is never scaled."""
+        if scales is None:
+            ones = q.new_ones(3, 1, 1)
+            return ones, ones, ones
+        padded = torch.cat([scales, scales.new_ones(scales.shape[0], 1, 3)], dim=1).permute(2, 1, 0)
+        return padded[:, self.p_seg], padded[:, self.c_seg], padded[:, self.f_seg]
+
+    def frames_cm(
+        self, q: torch.Tensor, root: torch.Tensor | None = None, scales: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Body frames in the world, component-major: (4, 4, n_body, B) (see
+        :func:`~bodyfit.models.rotations.cm_matmul`); arguments as :meth:`forward`."""
         B = q.shape[0]
         if root is None:
             root = q.new_zeros(B, 3)
         q_ext = torch.cat([q, root, q.new_zeros(B, 1)], dim=-1)
         x = q_ext[:, self.cols]
         f = evaluate_table(
-            x, self.fn_lower, self.fn_upper, self.fn_anchor, self.fn_coef, self.fn_sine, self.fn_arc
+            x,
+            self.fn_lower,
+            self.fn_upper,
+            self.fn_anchor,
+            self.fn_coef,
+            self.fn_sine,
+            self.fn_arc,
+            self.fn_multi,
         )
-        f = f.reshape(B, len(self.spec.joints), 6)
-        theta, d = f[..., :3], f[..., 3:]  # (B, J, 3) each
+        # Everything below is component-major: (3, 3, J, B) matrices, (3, J, B) vectors.
+        f = f.reshape(B, len(self.spec.joints), 6).permute(2, 1, 0)
+        theta, d = f[:3], f[3:]  # (3, J, B) each
+        s_p, s_c, s_f = self._scale_factors(scales, q)
 
-        # Scale factors: ground (index -1) is never scaled.
-        if scales is None:
-            s_p = s_c = s_f = q.new_ones(1, 1, 3)
-        else:
-            padded = torch.cat([scales, scales.new_ones(B, 1, 3)], dim=1)
-            s_p, s_c, s_f = padded[:, self.p_seg], padded[:, self.c_seg], padded[:, self.f_seg]
-
-        # Joint transform X_FM: body-fixed rotations; translations along axes given in F.
-        Rk = axis_angle_matrix(self.rot_axes, theta)  # (B, J, 3, 3, 3): one matrix per axis
-        R = Rk[:, :, 0] @ Rk[:, :, 1] @ Rk[:, :, 2]
-        # Translation functions scale with the joint's scale segment (OpenSim: the parent body).
-        k = torch.einsum("jkc,bjc->bjk", self.trans_scale_w, s_f.expand(B, len(self.spec.joints), 3))
-        p = torch.einsum("bjk,jkc->bjc", d * (k + self.trans_unscaled), self.trans_axes)
+        # Joint transform X_FM: body-fixed rotations about the three axes in turn; translations along
+        # axes given in F, scaled with the joint's scale segment (OpenSim: the parent body).
+        c, s = torch.cos(theta)[:, None, None], torch.sin(theta)[:, None, None]
+        Rk = self.rot_outer + self.rot_perp * c + self.rot_cross * s  # (axis, 3, 3, J, B)
+        R = cm_matmul(cm_matmul(Rk[0], Rk[1]), Rk[2])
+        k = cm_matvec(_cm(self.trans_scale_w), s_f) + _cm(self.trans_unscaled)
+        p = cm_matvec(_cm(self.trans_axes).transpose(0, 1), d * k)
 
         # Child-in-parent: X_pofs @ X_FM @ inv(X_cofs), offset translations scaled by their segments.
-        tp = self.p_trans * s_p
-        tc = self.c_trans * s_c
-        Rc_T = self.c_rot.transpose(-1, -2)
-        R_loc = self.p_rot @ R @ Rc_T
-        t_fm = p - (R @ (Rc_T @ tc.unsqueeze(-1))).squeeze(-1)  # X_FM @ inv(X_cofs), translation part
-        t_loc = (self.p_rot @ t_fm.unsqueeze(-1)).squeeze(-1) + tp
+        Rc_T = _cm(self.c_rot).transpose(0, 1)
+        P = _cm(self.p_rot)
+        R_loc = cm_matmul(cm_matmul(P, R), Rc_T)
+        t_loc = cm_matvec(P, p - cm_matvec(R, cm_matvec(Rc_T, _cm(self.c_trans) * s_c)))
+        t_loc = t_loc + _cm(self.p_trans) * s_p
 
-        # Compose level by level.
-        Rw: torch.Tensor | None = None
-        tw: torch.Tensor | None = None
-        for lvl, par, has_parent in zip(self._levels, self._level_parents, self._has_parent):
-            R_l, t_l = R_loc[:, lvl], t_loc[:, lvl]
-            if has_parent:
-                assert Rw is not None and tw is not None
-                Rp, tpw = Rw[:, par], tw[:, par]
-                t_l = (Rp @ t_l.unsqueeze(-1)).squeeze(-1) + tpw
-                R_l = Rp @ R_l
-            Rw = R_l if Rw is None else torch.cat([Rw, R_l], dim=1)
-            tw = t_l if tw is None else torch.cat([tw, t_l], dim=1)
-        assert Rw is not None and tw is not None
-        Rw, tw = Rw[:, self.inv_order], tw[:, self.inv_order]
-
-        centres = tw + (Rw @ tc.expand(B, -1, -1).unsqueeze(-1)).squeeze(-1)
-        top = torch.cat([Rw, tw.unsqueeze(-1)], dim=-1)
-        bottom = torch.zeros_like(top[..., :1, :])
-        bottom = bottom + torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=q.dtype, device=q.device)
-        return Pose(torch.cat([top, bottom], dim=-2), centres)
+        # Local transforms (child body in parent body, 4 x 4) and the ground, composed down the tree.
+        top = torch.cat([R_loc, t_loc.unsqueeze(1)], dim=1)  # (3, 4, J, B)
+        eye = torch.eye(4, dtype=q.dtype, device=q.device)[:, :, None, None]
+        bottom = torch.zeros_like(top[:1]) + eye[3:]
+        frames = torch.cat([torch.cat([top, bottom]), eye.expand(4, 4, 1, B)], dim=2)
+        for pointer in self._jumps:
+            frames = cm_matmul(frames[:, :, pointer], frames)
+        return frames[:, :, : self.n_body]
