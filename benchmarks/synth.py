@@ -13,7 +13,9 @@ What is measured
   ``intra_op_num_threads = os.cpu_count()`` and ``ORT_ENABLE_ALL`` graph optimisations.
 * anny: ``anny.Anny()`` (0.6.x, full body, float32) forward under ``torch.inference_mode``; its first
   calls compile or load warp kernels, so every path gets warm-up calls before it is timed.
-* Speed: median wall time (ms) of one call, over timed repeats after warm-up, at B=1 and B=64.
+* Speed: median wall time (ms) of one call, over timed repeats after warm-up, at B=1 and B=64. The three
+  paths take turns in rounds of a few calls (the first of each round untimed), so a slow spell of the
+  machine falls on all of them alike.
 * Ratios: anny ms / ours ONNX ms at B=1 (latency) and at B=64 (throughput: how many times more bodies
   per second ours delivers); above 1 means ours is faster.
 * Parity: the largest absolute difference (m) between ONNX Runtime (float32) and our torch forward in
@@ -250,16 +252,27 @@ def anny_call(model: Any, batch: int, rng: np.random.Generator) -> Callable[[], 
 
 
 # -- measurement ----------------------------------------------------------------------------------------
-def median_ms(fn: Callable[[], None], warmup: int, repeats: int) -> float:
-    """Median wall time of one ``fn()`` call in ms, over ``repeats`` timed calls after ``warmup`` calls."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return 1000.0 * statistics.median(times)
+def interleaved_medians(
+    fns: dict[str, Callable[[], None]], warmup: int, repeats: int, burst: int = 5
+) -> dict[str, float]:
+    """Median wall time (ms) of one call of each function, over ``repeats`` timed calls each.
+
+    After ``warmup`` calls each, the functions take turns in rounds: per round each runs one untimed call
+    (its caches were just used by the others) and then up to ``burst`` timed calls. A slow spell of a
+    shared machine then falls on every path alike and the ratios stay fair.
+    """
+    for fn in fns.values():
+        for _ in range(warmup):
+            fn()
+    times: dict[str, list[float]] = {name: [] for name in fns}
+    while any(len(t) < repeats for t in times.values()):
+        for name, fn in fns.items():
+            fn()
+            for _ in range(min(burst, repeats - len(times[name]))):
+                start = time.perf_counter()
+                fn()
+                times[name].append(time.perf_counter() - start)
+    return {name: 1000.0 * statistics.median(t) for name, t in times.items()}
 
 
 def onnx_parity(model: BodyModel, session: Any, inputs: BodyInputs) -> float:
@@ -292,9 +305,12 @@ def run_benchmark(cfg: Settings) -> Results:
     for batch in BATCHES:
         repeats = cfg.repeats_b1 if batch == 1 else cfg.repeats_b64
         inputs = sample_body_inputs(model, batch, rng)
-        ms[f"torch_ms_b{batch}"] = median_ms(torch_call(model, inputs), cfg.warmup, repeats)
-        ms[f"onnx_ms_b{batch}"] = median_ms(onnx_call(session, inputs), cfg.warmup, repeats)
-        ms[f"anny_ms_b{batch}"] = median_ms(anny_call(anny_model, batch, rng), cfg.warmup, repeats)
+        calls = {
+            f"torch_ms_b{batch}": torch_call(model, inputs),
+            f"onnx_ms_b{batch}": onnx_call(session, inputs),
+            f"anny_ms_b{batch}": anny_call(anny_model, batch, rng),
+        }
+        ms.update(interleaved_medians(calls, cfg.warmup, repeats))
     parity = onnx_parity(model, session, sample_body_inputs(model, cfg.n_parity, rng))
 
     ratio_b1 = ms["anny_ms_b1"] / ms["onnx_ms_b1"]
