@@ -25,30 +25,35 @@ def skinning_transforms(frames: torch.Tensor, bind_frames: torch.Tensor) -> torc
     return (frames @ rigid_inverse(bind_frames))[..., :3, :]
 
 
-def blend_rows(transforms: torch.Tensor) -> torch.Tensor:
-    """Skinning transforms, component-major (3, 4, n, B), as the left factor of :func:`blend_block`'s
-    GEMM: (3 * B * 4, n), rows ordered (row, batch, column)."""
+def blend_rows(transforms: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Skinning transforms, component-major (3, 4, n, B), as the left factors of :func:`blend_block`'s
+    GEMMs: rotations (3 * B * 3, n) with rows ordered (row, batch, column) and translations (3 * B, n)."""
     n = transforms.shape[2]
-    return transforms.permute(0, 3, 1, 2).reshape(-1, n)
+    rotations = transforms[:, :3].permute(0, 3, 1, 2).reshape(-1, n)
+    translations = transforms[:, 3].permute(0, 2, 1).reshape(-1, n)
+    return rotations, translations
 
 
-def blend_block(rest_h: torch.Tensor, weights_t: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+def blend_block(
+    rest: torch.Tensor, weights_t: torch.Tensor, rotations: torch.Tensor, translations: torch.Tensor
+) -> torch.Tensor:
     """Linear blend skinning of one block of vertices by the bodies that carry it.
 
-    The blended 3x4 matrices of every vertex come from one GEMM, (3 * B * 4, n) @ (n, V), so that applying
-    them to the homogeneous rest positions is one broadcast product and one sum over a middle axis: few,
-    large, contiguous operations in torch and ONNX Runtime alike.
+    The blended 3x3 matrices and translations of every vertex come from two GEMMs, (3 * B * 3, n) @ (n, V)
+    and (3 * B, n) @ (n, V), so that applying them is one broadcast product, one sum over a middle axis
+    and one sum: few, large, contiguous operations in torch and ONNX Runtime alike.
 
     Args:
-        rest_h: (B, 4, V) bind-pose vertices x, y, z, 1 (coordinates before vertices).
+        rest: (B, 3, V) bind-pose vertices, coordinates before vertices.
         weights_t: (n, V) skinning weights of these vertices on n bodies, transposed.
-        rows: (3 * B * 4, n) those bodies' transforms from :func:`blend_rows`.
+        rotations, translations: those bodies' rows from :func:`blend_rows`.
     Returns:
         (B, V, 3) posed vertices.
     """
-    B, _, V = rest_h.shape
-    blended = (rows @ weights_t).reshape(3, B, 4, V)
-    return (blended * rest_h).sum(2).permute(1, 2, 0)
+    B, _, V = rest.shape
+    linear = (rotations @ weights_t).reshape(3, B, 3, V)
+    shift = (translations @ weights_t).reshape(3, B, V)
+    return ((linear * rest).sum(2) + shift).permute(1, 2, 0)
 
 
 def linear_blend(
@@ -63,10 +68,10 @@ def linear_blend(
     Returns:
         (B, V, 3) posed vertices.
     """
-    rest_h = torch.cat([vertices, torch.ones_like(vertices[..., :1])], dim=-1).transpose(1, 2)
+    rest = vertices.transpose(1, 2)
     parts = [
         blend_block(
-            rest_h[i : i + chunk], weights.T, blend_rows(transforms[i : i + chunk].permute(2, 3, 1, 0))
+            rest[i : i + chunk], weights.T, *blend_rows(transforms[i : i + chunk].permute(2, 3, 1, 0))
         )
         for i in range(0, len(vertices), chunk)
     ]

@@ -132,7 +132,7 @@ _BLOCK_VERTICES = 1100
 
 class SkinBlock(nn.Module):
     """Buffers of one block of vertices: the bodies that carry them, their weights on those bodies and
-    their homogeneous template basis, rest_h (B, 4, V_k) = [1, c] @ basis."""
+    their template basis, rest (B, 3, V_k) = [1, c] @ basis."""
 
     bodies: torch.Tensor
     weights_t: torch.Tensor
@@ -141,20 +141,23 @@ class SkinBlock(nn.Module):
     def __init__(
         self, bodies: np.ndarray, weights_t: np.ndarray, basis: np.ndarray, dtype: torch.dtype
     ) -> None:
-        """bodies (m,); weights_t (m, V_k); basis (1 + K, 4, V_k)."""
+        """bodies (m,); weights_t (m, V_k); basis (1 + K, 3, V_k)."""
         super().__init__()
         self.register_buffer("bodies", torch.as_tensor(bodies, dtype=torch.long))
         self.register_buffer("weights_t", torch.as_tensor(np.ascontiguousarray(weights_t)).to(dtype))
         self.register_buffer("basis", torch.as_tensor(basis.reshape(len(basis), -1)).to(dtype))
 
-    def forward(self, coeffs: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-        """coeffs (B, 1 + K); rows (3 * B * 4, n_body) from :func:`blend_rows` -> (B, V_k, 3)."""
-        rest_h = (coeffs @ self.basis).reshape(coeffs.shape[0], 4, self.weights_t.shape[1])
-        return blend_block(rest_h, self.weights_t, rows[:, self.bodies])
+    def forward(
+        self, coeffs: torch.Tensor, rotations: torch.Tensor, translations: torch.Tensor
+    ) -> torch.Tensor:
+        """coeffs (B, 1 + K); rotations, translations: every body's rows from :func:`blend_rows`
+        -> (B, V_k, 3)."""
+        rest = (coeffs @ self.basis).reshape(coeffs.shape[0], 3, self.weights_t.shape[1])
+        return blend_block(rest, self.weights_t, rotations[:, self.bodies], translations[:, self.bodies])
 
 
 def skin_blocks(basis: np.ndarray, weights: np.ndarray, dtype: torch.dtype) -> nn.ModuleList:
-    """The skin split into :class:`SkinBlock` s. basis (1 + K, 4, V); weights (V, n_body)."""
+    """The skin split into :class:`SkinBlock` s. basis (1 + K, 3, V); weights (V, n_body)."""
     blocks = blend_blocks(weights, max(1, round(weights.shape[0] / _BLOCK_VERTICES)))
     return nn.ModuleList(
         SkinBlock(bodies, weights[a:b, bodies].T, basis[:, :, a:b], dtype) for a, b, bodies in blocks
@@ -188,13 +191,11 @@ class BodyDecoder(nn.Module):
 
         buf("scale_mean", data["scale_mean"].reshape(n_seg * 3))
         buf("scale_basis", data["scale_basis"].reshape(self.n_bone, n_seg * 3))
-        # Template: rest_h (B, 4, V) = [1, c] (B, 1 + K) @ basis (1 + K, 4, V), the 4th coordinate 1.
+        # Template: rest (B, 3, V) = [1, c] (B, 1 + K) @ basis (1 + K, 3, V).
         basis = np.concatenate(
             [data["vertices_mean"][None], data["bone_correctives"], data["identity_basis"]]
         )
-        ones = np.zeros((len(basis), 1, basis.shape[1]))
-        ones[0] = 1.0
-        self._basis = np.concatenate([basis.transpose(0, 2, 1), ones], axis=1)
+        self._basis = basis.transpose(0, 2, 1)
         self._weights = np.asarray(data["weights"], np.float64)
         self.skin = skin_blocks(self._basis, self._weights, dtype)
         # inv(bind) = [Rb^T, -Rb^T tb]: Rb^T is fixed and Rb^T tb = [1, c_b] @ bind_shift.
@@ -234,7 +235,7 @@ class BodyDecoder(nn.Module):
         shift = shift.permute(2, 1, 0)
         transforms = torch.cat([cm_matmul(R, self.bind_rot_t), (t - cm_matvec(R, shift)).unsqueeze(1)], 1)
         rows = blend_rows(transforms)
-        vertices = torch.cat([block(coeffs, rows) for block in self.skin], dim=1)
+        vertices = torch.cat([block(coeffs, *rows) for block in self.skin], dim=1)
         frames = world.permute(3, 2, 0, 1).contiguous()
         joints = body_points(frames, scales, self.joint_body, self.joint_segment, self.joint_local)
         return vertices, joints, frames, scales
