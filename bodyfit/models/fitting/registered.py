@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from bodyfit.models.body.model import BodyDecoder, BodyModel, bind_frames_affine
+from bodyfit.models.body.model import BodyDecoder, BodyModel
 from bodyfit.models.errors import ShapeError
 from bodyfit.models.fitting.lbfgs import batched_lbfgs
 from bodyfit.models.fitting.report import DistanceStats, FitReport
@@ -154,7 +154,10 @@ class RegisteredFitter:
             if len(own) >= MIN_PART_VERTICES:
                 self._part_bodies.append(j)
                 self._part_index.append(own)
-        self._bind_frames = bind_frames_affine(skel, model.data)[0]  # (n_body, 4, 4) the mean body's, float64
+        # (n_body, 4, 4) the mean body's bind pose, float64
+        mean_scales = torch.as_tensor(np.asarray(model.data["scale_mean"], np.float64))[None]
+        bind_q = torch.as_tensor(model.bind_coordinates)[None]
+        self._bind_frames = skel.kinematics(torch.float64)(bind_q, None, mean_scales).frames[0].numpy()
         self._scales = self._preconditioner()
 
     # -- input -----------------------------------------------------------------------------------------

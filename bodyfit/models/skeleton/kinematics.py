@@ -146,9 +146,8 @@ class SkeletonKinematics(nn.Module):
         Returns:
             :class:`Pose`.
         """
-        frames = self.frames_cm(q, root, scales)
-        _, s_c, _ = self._scale_factors(scales, q)
-        centres = frames[:3, 3] + cm_matvec(frames[:3, :3], _cm(self.c_trans) * s_c)
+        frames, child_offsets = self._compose(q, root, scales)
+        centres = frames[:3, 3] + cm_matvec(frames[:3, :3], child_offsets)
         return Pose(frames.permute(3, 2, 0, 1).contiguous(), centres.permute(2, 1, 0).contiguous())
 
     def _scale_factors(
@@ -167,6 +166,12 @@ class SkeletonKinematics(nn.Module):
     ) -> torch.Tensor:
         """Body frames in the world, component-major: (4, 4, n_body, B) (see
         :func:`~bodyfit.models.rotations.cm_matmul`); arguments as :meth:`forward`."""
+        return self._compose(q, root, scales)[0]
+
+    def _compose(
+        self, q: torch.Tensor, root: torch.Tensor | None, scales: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """World frames (4, 4, n_body, B) and the scaled child offsets (3, J, B), component-major."""
         B = q.shape[0]
         if root is None:
             root = q.new_zeros(B, 3)
@@ -199,7 +204,8 @@ class SkeletonKinematics(nn.Module):
         Rc_T = _cm(self.c_rot).transpose(0, 1)
         P = _cm(self.p_rot)
         R_loc = cm_matmul(cm_matmul(P, R), Rc_T)
-        t_loc = cm_matvec(P, p - cm_matvec(R, cm_matvec(Rc_T, _cm(self.c_trans) * s_c)))
+        child_offsets = _cm(self.c_trans) * s_c
+        t_loc = cm_matvec(P, p - cm_matvec(R, cm_matvec(Rc_T, child_offsets)))
         t_loc = t_loc + _cm(self.p_trans) * s_p
 
         # Local transforms (child body in parent body, 4 x 4) and the ground, composed down the tree.
@@ -209,4 +215,4 @@ class SkeletonKinematics(nn.Module):
         frames = torch.cat([torch.cat([top, bottom]), eye.expand(4, 4, 1, B)], dim=2)
         for pointer in self._jumps:
             frames = cm_matmul(frames[:, :, pointer], frames)
-        return frames[:, :, : self.n_body]
+        return frames[:, :, : self.n_body], child_offsets
