@@ -33,7 +33,8 @@ FRAMES = (10, 40)
 def skin(model: BodyModel, result: UpgradeResult, t: int) -> np.ndarray:
     q = wrap_pelvis(result.coordinates[t : t + 1], model.skeleton)
     with torch.no_grad():
-        return model.forward(result.shape[None], q, result.root[t : t + 1]).vertices.numpy()[0]
+        out = model.forward(result.shape[None], q, result.root[t : t + 1], offsets=result.offsets)
+    return out.vertices.numpy()[0]
 
 
 def main(out: Path) -> None:

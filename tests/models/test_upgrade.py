@@ -6,6 +6,7 @@ import json
 import pickle
 import sys
 import types
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -17,10 +18,13 @@ from scipy import sparse
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting.registered import RegisteredFitter
 from bodyfit.models.fitting.retarget import wrap_pelvis
-from bodyfit.models.fitting.sequence import SequenceConfig, SequenceFitter
+from bodyfit.models.fitting.sequence import SequenceFitter
+from bodyfit.models.fitting.smpl_topology import SMPL_TO_BODY
+from bodyfit.models.fitting.surface import point_to_surface
 from bodyfit.models.upgrade.smpl_io import SmplSequence, SmplSequenceError, read_smpl_sequence, smpl_sequence
 from bodyfit.models.upgrade.smpl_model import SmplModel, SmplModelError, load_smpl_model, rodrigues
 from bodyfit.models.upgrade.upgrade import (
+    UPGRADE_SEQUENCE,
     UpgradeResult,
     upgrade_from_rotations,
     upgrade_with_model,
@@ -49,7 +53,7 @@ def upgraded(smpl: SmplModel, model: BodyModel) -> tuple[UpgradeResult, SmplSequ
     data["poses"] = data["poses"].copy()
     data["poses"][BROKEN, 5] = np.nan  # one broken frame
     seq = smpl_sequence(data, "cmu_131_smpl.npz")
-    fitter = SequenceFitter(RegisteredFitter(model), SequenceConfig(chunk=32))
+    fitter = SequenceFitter(RegisteredFitter(model), replace(UPGRADE_SEQUENCE, chunk=32))
     return upgrade_with_model(seq, smpl, fitter), seq
 
 
@@ -196,15 +200,27 @@ def test_model_file_errors(tmp_path: Path) -> None:
         load_smpl_model(chumpy_file)
 
 
-def test_path_a_fits_the_smpl_meshes(upgraded: tuple[UpgradeResult, SmplSequence], model: BodyModel) -> None:
+def test_path_a_fits_the_smpl_meshes(
+    upgraded: tuple[UpgradeResult, SmplSequence], model: BodyModel, smpl: SmplModel
+) -> None:
     result, seq = upgraded
     T = seq.n_frames
     assert result.path == "a" and result.coordinates.shape == (T, model.skeleton.n_dof)
     assert result.limit_violations == 0
     assert result.bad_frames[BROKEN] and result.bad_frames.sum() == 1 and np.isnan(result.error_mm[BROKEN])
     good = ~result.bad_frames
-    # Measured 16.4 mm on this model file (no pose correctives); see BENCHMARKS.md.
-    assert np.nanmean(result.error_mm) < 20.0
+    # Measured 3.8 mm with the subject's rest-pose offsets (16.4 mm in the shape space alone).
+    assert np.nanmean(result.error_mm) < 6.0
+    # Every SMPL vertex's distance to our skin (shape and offsets): measured 5.3 mm (11.0 without offsets).
+    verts, _ = smpl.forward(seq.poses[good], seq.betas, seq.trans[good])
+    q = wrap_pelvis(result.coordinates[good], model.skeleton)
+    c = np.broadcast_to(result.shape, (len(q), model.n_shape))
+    skin = model.forward(c, q, result.root[good], offsets=result.offsets).vertices.numpy()
+    v2v = [
+        point_to_surface(v @ SMPL_TO_BODY.T, s, model.faces).mean() for v, s in zip(verts, skin, strict=True)
+    ]
+    assert np.mean(v2v) * 1000 < 7.0, np.mean(v2v)
+    assert any("rest-pose offsets" in n for n in result.notes)
     truth = np.load(SEQUENCE_FILE)["truth_coordinates"]
     knee = model.skeleton.dof_index("knee_angle_r")
     error = np.abs(wrap_pelvis(result.coordinates, model.skeleton) - truth)[good, knee]
@@ -221,6 +237,7 @@ def test_outputs(upgraded: tuple[UpgradeResult, SmplSequence], model: BodyModel,
     assert list(saved["dof_names"]) == model.dof_names
     assert saved["coordinates"].shape == result.coordinates.shape and saved["bad_frames"][BROKEN]
     assert saved["scales"].shape == (len(model.skeleton.segments), 3)
+    assert result.offsets is not None and np.abs(saved["offsets"] - result.offsets).max() < 1e-6
     summary = json.loads(paths["json"].read_text())
     assert summary["path"] == "a" and summary["bad_frames"] == [BROKEN] and summary["limit_violations"] == 0
 

@@ -217,6 +217,27 @@ class BodyDecoder(nn.Module):
         sub.skin = skin_blocks(self._basis[:, :, index], self._weights[index], self.bind_rot_t.dtype)
         return sub
 
+    def with_offsets(self, offsets: np.ndarray) -> BodyDecoder:
+        """A decoder for one person whose template carries rest-pose offsets (V, 3) metres (surface detail
+        beyond the shape space, skinned with the template), sharing every other buffer. Offsets of zero
+        give this decoder's output."""
+        d = np.asarray(offsets, np.float64)
+        if d.shape != (self._basis.shape[2], 3):
+            raise ShapeError(f"rest offsets must have shape ({self._basis.shape[2]}, 3); got {d.shape}")
+        out = copy.copy(self)
+        out._modules = dict(self._modules)
+        out._basis = self._basis.copy()
+        out._basis[0] += d.T
+        out.skin = skin_blocks(out._basis, self._weights, self.bind_rot_t.dtype)
+        return out
+
+    def blended_rotations(self, frames: torch.Tensor) -> np.ndarray:
+        """Each vertex's blended linear skinning part, sum_j w_vj R_j R_bind,j^T: what a rest-pose offset is
+        multiplied by. frames (B, n_body, 4, 4) from :meth:`forward` -> (B, V, 3, 3) float64."""
+        rot_bind_t = self.bind_rot_t[..., 0].permute(2, 0, 1).double().numpy()  # (n_body, 3, 3)
+        M = frames[..., :3, :3].double().numpy() @ rot_bind_t
+        return np.einsum("vj,bjik->bvik", self._weights, M)
+
     def forward(
         self, shape: torch.Tensor, q: torch.Tensor, root: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -323,6 +344,7 @@ class BodyModel:
         root: torch.Tensor | np.ndarray | None = None,
         skeleton_mesh: bool = False,
         dtype: torch.dtype = torch.float32,
+        offsets: np.ndarray | None = None,
     ) -> BodyOutput:
         """Validated forward pass.
 
@@ -332,6 +354,8 @@ class BodyModel:
                 by name with ``model.skeleton.coordinates({...})``.
             root: (B, 3) pelvis translation in metres, or None.
             skeleton_mesh: also pose the Rajagopal bone mesh scaled to the body.
+            offsets: (V, 3) one person's rest-pose offsets in metres (from a sequence fit or an upgrade:
+                surface detail beyond the shape space), or None.
         Raises:
             ShapeError, NonFiniteError, CoordinateRangeError.
         """
@@ -342,6 +366,10 @@ class BodyModel:
         B = q.shape[0]
         c = self.validate_shape(shape, B, dtype)
         r = torch.zeros(B, 3, dtype=dtype) if r is None else r
-        vertices, joints, frames, scales = self.decoder(dtype)(c, q, r)
+        decoder = self.decoder(dtype)
+        if offsets is not None:
+            check_finite("rest offsets", np.asarray(offsets, np.float64))
+            decoder = decoder.with_offsets(offsets)
+        vertices, joints, frames, scales = decoder(c, q, r)
         bones = self.skeleton.pose_bones(frames, scales) if skeleton_mesh else None
         return BodyOutput(vertices, joints, frames, scales, bones)

@@ -70,10 +70,23 @@ def refine_nonrigid(
         b = w_m[:, None] * P[near]
         for k in range(3):
             b[:, k] += np.bincount(owner, w_s * P[:, k], minlength=V)
-        system = (sp.diags(a) + regulariser).tocsr()
-        rhs = b - a[:, None] * M
-        jacobi = sp.diags(1.0 / system.diagonal())
-        D = np.stack(
-            [cg(system, rhs[:, k], x0=D[:, k], M=jacobi, rtol=1e-5, maxiter=500)[0] for k in range(3)], 1
-        )
+        D = solve_offsets(a, b - a[:, None] * M, regulariser, D)
     return M + D
+
+
+def solve_offsets(
+    a: np.ndarray, rhs: np.ndarray, regulariser: sp.csr_matrix, start: np.ndarray | None = None
+) -> np.ndarray:
+    """Per-vertex offsets D (V, 3) minimising ``sum_j a_j |D_j - rhs_j / a_j|^2 + D^T R D``: the sparse
+    system (diag(a) + R) D = rhs, one conjugate-gradient solve (Jacobi preconditioned) per axis.
+
+    Args:
+        a: (V,) data weights (non-negative); rhs: (V, 3); regulariser: (V, V) R, positive definite (e.g.
+            smoothness L^T L + stiffness I); start: (V, 3) initial guess (default zeros).
+    """
+    system = (sp.diags(a) + regulariser).tocsr()
+    jacobi = sp.diags(1.0 / system.diagonal())
+    x0 = np.zeros_like(rhs) if start is None else start
+    return np.stack(
+        [cg(system, rhs[:, k], x0=x0[:, k], M=jacobi, rtol=1e-5, maxiter=500)[0] for k in range(3)], 1
+    )

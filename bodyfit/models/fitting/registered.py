@@ -12,6 +12,7 @@ returns respects the joint limits. The model holds buffers only; the optimisatio
 
 from __future__ import annotations
 
+import copy
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -130,9 +131,7 @@ class RegisteredFitter:
             "coarse": np.sort(spread[: self.config.coarse_size]),
             "all": np.arange(model.n_vertices),
         }
-        self.decoders: dict[str, BodyDecoder] = {
-            k: self.decoder if k == "all" else self.decoder.restricted(v) for k, v in self.index.items()
-        }
+        self.decoders = self._decoders_of(self.decoder)
         trunk = np.array([n.startswith(TRUNK_DOF_PREFIXES) for n in skel.dof_names])
         self.dof_mask = {
             "trunk": torch.as_tensor(trunk, dtype=dtype),
@@ -159,6 +158,18 @@ class RegisteredFitter:
         bind_q = torch.as_tensor(model.bind_coordinates)[None]
         self._bind_frames = skel.kinematics(torch.float64)(bind_q, None, mean_scales).frames[0].numpy()
         self._scales = self._preconditioner()
+
+    def _decoders_of(self, decoder: BodyDecoder) -> dict[str, BodyDecoder]:
+        """``decoder`` restricted to each vertex set of :attr:`index`."""
+        return {k: decoder if k == "all" else decoder.restricted(v) for k, v in self.index.items()}
+
+    def with_offsets(self, offsets: np.ndarray) -> RegisteredFitter:
+        """This fitter for one person whose template carries rest-pose offsets (V, 3) metres (see
+        :meth:`BodyDecoder.with_offsets`); the preconditioning and settings are shared."""
+        fitter = copy.copy(self)
+        fitter.decoder = self.model.decoder(self.config.dtype).with_offsets(offsets)
+        fitter.decoders = self._decoders_of(fitter.decoder)
+        return fitter
 
     # -- input -----------------------------------------------------------------------------------------
     def validate(

@@ -35,8 +35,10 @@ import torch
 
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.errors import ShapeError
+from bodyfit.models.fitting.offsets import OffsetConfig, fit_rest_offsets
 from bodyfit.models.fitting.registered import (
     CONFIDENT_MEAN_MM,
+    BodyFit,
     RegisteredFitConfig,
     RegisteredFitter,
     Stage,
@@ -64,7 +66,9 @@ class SequenceConfig:
     key_stages / frame_stages: pose-only stages (shape "none") for pose keyframes and for every frame;
     blend: weight b of the centred three-frame blend of the joint coordinates (all but the pelvis's) after
     the per-frame fits, ``q[t] <- (1 - 2 b) q[t] + b (q[t-1] + q[t+1])``: symmetric in time, so it adds
-    no lag; a convex combination, so it stays within the limits; 0 turns it off."""
+    no lag; a convex combination, so it stays within the limits; 0 turns it off;
+    offsets: fit the person's rest-pose offsets (:mod:`~bodyfit.models.fitting.offsets`: surface detail
+    beyond the shape space) on the shape keyframes and fit every pose with them; None: shape space only."""
 
     keyframes: int = 8
     stride: int = 8
@@ -73,6 +77,7 @@ class SequenceConfig:
     key_stages: tuple[Stage, ...] = KEY_STAGES
     frame_stages: tuple[Stage, ...] = FRAME_STAGES
     blend: float = 0.02
+    offsets: OffsetConfig | None = None
 
 
 @dataclass(frozen=True)
@@ -102,10 +107,11 @@ class SequenceStats:
 class SequenceFit:
     """One person over T frames.
 
-    shape: (n_shape,) for every frame; coordinates: (T, n_dof), the pelvis angles unwrapped over time (see
-    :meth:`coordinates_in_range`); root: (T, 3); vertices: (T, V, 3) float32, the registration, or None
-    when the fit was asked not to keep them; joints: (T, J, 3); reports: one :class:`FitReport` per frame;
-    stats: :class:`SequenceStats`.
+    shape: (n_shape,) for every frame; offsets: (V, 3) the person's rest-pose offsets (metres) when the
+    fit was asked for them, else None (the skin is then the shape space's); coordinates: (T, n_dof), the
+    pelvis angles unwrapped over time (see :meth:`coordinates_in_range`); root: (T, 3); vertices:
+    (T, V, 3) float32, the registration, or None when the fit was asked not to keep them; joints:
+    (T, J, 3); reports: one :class:`FitReport` per frame; stats: :class:`SequenceStats`.
     """
 
     shape: np.ndarray
@@ -115,6 +121,7 @@ class SequenceFit:
     joints: np.ndarray
     reports: list[FitReport]
     stats: SequenceStats
+    offsets: np.ndarray | None = None
     dof_names: tuple[str, ...] = field(default=(), repr=False)
     _in_range: np.ndarray | None = field(default=None, repr=False)
 
@@ -340,7 +347,13 @@ class SequenceFitter:
         # Shape on keyframes spread over the sequence, then frozen.
         shape_keys = np.unique(np.linspace(0, T - 1, min(cfg.keyframes, T)).round().astype(np.int64))
         x_s, w_s, G_s, o_s = self._frames(source, shape_keys)
-        c = self.fitter.fit(_turn(x_s, G_s, o_s), w_s, shared_shape=True).shape[:1]
+        x_c = _turn(x_s, G_s, o_s)
+        shaped = self.fitter.fit(x_c, w_s, shared_shape=True)
+        c = shaped.shape[:1]
+        offsets, pose_fitter = None, self.pose_fitter
+        if cfg.offsets is not None:
+            offsets = self._offsets(shaped, x_c, w_s, cfg.offsets)
+            pose_fitter = pose_fitter.with_offsets(offsets)
 
         # Pose keyframes with the frozen shape, then every frame from their interpolation.
         keys = np.unique(np.r_[np.arange(0, T, cfg.stride), T - 1])
@@ -350,7 +363,7 @@ class SequenceFitter:
             x_k, w_k, G_k, o_k = self._frames(source, k)
             q0, r0 = self.fitter.bone_start(_turn(x_k, G_k, o_k), w_k)
             q_key[lo : lo + len(k)], r_key[lo : lo + len(k)] = self._pose(
-                x_k, w_k, G_k, o_k, c, q0, r0, cfg.key_stages
+                pose_fitter, x_k, w_k, G_k, o_k, c, q0, r0, cfg.key_stages
             )
         q_init = np.stack([np.interp(np.arange(T), keys, q_key[:, j]) for j in range(n_dof)], 1)
         r_init = np.stack([np.interp(np.arange(T), keys, r_key[:, j]) for j in range(3)], 1)
@@ -361,14 +374,14 @@ class SequenceFitter:
         verts = np.empty((T, self.model.n_vertices, 3), np.float32) if keep_vertices else None
         joints = np.empty((T, len(self.model.joint_names), 3))
         totals = _Totals()
-        dtype = self.pose_fitter.config.dtype
+        dtype = pose_fitter.config.dtype
         ct = torch.as_tensor(c, dtype=dtype)
 
         def finish(lo: int, hi: int, x: np.ndarray, w: np.ndarray) -> None:
             """Blend, skin and measure frames lo:hi (every neighbour's pose is known by now)."""
             q_s[lo:hi] = self._blend(q_c, lo, hi)
             with torch.no_grad():
-                v, j, _, _ = self.pose_fitter.decoder(
+                v, j, _, _ = pose_fitter.decoder(
                     ct.expand(hi - lo, -1),
                     torch.as_tensor(q_s[lo:hi], dtype=dtype),
                     torch.as_tensor(root_c[lo:hi], dtype=dtype),
@@ -389,7 +402,7 @@ class SequenceFitter:
             hi = min(T, lo + cfg.chunk)
             x, w, G[lo:hi], origin[lo:hi] = self._frames(source, np.arange(lo, hi))
             q_c[lo:hi], root_c[lo:hi] = self._pose(
-                x, w, G[lo:hi], origin[lo:hi], c, q_init[lo:hi], r_init[lo:hi], cfg.frame_stages
+                pose_fitter, x, w, G[lo:hi], origin[lo:hi], c, q_init[lo:hi], r_init[lo:hi], cfg.frame_stages
             )
             if pending is not None:  # one chunk behind: its last frame's blend needs this chunk's first
                 finish(*pending)
@@ -421,7 +434,21 @@ class SequenceFitter:
             jitter_ratio=j_fit / j_in if j_in > 0 else float("nan"),
             shape_keyframes=tuple(int(k) for k in shape_keys),
         )
-        return SequenceFit(c[0], q, root, verts, joints, reports, stats, tuple(self.model.dof_names), q_range)
+        return SequenceFit(
+            c[0], q, root, verts, joints, reports, stats, offsets, tuple(self.model.dof_names), q_range
+        )
+
+    def _offsets(self, shaped: BodyFit, x: np.ndarray, w: np.ndarray, config: OffsetConfig) -> np.ndarray:
+        """Rest-pose offsets (V, 3) from the shape fit ``shaped`` of keyframes x (K, V, 3) (canonical frames)
+        with weights w (K, V)."""
+        decoder = self.fitter.decoder
+        dtype = self.fitter.config.dtype
+        with torch.no_grad():
+            _, _, frames, _ = decoder(
+                *(torch.as_tensor(a, dtype=dtype) for a in (shaped.shape, shaped.coordinates, shaped.root))
+            )
+        rotations = decoder.blended_rotations(frames)
+        return fit_rest_offsets(rotations, x - shaped.vertices, w, self.model.faces, config)
 
     def _blend(self, q: np.ndarray, lo: int, hi: int) -> np.ndarray:
         """Rows lo:hi of q (T, n_dof) after the centred blend of the joint coordinates (see
@@ -452,6 +479,7 @@ class SequenceFitter:
 
     def _pose(
         self,
+        fitter: RegisteredFitter,
         x: np.ndarray,
         w: np.ndarray,
         G: np.ndarray,
@@ -464,7 +492,6 @@ class SequenceFitter:
         """Pose-only fit, in the canonical frames (G, origin), of world frames x (B, V, 3) with weights
         w (B, V), the shape c (1, n_shape) frozen, from q0 (B, n_dof) and r0 (B, 3): one problem per frame.
         Only the stages' vertices are turned. Returns coordinates (B, n_dof) and root (B, 3)."""
-        fitter = self.pose_fitter
         dtype = fitter.config.dtype
         z = fitter.start_state(q0, r0, np.repeat(c, len(x), axis=0))
         for stage in stages:

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from bodyfit.models.body.model import BodyModel
+from bodyfit.models.fitting.offsets import OffsetConfig
 from bodyfit.models.fitting.registered import RegisteredFitter
 from bodyfit.models.fitting.report import count_limit_violations
 from bodyfit.models.fitting.retarget import retarget
@@ -33,10 +34,13 @@ from bodyfit.models.upgrade.proxy import SMPL_MAP, proxy_motion, proxy_rest_join
 from bodyfit.models.upgrade.smpl_io import SmplSequence
 from bodyfit.models.upgrade.smpl_model import SmplModel, SmplModelError
 
-UPGRADE_SEQUENCE = SequenceConfig(frame_stages=(replace(FRAME_STAGES[0], iterations=8),))
-"""Sequence settings for upgrades: 8 pose iterations per frame. The SMPL-topology correspondence, not the
-iterations, bounds the accuracy here (8 and 24 iterations give the same surface distance), so the time
-goes to speed."""
+UPGRADE_OFFSETS = OffsetConfig(smoothness=0.25)
+UPGRADE_SEQUENCE = SequenceConfig(
+    frame_stages=(replace(FRAME_STAGES[0], iterations=8),), offsets=UPGRADE_OFFSETS
+)
+"""Sequence settings for upgrades: the subject's rest-pose offsets (an SMPL-family body is partly outside
+our shape space: hands, feet) and 8 pose iterations per frame (8 and 24 give the same surface distance, so
+the time goes to speed)."""
 
 
 def upgrade_fitter(fitter: RegisteredFitter | BodyModel) -> SequenceFitter:
@@ -50,10 +54,12 @@ class UpgradeResult:
 
     path: "a" (SMPL model file) or "b" (joint rotations only); coordinates (T, n_dof) radians, pelvis angles
     unwrapped, named by ``dof_names``; root (T, 3); joints (T, J, 3) anatomical joint centres named by
-    ``joint_names``; shape (n_shape,); scales (n_seg, 3) per-segment bone scales (``segment_names``);
-    error_mm (T,) mean distance of our skin vertices to their corresponding points on the input mesh
-    (NaN for bad frames); bad_frames (T,); fps: frames per second of the whole upgrade; notes: what the
-    user should know (which path ran, what was not used).
+    ``joint_names``; shape (n_shape,); offsets (V, 3) the subject's rest-pose offsets in metres (surface
+    detail beyond the shape space, skinned with the template; None when not fitted, e.g. path b); scales
+    (n_seg, 3) per-segment bone scales (``segment_names``); error_mm (T,) mean distance of our skin
+    vertices to their corresponding points on the input mesh (NaN for bad frames); bad_frames (T,); fps:
+    frames per second of the whole upgrade; notes: what the user should know (which path ran, what was not
+    used).
     """
 
     path: str
@@ -71,6 +77,7 @@ class UpgradeResult:
     segment_names: tuple[str, ...]
     limit_violations: int
     notes: tuple[str, ...] = ()
+    offsets: np.ndarray | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -129,11 +136,17 @@ def upgrade_with_model(
 
     fit = fitter.fit_frames(source, len(good), progress=progress)
     notes = [f"path (a): posed with the SMPL-family model {Path(smpl.source).name or '(given)'}"]
+    if fit.offsets is not None:
+        largest = float(np.linalg.norm(fit.offsets, axis=1).max()) * 1000.0
+        notes.append(
+            f"the skin carries the subject's rest-pose offsets (largest {largest:.0f} mm; npz key "
+            "'offsets'): detail beyond the shape space; joints and bone scales come from the shape alone"
+        )
     if len(sequence.betas) > smpl.n_betas:
         notes.append(f"the model has {smpl.n_betas} shape directions; betas beyond those were ignored")
     errors = np.array([r.distances.mean for r in fit.reports])
     arrays = (fit.coordinates, fit.root, fit.joints, errors)
-    return _result("a", sequence, model, fit.shape, arrays, good, notes, began)
+    return replace(_result("a", sequence, model, fit.shape, arrays, good, notes, began), offsets=fit.offsets)
 
 
 def upgrade_from_rotations(
@@ -224,25 +237,28 @@ def _result(
 def write_upgrade(
     result: UpgradeResult, model: BodyModel, out: Path, name: str = "upgrade"
 ) -> dict[str, Path]:
-    """Write ``name``.npz (every array with its names), ``name``.json (the summary), ``name``.osim (our
-    skeleton scaled to the subject) and ``name``.mot (the coordinates; degrees, as OpenSim expects)."""
+    """Write ``name``.npz (every array with its names; ``offsets`` when fitted), ``name``.json (the
+    summary), ``name``.osim (our skeleton scaled to the subject) and ``name``.mot (the coordinates;
+    degrees, as OpenSim expects)."""
     out.mkdir(parents=True, exist_ok=True)
     paths = {ext: out / f"{name}.{ext}" for ext in ("npz", "json", "osim", "mot")}
-    np.savez_compressed(
-        paths["npz"],
-        coordinates=result.coordinates,
-        dof_names=np.array(result.dof_names),
-        root=result.root,
-        joints=result.joints,
-        joint_names=np.array(result.joint_names),
-        shape=result.shape,
-        scales=result.scales,
-        segment_names=np.array(result.segment_names),
-        error_mm=result.error_mm,
-        bad_frames=result.bad_frames,
-        frame_rate=np.array(result.rate),
-        path=np.array(result.path),
-    )
+    arrays: dict[str, np.ndarray] = {
+        "coordinates": result.coordinates,
+        "dof_names": np.array(result.dof_names),
+        "root": result.root,
+        "joints": result.joints,
+        "joint_names": np.array(result.joint_names),
+        "shape": result.shape,
+        "scales": result.scales,
+        "segment_names": np.array(result.segment_names),
+        "error_mm": result.error_mm,
+        "bad_frames": result.bad_frames,
+        "frame_rate": np.array(result.rate),
+        "path": np.array(result.path),
+    }
+    if result.offsets is not None:
+        arrays["offsets"] = result.offsets.astype(np.float32)
+    np.savez_compressed(paths["npz"], **arrays)  # type: ignore[arg-type]
     paths["json"].write_text(json.dumps(result.summary(), indent=1) + "\n")
     write_osim(paths["osim"], model.skeleton.spec, result.scales, name=name)
     write_mot(paths["mot"], model.skeleton.spec, result.coordinates, result.root, fps=result.rate)
