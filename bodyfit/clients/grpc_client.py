@@ -131,11 +131,27 @@ def sequence_request(frames: np.ndarray, weights: np.ndarray | None, chunk: int)
     return req
 
 
-def upgrade_request(sequence: str | os.PathLike[str] | bytes, chunk: int) -> pb.UpgradeRequest:
+def upgrade_request(
+    sequence: str | os.PathLike[str] | bytes,
+    chunk: int,
+    sex: str | None = None,
+    height_m: float | None = None,
+    mass_kg: float | None = None,
+) -> pb.UpgradeRequest:
+    """The request for an AMASS-style .npz (path or bytes), with path (b)'s shape hints where given."""
     if isinstance(sequence, bytes | bytearray):
-        return pb.UpgradeRequest(data=bytes(sequence), filename="sequence.npz", chunk=chunk)
-    path = Path(sequence)
-    return pb.UpgradeRequest(data=path.read_bytes(), filename=path.name, chunk=chunk)
+        data, name = bytes(sequence), "sequence.npz"
+    else:
+        path = Path(sequence)
+        data, name = path.read_bytes(), path.name
+    request = pb.UpgradeRequest(data=data, filename=name, chunk=chunk)
+    if sex is not None:
+        request.sex = sex
+    if height_m is not None:
+        request.height_m = height_m
+    if mass_kg is not None:
+        request.mass_kg = mass_kg
+    return request
 
 
 class _Events:
@@ -310,9 +326,15 @@ class GrpcClient:
         sequence: str | os.PathLike[str] | bytes,
         progress: ProgressCallback | None = None,
         chunk: int = 256,
+        sex: str | None = None,
+        height_m: float | None = None,
+        mass_kg: float | None = None,
     ) -> UpgradeOutput:
-        """Upgrade an AMASS-style .npz (path or bytes) to biomechanical coordinates and OpenSim files."""
-        events = self._stub.Upgrade(upgrade_request(sequence, chunk), timeout=self.fit_timeout)
+        """Upgrade an AMASS-style .npz (path or bytes) to biomechanical coordinates and OpenSim files.
+        ``sex``, ``height_m`` and ``mass_kg`` shape the body when the server has no SMPL-family model file
+        (path b)."""
+        request = upgrade_request(sequence, chunk, sex, height_m, mass_kg)
+        events = self._stub.Upgrade(request, timeout=self.fit_timeout)
         return self._stream(events, _Events(progress)).upgrade()
 
 
@@ -399,6 +421,10 @@ class AsyncGrpcClient:
         sequence: str | os.PathLike[str] | bytes,
         progress: ProgressCallback | None = None,
         chunk: int = 256,
+        sex: str | None = None,
+        height_m: float | None = None,
+        mass_kg: float | None = None,
     ) -> UpgradeOutput:
-        call = self._stub.Upgrade(upgrade_request(sequence, chunk), timeout=self.fit_timeout)
+        request = upgrade_request(sequence, chunk, sex, height_m, mass_kg)
+        call = self._stub.Upgrade(request, timeout=self.fit_timeout)
         return (await self._stream(call, _Events(progress))).upgrade()

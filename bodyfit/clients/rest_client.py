@@ -84,6 +84,14 @@ def upgrade_upload(sequence: str | os.PathLike[str] | bytes) -> tuple[str, bytes
     return path.name, path.read_bytes()
 
 
+def hint_fields(sex: str | None, height_m: float | None, mass_kg: float | None) -> dict[str, str] | None:
+    """The upgrade's shape-hint form fields (None when no hint is given)."""
+    fields = {
+        k: str(v) for k, v in (("sex", sex), ("height_m", height_m), ("mass_kg", mass_kg)) if v is not None
+    }
+    return fields or None
+
+
 def frames_upload(frames: np.ndarray, weights: np.ndarray | None) -> bytes:
     import io
 
@@ -225,10 +233,16 @@ class Client:
         sequence: str | os.PathLike[str] | bytes,
         progress: ProgressCallback | None = None,
         chunk: int = 256,
+        sex: str | None = None,
+        height_m: float | None = None,
+        mass_kg: float | None = None,
     ) -> UpgradeOutput:
-        """Upgrade an AMASS-style .npz (path or bytes) to biomechanical coordinates and OpenSim files."""
+        """Upgrade an AMASS-style .npz (path or bytes) to biomechanical coordinates and OpenSim files.
+        ``sex``, ``height_m`` and ``mass_kg`` shape the body when the server has no SMPL-family model file
+        (path b)."""
         files = {"file": upgrade_upload(sequence)}
-        return UpgradeOutput.from_events(*self._stream(f"/v1/upgrade?chunk={chunk}", files, None, progress))
+        hints = hint_fields(sex, height_m, mass_kg)
+        return UpgradeOutput.from_events(*self._stream(f"/v1/upgrade?chunk={chunk}", files, hints, progress))
 
     def _stream(
         self, path: str, files: dict[str, Any], data: dict[str, str] | None, progress: ProgressCallback | None
@@ -340,10 +354,14 @@ class AsyncClient:
         sequence: str | os.PathLike[str] | bytes,
         progress: ProgressCallback | None = None,
         chunk: int = 256,
+        sex: str | None = None,
+        height_m: float | None = None,
+        mass_kg: float | None = None,
     ) -> UpgradeOutput:
         files = {"file": upgrade_upload(sequence)}
+        hints = hint_fields(sex, height_m, mass_kg)
         return UpgradeOutput.from_events(
-            *(await self._stream(f"/v1/upgrade?chunk={chunk}", files, None, progress))
+            *(await self._stream(f"/v1/upgrade?chunk={chunk}", files, hints, progress))
         )
 
     async def _stream(

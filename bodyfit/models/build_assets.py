@@ -27,6 +27,7 @@ from bodyfit.models.skeleton.build import build_skeleton
 from bodyfit.models.skeleton.docs import skeleton_markdown
 from bodyfit.models.skeleton.model import SKELETON_ASSET, Skeleton
 from bodyfit.models.skeleton.rajagopal import nimblephysics_data_dir
+from bodyfit.models.upgrade.proxy import PROXY_ASSET, build_proxy
 
 
 def _version(pkg: str) -> str:
@@ -73,6 +74,18 @@ def build_smpl_asset(out: Path, model: BodyModel) -> dict[str, Any]:
         "metrics": metrics,
         "build_seconds": round(time.perf_counter() - t0, 2),
     }
+
+
+def build_proxy_asset(folder: Path | None = None, model: BodyModel | None = None) -> Path:
+    """Build path (b)'s SMPL-format proxy (:mod:`bodyfit.models.upgrade.proxy`, from anny's SOMA rig) into
+    ``folder`` and record it in the manifest."""
+    folder = folder or assets_dir()
+    model = model or BodyModel.load(folder)
+    t0 = time.perf_counter()
+    arrays, metrics = build_proxy(default_cache_dir(), model.faces)
+    np.savez_compressed(folder / PROXY_ASSET, allow_pickle=False, **_float32(arrays))
+    entry = {"metrics": metrics, "build_seconds": round(time.perf_counter() - t0, 2)}
+    return write_manifest(folder, {PROXY_ASSET: entry}, {})
 
 
 def build_all(
@@ -152,6 +165,11 @@ def build_all(
     log("smpl topology: fitting the CC BY bodies in SMPL topology for the dense correspondence")
     entries[SMPL_ASSET] = build_smpl_asset(out, model)
     timings["smpl_topology"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    log("smpl proxy: anny's SOMA rig in our topology, as an SMPL-format model (path b of the upgrade)")
+    write_manifest(out, entries, info)
+    build_proxy_asset(out, model)
+    timings["smpl_proxy"] = time.perf_counter() - t0
     info["build_seconds"] = round(sum(timings.values()), 1)
     write_manifest(out, entries, info)
     log(f"skeleton: {len(spec.coordinates)} DOFs, {len(spec.bodies)} bodies -> {out / SKELETON_ASSET}")

@@ -13,7 +13,7 @@ import threading
 from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import Future
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
@@ -34,6 +34,7 @@ from bodyfit.models.fitting.scan_io import Scan, load_scan
 from bodyfit.models.fitting.sequence import SequenceFit, SequenceFitter
 from bodyfit.models.fitting.smpl_topology import SMPL_VERTICES, fit_smpl_meshes
 from bodyfit.models.skeleton.model import RANGE_TOLERANCE
+from bodyfit.models.upgrade.proxy import ShapeHintError, ShapeHints, SmplProxy, load_proxy
 from bodyfit.models.upgrade.smpl_io import SmplSequence, read_smpl_npz
 from bodyfit.models.upgrade.smpl_model import SmplModel, load_smpl_model
 from bodyfit.models.upgrade.upgrade import (
@@ -146,6 +147,7 @@ class _Fitters:
     scan: ScanFitter
     sequence: SequenceFitter
     upgrade: SequenceFitter
+    proxy: SmplProxy
 
 
 @dataclass
@@ -157,6 +159,7 @@ class BodyService:
     limits: Limits = field(default_factory=Limits)
     manifest: dict[str, Any] = field(default_factory=dict)
     smpl_model_path: Path | None = None
+    assets: Path | None = None
     _fitters: _Fitters | None = None
     _smpl: SmplModel | None = None
     _slots: threading.BoundedSemaphore = field(init=False)
@@ -198,7 +201,7 @@ class BodyService:
         session = ort.InferenceSession(
             str(verified_asset(BODY_ONNX, assets)), options, providers=["CPUExecutionProvider"]
         )
-        service = cls(model, session, limits or Limits(), read_manifest(assets), smpl_model)
+        service = cls(model, session, limits or Limits(), read_manifest(assets), smpl_model, assets)
         if smpl_model is not None:
             service._smpl = load_smpl_model(smpl_model)
         if fitters:
@@ -211,7 +214,11 @@ class BodyService:
         if self._fitters is None:
             registered = RegisteredFitter(self.model)
             self._fitters = _Fitters(
-                registered, ScanFitter(self.model), SequenceFitter(registered), upgrade_fitter(registered)
+                registered,
+                ScanFitter(self.model),
+                SequenceFitter(registered),
+                upgrade_fitter(registered),
+                load_proxy(self.assets),
             )
         return self._fitters
 
@@ -477,9 +484,12 @@ class BodyService:
             )
         return sequence
 
-    def upgrade(self, sequence: SmplSequence, job: Job | None = None) -> UpgradeResult:
+    def upgrade(
+        self, sequence: SmplSequence, job: Job | None = None, hints: ShapeHints | None = None
+    ) -> UpgradeResult:
         """Upgrade an SMPL-format sequence: path (a) with the server's SMPL-family model file, else path (b)
-        from the joint rotations (the result's notes say which ran).
+        from the joint rotations, its shape from ``hints`` (see :func:`shape_hints`) or the population
+        mean (the result's notes say which ran).
 
         Raises:
             BusyError, JobCancelledError, DeadlineExceededError.
@@ -492,9 +502,14 @@ class BodyService:
                 job.report("upgrade", done, total, f"{done}/{total} frames")
 
             with invalid_input("file"):
+                fitters = self.fitters
                 if self._smpl is None:
-                    return upgrade_from_rotations(sequence, self.model, progress=progress)
-                return upgrade_with_model(sequence, self._smpl, self.fitters.upgrade, progress=progress)
+                    return upgrade_from_rotations(sequence, fitters.upgrade, fitters.proxy, hints, progress)
+                result = upgrade_with_model(sequence, self._smpl, fitters.upgrade, progress=progress)
+            if hints is not None:
+                note = "shape hints were not used: path (a) shapes the body from the sequence's betas"
+                result = replace(result, notes=(*result.notes, note))
+            return result
 
     def upgrade_files(self, result: UpgradeResult, name: str) -> dict[str, bytes]:
         """The upgrade's files as bytes: npz, json (summary), osim and mot (see ``write_upgrade``)."""
@@ -521,6 +536,20 @@ class BodyService:
             yield
         finally:
             self._slots.release()
+
+
+def shape_hints(sex: str | None, height_m: float | None, mass_kg: float | None) -> ShapeHints | None:
+    """Path (b)'s shape hints from request fields (None or "" where not given; None when none is).
+
+    Raises:
+        InvalidInputError: naming the hint that cannot describe an adult.
+    """
+    if not sex and height_m is None and mass_kg is None:
+        return None
+    try:
+        return ShapeHints(sex or None, height_m, mass_kg)
+    except ShapeHintError as exc:
+        raise InvalidInputError(str(exc), field=exc.field) from exc
 
 
 @contextmanager

@@ -181,6 +181,11 @@ def test_upgrade_over_grpc(client: GrpcClient, target: str, tmp_path: Path) -> N
     assert out.coordinates.shape == (60, 46) and out.summary["path"] == "a"
     assert out.summary["limit_violations"] == 0 and set(out.files) == {"npz", "json", "osim", "mot"}
     assert np.allclose(np.load(out.save(tmp_path, "walk")["npz"])["coordinates"], out.coordinates)
+    hinted = client.upgrade(sequence, height_m=1.7)  # the hints reach the server (path a ignores them)
+    assert any("hints were not used" in note for note in hinted.summary["notes"])
+    with pytest.raises(InvalidRequestError, match="sex must be one of") as bad:
+        client.upgrade(sequence, sex="robot")
+    assert bad.value.field == "sex"
     with grpc.insecure_channel(target) as channel, pytest.raises(grpc.RpcError) as err:
         list(
             pb_grpc.BodyfitStub(channel).Upgrade(

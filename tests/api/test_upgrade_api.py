@@ -57,3 +57,21 @@ def test_a_server_without_a_model_file_runs_path_b(body_service: BodyService) ->
     assert out.summary["path"] == "b" and out.summary["v2v_mean_mm"] is None
     assert any("betas were not used" in note for note in out.summary["notes"])
     assert out.coordinates.shape == (60, 46) and out.summary["limit_violations"] == 0
+
+
+def test_path_b_shape_hints_over_rest(body_service: BodyService) -> None:
+    unconfigured = dataclasses.replace(body_service, _smpl=None)
+    with Client("http://t", http_client=TestClient(create_app(service=unconfigured))) as bare:
+        out = bare.upgrade(SEQUENCE, sex="male", height_m=1.9, mass_kg=95.0)
+        assert any("height 1.9 m" in note and "stature 1.90 m" in note for note in out.summary["notes"])
+        with pytest.raises(InvalidRequestError, match="height_m must be an adult's") as info:
+            bare.upgrade(SEQUENCE, height_m=19.0)
+        assert info.value.field == "height_m"
+    with TestClient(create_app(service=unconfigured)) as raw:
+        answer = raw.post("/v1/upgrade", files={"file": ("a.npz", SEQUENCE.read_bytes())}, data={"sex": "x"})
+    assert answer.status_code == 422 and answer.json()["field"] == "sex" and "male" in answer.json()["detail"]
+
+
+def test_path_a_says_hints_were_not_used(client: Client) -> None:
+    out = client.upgrade(SEQUENCE, height_m=1.7)
+    assert out.summary["path"] == "a" and any("hints were not used" in n for n in out.summary["notes"])

@@ -21,11 +21,13 @@ from bodyfit.models.fitting.retarget import wrap_pelvis
 from bodyfit.models.fitting.sequence import SequenceFitter
 from bodyfit.models.fitting.smpl_topology import SMPL_TO_BODY
 from bodyfit.models.fitting.surface import point_to_surface
+from bodyfit.models.upgrade.proxy import ShapeHintError, ShapeHints, SmplProxy, load_proxy
 from bodyfit.models.upgrade.smpl_io import SmplSequence, SmplSequenceError, read_smpl_sequence, smpl_sequence
 from bodyfit.models.upgrade.smpl_model import SmplModel, SmplModelError, load_smpl_model, rodrigues
 from bodyfit.models.upgrade.upgrade import (
     UPGRADE_SEQUENCE,
     UpgradeResult,
+    upgrade_fitter,
     upgrade_from_rotations,
     upgrade_with_model,
     write_upgrade,
@@ -275,14 +277,50 @@ def test_opensim_reproduces_our_joint_centres(
     assert worst <= 1e-3, worst
 
 
-def test_path_b_from_rotations_alone(model: BodyModel) -> None:
+@pytest.fixture(scope="module")
+def proxy() -> SmplProxy:
+    return load_proxy()
+
+
+def test_path_b_from_rotations_alone(model: BodyModel, proxy: SmplProxy) -> None:
     seq = read_smpl_sequence(SEQUENCE_FILE)
-    result = upgrade_from_rotations(seq, model)
+    result = upgrade_from_rotations(seq, model, proxy)
     assert result.path == "b" and result.limit_violations == 0 and np.isnan(result.error_mm).all()
-    assert any("betas were not used" in n for n in result.notes) and not result.shape.any()
+    assert any("betas were not used" in n for n in result.notes)
+    assert any("the sequence's gender" in n for n in result.notes)  # the file says "neutral"
+    assert result.extra["proxy_fit_mm"] < 5.0  # measured 2.9 mm: our body on the posed proxy
     truth = np.load(SEQUENCE_FILE)["truth_coordinates"]
-    error = np.degrees(np.abs(wrap_pelvis(result.coordinates, model.skeleton) - truth))
-    # Measured on this clip: hip flexion 7, knee 3-4 degrees mean (the proxy's rest is a clean T-pose,
-    # the clip's is the CC BY body's own pose).
-    for name in ("hip_flexion_r", "hip_flexion_l", "knee_angle_r", "knee_angle_l"):
-        assert error[:, model.skeleton.dof_index(name)].mean() < 10.0, name
+    error = np.degrees(wrap_pelvis(result.coordinates, model.skeleton) - truth)
+    # The clip's rotations are relative to the CC BY body's own rest pose, the proxy's to SOMA's T-pose: the
+    # two differ by about constant angles (measured: hip flexion -5 / -8, knee -7 / -9 degrees), while the
+    # motion itself is followed within 1-2.5 degrees (standard deviation of the error).
+    for name in ("hip_flexion_r", "hip_flexion_l", "knee_angle_r", "knee_angle_l", "elbow_flex_r"):
+        k = model.skeleton.dof_index(name)
+        assert np.abs(error[:, k]).mean() < 12.0 and error[:, k].std() < 4.0, name
+
+
+def test_path_b_shape_hints(model: BodyModel, proxy: SmplProxy) -> None:
+    seq = read_smpl_sequence(SEQUENCE_FILE)
+    tall, notes = proxy.phenotype(ShapeHints(sex="male", height_m=1.88, mass_kg=92.0))
+    assert abs(proxy.stature(tall) - 1.88) < 0.01 and abs(proxy.mass(tall) - 92.0) < 1.0
+    assert tall[proxy.phenotype_names.index("gender")] == 0.0 and "height 1.88 m" in notes[0]
+    short, _ = proxy.phenotype(ShapeHints(sex="female", height_m=1.55))
+    assert abs(proxy.stature(short) - 1.55) < 0.01
+    _, far = proxy.phenotype(ShapeHints(mass_kg=199.0))
+    assert any("could be met only" in n for n in far)  # beyond anny's weight slider
+    fitter = upgrade_fitter(model)
+    clip = replace(seq, poses=seq.poses[:24], trans=seq.trans[:24], bad_frames=seq.bad_frames[:24])
+    top, foot = model.joint_names.index("skull_base"), model.joint_names.index("ankle_r")
+    heights = []
+    for hints in (None, ShapeHints("male", 1.88, 92.0)):
+        joints = upgrade_from_rotations(clip, fitter, proxy, hints).joints
+        heights.append(float(np.linalg.norm(joints[:, top] - joints[:, foot], axis=-1).mean()))
+    assert heights[1] > heights[0] + 0.1, heights  # the hinted subject is taller; the skeleton follows
+    for bad, field in (
+        (dict(sex="robot"), "sex"),
+        (dict(height_m=0.4), "height_m"),
+        (dict(mass_kg=float("nan")), "mass_kg"),
+    ):
+        with pytest.raises(ShapeHintError) as info:
+            ShapeHints(**bad)
+        assert info.value.field == field

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import PurePath
 from typing import Annotated, Any
 
-from fastapi import APIRouter, File, Query, Request, UploadFile
+from fastapi import APIRouter, File, Form, Query, Request, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse, StreamingResponse
 
@@ -13,6 +13,7 @@ from bodyfit.api import wire
 from bodyfit.api.rest.jobs import answer
 from bodyfit.api.rest.routes_fit import STREAM_DOC
 from bodyfit.api.rest.state import Service
+from bodyfit.service.core import shape_hints
 from bodyfit.service.jobs import Job
 
 router = APIRouter(prefix="/v1", tags=["upgrade"])
@@ -31,13 +32,20 @@ async def upgrade(
         UploadFile, File(description="AMASS-style .npz: poses, trans, betas, gender, mocap_framerate")
     ],
     chunk: Annotated[int, Query(ge=1, le=4096, description="Frames per chunk event.")] = 256,
+    sex: Annotated[
+        str | None,
+        Form(description="Path (b) shape hint: male, female or neutral (default: the file's gender)."),
+    ] = None,
+    height_m: Annotated[float | None, Form(description="Path (b) shape hint: stature in metres.")] = None,
+    mass_kg: Annotated[float | None, Form(description="Path (b) shape hint: body mass in kilograms.")] = None,
 ) -> StreamingResponse | JSONResponse:
+    hints = shape_hints(sex, height_m, mass_kg)
     data = await file.read()
     name = file.filename or "upload.npz"
     sequence = await run_in_threadpool(service.read_upgrade, data, name)
 
     def work(job: Job) -> list[dict[str, Any]]:
-        result = service.upgrade(sequence, job)
+        result = service.upgrade(sequence, job, hints)
         files = service.upgrade_files(result, PurePath(name).stem or "upgrade")
         return [*wire.upgrade_chunks(result, chunk), wire.upgrade_summary(result, files)]
 

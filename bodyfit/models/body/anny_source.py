@@ -107,7 +107,7 @@ class AnnySource:
         self._anny = anny
         self.model = anny.Anny(pose_parameterization="world").to(torch.float64)
         faces = self.model.faces.numpy().astype(np.int64)
-        self.keep, self.faces = _largest_component(faces, self.model.template_vertices.shape[0])
+        self.keep, self.faces = largest_component(faces, self.model.template_vertices.shape[0])
         self.bone_labels: list[str] = list(self.model.bone_labels)
         self.bone_body = [anny_bone_body(label) for label in self.bone_labels]
         self.version = getattr(anny, "__version__", "unknown")
@@ -200,7 +200,7 @@ class AnnySource:
         return {"anny": self.version, "vertices": len(self.keep), "faces": len(self.faces)}
 
 
-def _largest_component(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+def largest_component(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
     """Keep the largest edge-connected component of a triangle mesh.
 
     Returns:

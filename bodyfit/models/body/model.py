@@ -328,7 +328,7 @@ class BodyModel:
         """(B, n_shape) shape coefficients as a tensor; None means the mean body."""
         if shape is None:
             return torch.zeros(batch, self.n_shape, dtype=dtype)
-        t = torch.as_tensor(shape).to(dtype)
+        t = torch.as_tensor(np.array(shape) if isinstance(shape, np.ndarray) else shape).to(dtype)
         if t.ndim != 2 or t.shape[1] != self.n_shape or t.shape[0] != batch:
             raise ShapeError(
                 f"shape coefficients must have shape ({batch}, {self.n_shape}): {self.n_bone} bone "

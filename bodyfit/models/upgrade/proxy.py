@@ -1,137 +1,286 @@
-"""Path (b): SMPL joint rotations without an SMPL model file.
+"""Path (b)'s proxy: an SMPL-format body in our topology, built at asset time from anny's SOMA rig.
 
-The rotations drive a proxy skeleton in SMPL's conventions (its 24-joint tree, +Y up, facing +Z, T-pose
-rest), whose rest joints are placed on our mean body in a T-pose at SMPL-like locations taken from our
-anatomical joints. The proxy's motion is then retargeted onto our skeleton like any mocap skeleton
-(:func:`bodyfit.models.fitting.retarget.retarget`: bone directions and orientations, every coordinate within
-its limits, pelvis angles unwrapped). Betas cannot be used without SMPL's shape directions: the shape is our
-population mean, and the result says so.
+anny's ``soma`` rig (NVIDIA SOMA-X's skeleton on anny's mesh) is in SMPL's frame (+Y up, facing +Z, +X to
+the body's left) with a T-pose reference and rotations relative to it in world-aligned axes, SMPL's
+conventions. Its skin, restricted to our template's vertices (the same mesh), is posed in that T-pose and
+written as an SMPL-format model (asset ``smpl_proxy.npz``, SMPL's key names):
+
+* ``v_template``: the T-posed body at the adult population's mean phenotype;
+* ``shapedirs``: the T-posed bodies' change with :func:`phenotype_features` of anny's sliders (gender, age,
+  muscle, weight, height, proportions, and their products), least squares over a sampled adult
+  population, so the proxy's betas are those features' offsets from the mean's (``phenotype_names``,
+  ``phenotype_mean``);
+* ``J_regressor``: non-negative, fitted to the SOMA joints mapped onto SMPL's 24 (:data:`SOMA_FOR_SMPL`);
+* ``weights``: SOMA's skinning weights summed onto those joints; no pose correctives.
+
+Posed by SMPL joint rotations (the SMPL forward pass of :mod:`~bodyfit.models.upgrade.smpl_model`), it
+gives meshes in our own topology, which our model then fits as a registered sequence. Shape comes from
+hints (:class:`ShapeHints`: sex, stature, mass) solved on the proxy's phenotype sliders, else the mean.
+Building needs anny (extra ``build``); using the asset does not.
 """
 
 from __future__ import annotations
 
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
 import numpy as np
-import torch
-from scipy.spatial.transform import Rotation
 
-from bodyfit.models.body.model import BodyModel
-from bodyfit.models.fitting.bvh import BvhJoint, BvhMotion
-from bodyfit.models.fitting.mocap_io import lab_rotation
-from bodyfit.models.fitting.retarget import Segment, SegmentMap
-from bodyfit.models.fitting.smpl_topology import SMPL_TO_BODY
+from bodyfit.models.errors import BodyfitError
+from bodyfit.models.upgrade.smpl_joints import SMPL_JOINTS, SMPL_PARENTS
+from bodyfit.models.upgrade.smpl_model import SmplModel, load_smpl_model
 
-SMPL_JOINTS = (
-    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle",
-    "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar", "right_collar", "head",
-    "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
-    "left_hand", "right_hand",
-)  # fmt: skip
-SMPL_PARENTS = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21)
-# SMPL-like joint locations from our anatomical joints: a joint name, or a weighted mix.
-JOINT_FROM: dict[str, tuple[tuple[str, float], ...]] = {
-    "pelvis": (("pelvis", 1.0),),
-    "left_hip": (("hip_l", 1.0),),
-    "right_hip": (("hip_r", 1.0),),
-    "spine1": (("lumbosacral", 1.0),),
-    "left_knee": (("knee_l", 1.0),),
-    "right_knee": (("knee_r", 1.0),),
-    "spine2": (("thoracolumbar", 1.0),),
-    "left_ankle": (("ankle_l", 1.0),),
-    "right_ankle": (("ankle_r", 1.0),),
-    "spine3": (("thoracolumbar", 0.5), ("cervicothoracic", 0.5)),
-    "left_foot": (("mtp_l", 1.0),),
-    "right_foot": (("mtp_r", 1.0),),
-    "neck": (("cervicothoracic", 1.0),),
-    "left_collar": (("cervicothoracic", 0.6), ("shoulder_l", 0.4)),
-    "right_collar": (("cervicothoracic", 0.6), ("shoulder_r", 0.4)),
-    "head": (("skull_base", 1.0),),
-    "left_shoulder": (("shoulder_l", 1.0),),
-    "right_shoulder": (("shoulder_r", 1.0),),
-    "left_elbow": (("elbow_l", 1.0),),
-    "right_elbow": (("elbow_r", 1.0),),
-    "left_wrist": (("wrist_l", 1.0),),
-    "right_wrist": (("wrist_r", 1.0),),
-    "left_hand": (("wrist_l", 1.4), ("elbow_l", -0.4)),
-    "right_hand": (("wrist_r", 1.4), ("elbow_r", -0.4)),
-}
-END_SITES = {"head": (0.0, 0.12, 0.0), "left_foot": (0.0, 0.0, 0.05), "right_foot": (0.0, 0.0, 0.05)}
-
-
-def _limbs(side: str, s: str) -> tuple[Segment, ...]:
-    return (
-        Segment(f"femur_{s}", f"{side}_hip", (f"{side}_hip", f"{side}_knee"), (f"femur_{s}", f"tibia_{s}")),
-        Segment(
-            f"tibia_{s}", f"{side}_knee", (f"{side}_knee", f"{side}_ankle"), (f"tibia_{s}", f"talus_{s}")
-        ),
-        Segment(
-            f"calcn_{s}", f"{side}_ankle", (f"{side}_ankle", f"{side}_foot"), (f"talus_{s}", f"toes_{s}")
-        ),
-        Segment(f"toes_{s}", f"{side}_foot"),
-        Segment(
-            f"humerus_{s}",
-            f"{side}_shoulder",
-            (f"{side}_shoulder", f"{side}_elbow"),
-            (f"humerus_{s}", f"ulna_{s}"),
-        ),
-        Segment(f"ulna_{s}", f"{side}_elbow", (f"{side}_elbow", f"{side}_wrist"), (f"ulna_{s}", f"hand_{s}")),
-        Segment(f"hand_{s}", f"{side}_wrist"),
-    )
-
-
-SMPL_MAP = SegmentMap(
-    root="pelvis",
-    hips=("left_hip", "right_hip"),
-    legs=(("left_hip", "left_knee", "left_ankle"), ("right_hip", "right_knee", "right_ankle")),
-    segments=(
-        Segment("torso", "spine1", ("spine1", "spine3"), ("torso", "thorax")),
-        Segment("thorax", "spine3", ("spine3", "neck"), ("thorax", "head")),
-        Segment("head", "head", ("neck", "head_end"), None),
-        *_limbs("left", "l"),
-        *_limbs("right", "r"),
-    ),
+PROXY_ASSET = "smpl_proxy.npz"
+BODY_DENSITY = 985.0  # kg/m^3, whole body with the lungs: mass = density x the closed skin's volume
+# SMPL's 24 joints and the SOMA bones each stands for (its skin follows the first; the rest add their skin).
+SOMA_FOR_SMPL: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("pelvis", ("Hips", "Root")),
+    ("left_hip", ("LeftLeg",)),
+    ("right_hip", ("RightLeg",)),
+    ("spine1", ("Spine1",)),
+    ("left_knee", ("LeftShin",)),
+    ("right_knee", ("RightShin",)),
+    ("spine2", ("Spine2",)),
+    ("left_ankle", ("LeftFoot",)),
+    ("right_ankle", ("RightFoot",)),
+    ("spine3", ("Chest",)),
+    ("left_foot", ("LeftToeBase", "LeftToeEnd")),
+    ("right_foot", ("RightToeBase", "RightToeEnd")),
+    ("neck", ("Neck1", "Neck2")),
+    ("left_collar", ("LeftShoulder",)),
+    ("right_collar", ("RightShoulder",)),
+    ("head", ("Head", "HeadEnd", "Jaw", "LeftEye", "RightEye")),
+    ("left_shoulder", ("LeftArm",)),
+    ("right_shoulder", ("RightArm",)),
+    ("left_elbow", ("LeftForeArm",)),
+    ("right_elbow", ("RightForeArm",)),
+    ("left_wrist", ("LeftHand",)),
+    ("right_wrist", ("RightHand",)),
+    ("left_hand", ("LeftHandMiddle1", "LeftHand*")),  # the fingers
+    ("right_hand", ("RightHandMiddle1", "RightHand*")),
 )
-"""Which proxy joints drive which of our bodies (see :class:`~bodyfit.models.fitting.retarget.SegmentMap`)."""
+SEX_GENDER = {"male": 0.0, "female": 1.0, "neutral": 0.5}  # anny's gender slider
 
 
-def smpl_joint_locations(model: BodyModel, joints: np.ndarray) -> np.ndarray:
-    """Our anatomical joints (B, J_ours, 3) -> SMPL-like joint locations (B, 24, 3), same frame."""
-    idx = {n: i for i, n in enumerate(model.joint_names)}
-    return np.stack([sum(w * joints[:, idx[n]] for n, w in JOINT_FROM[name]) for name in SMPL_JOINTS], axis=1)
+class ShapeHintError(BodyfitError):
+    """Hints that cannot describe a person (unknown sex, implausible sizes); ``field`` names the hint."""
+
+    def __init__(self, message: str, field: str) -> None:
+        super().__init__(message)
+        self.field = field
 
 
-def proxy_rest_pose(model: BodyModel) -> np.ndarray:
-    """(n_dof,) SMPL's rest pose on our skeleton: OpenSim's neutral pose (legs straight, feet flat) with the
-    arms raised sideways to horizontal."""
-    skel = model.skeleton
-    q = np.zeros(skel.n_dof)
-    for side in ("r", "l"):
-        q[skel.dof_index(f"arm_add_{side}")] = -np.pi / 2
-    return q
+@dataclass(frozen=True)
+class ShapeHints:
+    """What is known of the subject when betas cannot be used: sex ("male", "female", "neutral"), stature
+    (m, standing, heel to vertex) and mass (kg); None where unknown."""
+
+    sex: str | None = None
+    height_m: float | None = None
+    mass_kg: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.sex is not None and self.sex not in SEX_GENDER:
+            raise ShapeHintError(f"sex must be one of {', '.join(SEX_GENDER)}; got {self.sex!r}", "sex")
+        for name, value, lo, hi in (
+            ("height_m", self.height_m, 1.2, 2.3),
+            ("mass_kg", self.mass_kg, 30, 200),
+        ):
+            if value is not None and not (np.isfinite(value) and lo <= value <= hi):
+                raise ShapeHintError(
+                    f"{name} must be an adult's, between {lo} and {hi}; got {value} (metres and kilograms)",
+                    name,
+                )
 
 
-def proxy_rest_joints(model: BodyModel, shape: np.ndarray | None = None) -> np.ndarray:
-    """(24, 3) the proxy's rest joints in SMPL's frame: our body (``shape``, default the mean) in SMPL's
-    rest pose (:func:`proxy_rest_pose`)."""
-    c = np.zeros((1, model.n_shape)) if shape is None else shape[None]
-    with torch.no_grad():
-        joints = model.forward(c, proxy_rest_pose(model)[None], dtype=torch.float64).joints.numpy()
-    return smpl_joint_locations(model, joints)[0] @ SMPL_TO_BODY
+@dataclass(frozen=True)
+class SmplProxy:
+    """The loaded proxy: an SMPL-format model in our topology whose betas are
+    :func:`phenotype_features` of anny's sliders (``phenotype_names``, each in [0, 1]) minus those of the
+    population mean (``phenotype_mean``)."""
+
+    model: SmplModel
+    phenotype_names: tuple[str, ...]
+    phenotype_mean: np.ndarray
+
+    def betas(self, phenotype: np.ndarray) -> np.ndarray:
+        """(n_betas,) the proxy's betas for phenotype (K,)."""
+        return (phenotype_features(phenotype[None]) - phenotype_features(self.phenotype_mean[None]))[0]
+
+    def body(self, phenotype: np.ndarray) -> np.ndarray:
+        """The T-posed body (N, 3) of phenotype (K,)."""
+        return self.model.v_template + self.model.shapedirs @ self.betas(phenotype)
+
+    def stature(self, phenotype: np.ndarray) -> float:
+        """Heel-to-vertex height (m) of the T-posed body."""
+        y = self.body(phenotype)[:, 1]
+        return float(y.max() - y.min())
+
+    def mass(self, phenotype: np.ndarray) -> float:
+        """Mass (kg): the closed skin's volume times :data:`BODY_DENSITY`."""
+        v = self.body(phenotype)
+        a, b, c = (v[self.model.faces[:, k]] for k in range(3))
+        return float(abs(np.einsum("fi,fi->f", a, np.cross(b, c)).sum()) / 6.0 * BODY_DENSITY)
+
+    def phenotype(self, hints: ShapeHints | None, gender: str | None = None) -> tuple[np.ndarray, list[str]]:
+        """The phenotype (K,) for the hints (the sequence's own ``gender`` when no sex is hinted; else the
+        population mean), and notes that say what the shape came from. Stature and mass are met on the height
+        and weight sliders by Gauss-Newton steps; a hint beyond the sliders' range is met as far as they go,
+        and the notes say so."""
+        hints = hints or ShapeHints()
+        sex = hints.sex or (gender if gender in SEX_GENDER else None)
+        sex_source = "" if hints.sex or sex is None else " (the sequence's gender)"
+        names = list(self.phenotype_names)
+        p = self.phenotype_mean.copy()
+        if sex is not None:
+            p[names.index("gender")] = SEX_GENDER[sex]
+        wanted = ((self.stature, "height", hints.height_m), (self.mass, "weight", hints.mass_kg))
+        goals = [(f, names.index(slider), v) for f, slider, v in wanted if v is not None]
+        free = [k for _, k, _ in goals]
+        notes = []
+        for _ in range(10 if goals else 0):
+            r = np.array([f(p) - v for f, _, v in goals])
+            J = np.empty((len(goals), len(free)))
+            for j, k in enumerate(free):
+                step = np.zeros_like(p)
+                step[k] = 1e-3
+                J[:, j] = [(f(p + step) - f(p)) / 1e-3 for f, _, _ in goals]
+            p[free] = np.clip(p[free] - np.linalg.lstsq(J, r, rcond=None)[0], 0.0, 1.0)
+        for f, _, v in goals:
+            if abs(f(p) - v) > 0.01 * v:
+                notes.append(f"a shape hint of {v:g} could be met only to {f(p):.3g} by the proxy's sliders")
+        given = [f"sex {sex}{sex_source}"] if sex else []
+        sizes = (("height", hints.height_m, "m"), ("mass", hints.mass_kg, "kg"))
+        given += [f"{k} {v:g} {unit}" for k, v, unit in sizes if v is not None]
+        shape = "shape from hints: " + ", ".join(given) if given else "shape: the adult population mean"
+        notes.insert(0, f"{shape} (stature {self.stature(p):.2f} m, mass {self.mass(p):.0f} kg)")
+        return p, notes
 
 
-def proxy_motion(poses: np.ndarray, trans: np.ndarray, rest: np.ndarray, fps: float) -> BvhMotion:
-    """The proxy skeleton's motion as a BVH-like skeleton (metres, SMPL's axes: +Y up, facing +Z).
+def load_proxy(folder: Path | None = None) -> SmplProxy:
+    """The stored proxy (asset :data:`PROXY_ASSET`, hash-checked)."""
+    from bodyfit.models.assets import verified_asset
+
+    path = verified_asset(PROXY_ASSET, folder)
+    with np.load(path) as d:
+        names = tuple(str(n) for n in d["phenotype_names"])
+        mean = np.asarray(d["phenotype_mean"], np.float64)
+    return SmplProxy(load_smpl_model(path), names, mean)
+
+
+def phenotype_features(p: np.ndarray) -> np.ndarray:
+    """The proxy's shape features of phenotypes p (n, K): the sliders and their pairwise products and squares
+    (n, K + K (K + 1) / 2); anny's body is multilinear in its sliders, so these carry most of it."""
+    i, j = np.triu_indices(p.shape[1])
+    return np.concatenate([p, p[:, i] * p[:, j]], axis=1)
+
+
+# -- asset build (needs anny) ------------------------------------------------------------------------------
+def _smpl_columns(labels: list[str]) -> np.ndarray:
+    """(n_soma,) the SMPL joint each SOMA bone's skin goes to (a trailing ``*`` in the table matches a
+    prefix, after the exact names)."""
+    column = -np.ones(len(labels), np.int64)
+    for exact in (True, False):
+        for j, (_, bones) in enumerate(SOMA_FOR_SMPL):
+            for pattern in bones:
+                for i, label in enumerate(labels):
+                    hit = (
+                        label == pattern
+                        if exact
+                        else pattern.endswith("*") and label.startswith(pattern[:-1])
+                    )
+                    if hit and column[i] < 0:
+                        column[i] = j
+    if (column < 0).any():
+        raise AssertionError(
+            f"SOMA bones without an SMPL joint: {[labels[i] for i in np.flatnonzero(column < 0)]}"
+        )
+    return column
+
+
+def build_proxy(
+    cache_dir: Path, faces: np.ndarray, n_bodies: int = 400, seed: int = 11, held_out: int = 50
+) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """The proxy's arrays (SMPL keys plus ``phenotype_names``, ``phenotype_mean``) and build metrics.
 
     Args:
-        poses: (T, 24, 3) SMPL axis-angle; trans: (T, 3); rest: (24, 3) rest joints; fps: frame rate.
+        cache_dir: anny's and warp's caches; faces: (F, 3) our template's triangles (checked against the
+            SOMA model's mesh); n_bodies: sampled adults for the shape directions and the regressor;
+            held_out: more adults, only to measure the shape directions.
     """
-    T = len(poses)
-    euler = Rotation.from_rotvec(poses.reshape(-1, 3)).as_euler("ZXY", degrees=True).reshape(T, 24, 3)
-    rotations = ("Zrotation", "Xrotation", "Yrotation")
-    joints = []
-    for j, (name, parent) in enumerate(zip(SMPL_JOINTS, SMPL_PARENTS, strict=True)):
-        offset = rest[j] - (rest[parent] if parent >= 0 else 0.0)
-        channels = (("Xposition", "Yposition", "Zposition") if parent < 0 else ()) + rotations
-        end = END_SITES.get(name)
-        joints.append(BvhJoint(name, parent, offset, channels, None if end is None else np.asarray(end)))
-    values = np.concatenate([trans, euler.reshape(T, -1)], axis=1)
-    return BvhMotion(tuple(joints), values, 1.0 / fps, 1.0, lab_rotation("y", "z"), "SMPL proxy")
+    os.environ.setdefault("ANNY_CACHE_DIR", str(cache_dir / "anny"))
+    os.environ.setdefault("WARP_CACHE_PATH", str(cache_dir / "warp"))
+    import anny  # build-time dependency (extra "build")
+    import torch
+
+    from bodyfit.models.body.anny_source import largest_component, seeded
+    from bodyfit.models.body.shape_space import fit_joint_regressor
+
+    soma = anny.Anny(rig="soma", pose_parameterization="local-ref").to(torch.float64)
+    keep, soma_faces = largest_component(soma.faces.numpy().astype(np.int64), soma.template_vertices.shape[0])
+    if not np.array_equal(soma_faces, faces):
+        raise AssertionError("anny's SOMA-rig mesh is not our template's mesh")
+    labels = list(soma.bone_labels)
+    head_bone = [labels.index(bones[0]) for _, bones in SOMA_FOR_SMPL]
+    names = tuple(str(n) for n in soma.phenotype_labels)
+    dist = anny.shape_distribution.SimpleShapeDistribution(
+        soma,
+        morphological_age_distribution=torch.distributions.Uniform(
+            torch.tensor(18.0, dtype=torch.float64), torch.tensor(90.0, dtype=torch.float64)
+        ),
+    )
+    with seeded(seed):
+        _, pheno = dist.sample(n_bodies + held_out)
+    P_all = np.stack([pheno[n].numpy() for n in names], 1)  # (N, K)
+    P, P_test = P_all[:n_bodies], P_all[n_bodies:]
+    mean = P.mean(0)
+
+    def t_posed(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """T-posed bodies (n, V, 3) and SOMA bone heads (n, 78, 3) for phenotypes p (n, K)."""
+        kwargs = {n: torch.as_tensor(p[:, k]) for k, n in enumerate(names)}
+        identity = torch.eye(4, dtype=torch.float64).expand(len(p), len(labels), 4, 4)
+        with torch.no_grad():
+            out = soma(pose_parameters=identity, phenotype_kwargs=kwargs)
+        return out["vertices"][:, keep].numpy(), out["bone_poses"][..., :3, 3].numpy()
+
+    verts, heads = zip(*(t_posed(P[i : i + 50]) for i in range(0, len(P), 50)), strict=True)
+    V, H = np.concatenate(verts), np.concatenate(heads)
+    v_mean, _ = t_posed(mean[None])
+    D = phenotype_features(P) - phenotype_features(mean[None])
+    flat = V.reshape(len(V), -1) - v_mean.reshape(1, -1)
+    dirs, *_ = np.linalg.lstsq(D, flat, rcond=None)  # (n_features, V * 3)
+    V_test, _ = t_posed(P_test)
+    D_test = phenotype_features(P_test) - phenotype_features(mean[None])
+    gap = np.linalg.norm(v_mean + (D_test @ dirs).reshape(V_test.shape) - V_test, axis=-1)
+    joints = H[:, head_bone]
+    regressor = fit_joint_regressor(V, joints)
+
+    w = soma.vertex_bone_weights.numpy()[keep]
+    idx = soma.vertex_bone_indices.numpy()[keep]
+    weights = np.zeros((len(keep), len(SMPL_JOINTS)))
+    cols = _smpl_columns(labels)
+    np.add.at(weights, (np.repeat(np.arange(len(keep)), w.shape[1]), cols[idx].ravel()), w.ravel())
+    weights /= weights.sum(1, keepdims=True)
+    arrays = {
+        "v_template": v_mean[0],
+        "shapedirs": dirs.T.reshape(len(keep), 3, len(dirs)),
+        "J_regressor": regressor,
+        "weights": weights,
+        "kintree_table": np.array([SMPL_PARENTS, np.arange(len(SMPL_JOINTS))], np.int64),
+        "f": faces.astype(np.int64),
+        "phenotype_names": np.array(names),
+        "phenotype_mean": mean,
+    }
+    metrics = {
+        "bodies": n_bodies,
+        "shape_held_out_mean_mm": round(float(gap.mean()) * 1000, 3),
+        "shape_held_out_max_mm": round(float(gap.max()) * 1000, 2),
+        "joint_regressor_mean_mm": round(
+            float(np.linalg.norm(np.einsum("jv,nvc->njc", regressor, V) - joints, axis=-1).mean()) * 1000, 3
+        ),
+        "phenotypes": list(names),
+        "anny": getattr(anny, "__version__", "unknown"),
+    }
+    return arrays, metrics

@@ -27,7 +27,7 @@ from bodyfit.models.fitting.registered import RegisteredFitter
 from bodyfit.models.fitting.retarget import retarget
 from bodyfit.models.fitting.smpl_topology import SMPL_TO_BODY, SOURCE_DIR, fit_smpl_meshes, read_obj
 from bodyfit.models.fitting.surface import closest_on_surface, vertex_normals
-from bodyfit.models.upgrade.proxy import SMPL_JOINTS, SMPL_PARENTS, smpl_joint_locations
+from bodyfit.models.upgrade.smpl_joints import SMPL_JOINTS, SMPL_PARENTS, smpl_joint_locations
 from bodyfit.models.upgrade.smpl_model import SmplModel
 
 # The body of ours whose rotation each SMPL joint follows (and whose skin it moves).

@@ -7,7 +7,8 @@ set of bone scales for the whole sequence, per-frame coordinates from warm-start
 unwrapped pelvis angles, every frame within the joint limits). Frames the input marks bad (NaN) are left out
 of the fit, given the coordinates interpolated from their neighbours, and flagged.
 
-Path (b), without one (:func:`upgrade_from_rotations`): see :mod:`bodyfit.models.upgrade.proxy`.
+Path (b), without one (:func:`upgrade_from_rotations`): the rotations pose a proxy body in our topology
+(:mod:`bodyfit.models.upgrade.proxy`), fitted the same way; shape from hints or the population mean.
 """
 
 from __future__ import annotations
@@ -21,16 +22,16 @@ from typing import Any
 
 import numpy as np
 import torch
+from scipy import sparse
 
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting.offsets import OffsetConfig
 from bodyfit.models.fitting.registered import RegisteredFitter
 from bodyfit.models.fitting.report import count_limit_violations
-from bodyfit.models.fitting.retarget import retarget
-from bodyfit.models.fitting.sequence import FRAME_STAGES, SequenceConfig, SequenceFitter
+from bodyfit.models.fitting.sequence import FRAME_STAGES, SequenceConfig, SequenceFit, SequenceFitter
 from bodyfit.models.fitting.smpl_topology import SMPL_TO_BODY, SMPL_VERTICES, TopologyMap, smpl_map
 from bodyfit.models.skeleton.opensim_export import write_mot, write_osim
-from bodyfit.models.upgrade.proxy import SMPL_MAP, proxy_motion, proxy_rest_joints
+from bodyfit.models.upgrade.proxy import ShapeHints, SmplProxy, load_proxy
 from bodyfit.models.upgrade.smpl_io import SmplSequence
 from bodyfit.models.upgrade.smpl_model import SmplModel, SmplModelError
 
@@ -124,17 +125,8 @@ def upgrade_with_model(
         )
     model = fitter.model
     tmap = topology or smpl_map()
-    good = np.flatnonzero(~sequence.bad_frames)
-    transfer = tmap.matrix(SMPL_VERTICES)  # SMPL vertices -> points at ours, applied inside the forward pass
-
-    def source(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Our-topology targets of good frames idx: SMPL forward, axes, correspondence (chunk by chunk)."""
-        frames = good[idx]
-        mapped, _ = smpl.forward(sequence.poses[frames], sequence.betas, sequence.trans[frames], at=transfer)
-        targets = mapped.astype(np.float64) @ SMPL_TO_BODY.T
-        return targets, np.repeat(tmap.weight[None], len(targets), axis=0)
-
-    fit = fitter.fit_frames(source, len(good), progress=progress)
+    # SMPL vertices -> points at ours, applied inside the forward pass
+    fit, good = _fit_posed(sequence, smpl, fitter, tmap.matrix(SMPL_VERTICES), tmap.weight, progress)
     notes = [f"path (a): posed with the SMPL-family model {Path(smpl.source).name or '(given)'}"]
     if fit.offsets is not None:
         largest = float(np.linalg.norm(fit.offsets, axis=1).max()) * 1000.0
@@ -150,36 +142,58 @@ def upgrade_with_model(
 
 
 def upgrade_from_rotations(
-    sequence: SmplSequence, model: BodyModel, progress: Callable[[int, int], None] | None = None
+    sequence: SmplSequence,
+    fitter: SequenceFitter | BodyModel,
+    proxy: SmplProxy | None = None,
+    hints: ShapeHints | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> UpgradeResult:
-    """Path (b), without an SMPL model file: the joint rotations drive a proxy skeleton in SMPL's
-    conventions, retargeted onto ours (see :mod:`bodyfit.models.upgrade.proxy`). Shape: the population mean
-    (betas cannot be used without SMPL's shape directions). ``error_mm`` is NaN (there is no input mesh);
-    ``extra["residual_deg"]`` is the mean angle between the proxy's bone directions and ours."""
+    """Path (b), without an SMPL model file: the joint rotations pose a proxy body in SMPL's conventions
+    (:mod:`bodyfit.models.upgrade.proxy`: anny's SOMA rig in our topology), which our model is fitted to
+    like path (a)'s meshes. Shape: from ``hints`` (sex, stature, mass; the sequence's gender when no sex is
+    given), else the adult population mean; betas cannot be used without SMPL's shape directions.
+    ``error_mm`` is NaN (there is no input mesh); ``extra["proxy_fit_mm"]`` is the mean distance of our
+    skin to the proxy's."""
     began = time.perf_counter()
-    good = np.flatnonzero(~sequence.bad_frames)
-    shape = np.zeros(model.n_shape)
-    with torch.no_grad():
-        scales = model.forward(shape[None]).scales.numpy()[0]
-    motion = proxy_motion(sequence.poses[good], sequence.trans[good], proxy_rest_joints(model), sequence.fps)
-    if progress is not None:
-        progress(0, len(good))
-    moved = retarget(motion, model.skeleton, scales, SMPL_MAP)
-    if progress is not None:
-        progress(len(good), len(good))
-    with torch.no_grad():
-        joints = model.forward(
-            np.broadcast_to(shape, (len(good), model.n_shape)), moved.in_range(model.skeleton), moved.root
-        ).joints.numpy()
+    fitter = fitter if isinstance(fitter, SequenceFitter) else upgrade_fitter(fitter)
+    proxy = proxy or load_proxy()
+    phenotype, shape_notes = proxy.phenotype(hints, sequence.gender)
+    posed = replace(sequence, betas=proxy.betas(phenotype))
+    weight = np.ones(len(proxy.model.v_template))
+    fit, good = _fit_posed(posed, proxy.model, fitter, None, weight, progress)
     notes = [
-        "path (b): no SMPL-family model file; the SMPL joint rotations drove a proxy skeleton in SMPL's "
-        "conventions, retargeted onto ours",
-        "betas were not used (no SMPL shape directions): the shape is the population mean",
+        "path (b): no SMPL-family model file; the SMPL joint rotations posed a proxy body in SMPL's "
+        "conventions (anny's SOMA rig), which our model was fitted to",
+        "betas were not used (no SMPL shape directions)",
+        *shape_notes,
     ]
-    arrays = (moved.coordinates, moved.root, joints, np.full(len(good), np.nan))
-    result = _result("b", sequence, model, shape, arrays, good, notes, began)
-    residual = float(np.mean(moved.residual_deg))
-    return replace(result, extra={**result.extra, "residual_deg": round(residual, 3)})
+    arrays = (fit.coordinates, fit.root, fit.joints, np.full(len(good), np.nan))
+    result = _result("b", sequence, fitter.model, fit.shape, arrays, good, notes, began)
+    proxy_mm = float(np.mean([r.distances.mean for r in fit.reports]))
+    return replace(result, offsets=fit.offsets, extra={**result.extra, "proxy_fit_mm": round(proxy_mm, 3)})
+
+
+def _fit_posed(
+    sequence: SmplSequence,
+    smpl: SmplModel,
+    fitter: SequenceFitter,
+    transfer: sparse.csr_matrix | None,
+    weight: np.ndarray,
+    progress: Callable[[int, int], None] | None,
+) -> tuple[SequenceFit, np.ndarray]:
+    """Fit the sequence's good frames as posed by ``smpl``, a chunk at a time; ``transfer`` (V, N) carries
+    its vertices to our topology inside the forward pass (None: already ours); ``weight`` (V,) per vertex.
+    Returns the fit and the good frames' indices."""
+    good = np.flatnonzero(~sequence.bad_frames)
+
+    def source(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Our-topology targets of good frames idx: SMPL forward, axes, correspondence (chunk by chunk)."""
+        frames = good[idx]
+        mapped, _ = smpl.forward(sequence.poses[frames], sequence.betas, sequence.trans[frames], at=transfer)
+        targets = mapped.astype(np.float64) @ SMPL_TO_BODY.T
+        return targets, np.repeat(weight[None], len(targets), axis=0)
+
+    return fitter.fit_frames(source, len(good), progress=progress), good
 
 
 def _result(
