@@ -30,6 +30,7 @@ from bodyfit.models.fitting.registered import DataTerm, RegisteredFitter, Stage,
 from bodyfit.models.fitting.report import DistanceStats, FitReport
 from bodyfit.models.fitting.scan_io import MIN_POINTS, Scan, ScanError
 from bodyfit.models.fitting.surface import point_to_surface, vertex_normals
+from bodyfit.models.fitting.view import view_direction
 from bodyfit.models.rotations import zxy_angles
 from bodyfit.models.skeleton.model import PELVIS_ROTATIONS
 
@@ -38,6 +39,7 @@ MIN_INLIER_FRACTION = 0.85
 MIN_COVERAGE = 0.5
 INLIER_MM = 30.0  # scan points further than this from the registration count as outliers
 COVERED_MM = 20.0  # a model vertex is covered when a scan point lies this close
+VISIBLE_COS = -0.1  # a vertex faces a single view's sensor when its normal is this close to towards it
 
 
 @dataclass(frozen=True)
@@ -85,7 +87,7 @@ LIMB_SEARCH = tuple(
     )
 )
 LIMB_TRUNCATION_M = 0.05
-LIMB_SIDES = ("r", "r", "l", "l")  # of LIMB_SEARCH's entries
+LIMB_SWEEPS = 2  # turns of every limb in the search
 LOOSE_POINTS = 200  # scan points, at most, that a limb candidate is asked to reach
 
 
@@ -93,7 +95,8 @@ LOOSE_POINTS = 200  # scan points, at most, that a limb candidate is asked to re
 class ScanFitConfig:
     """voxel: cleaning grid (m); neighbours, outlier_cutoff: a point is dropped when its mean distance to
     its neighbours exceeds the median by ``outlier_cutoff`` robust standard deviations; tangential: weight
-    of the in-plane part of point-to-plane distances; nonrigid: None skips the refinement."""
+    of the in-plane part of point-to-plane distances; nonrigid: None skips the refinement; single_view:
+    detect one sensor's view (:func:`view_direction`) and then fit only the surface that faced it."""
 
     phases: tuple[ScanPhase, ...] = DEFAULT_PHASES
     voxel: float = 0.01
@@ -101,6 +104,7 @@ class ScanFitConfig:
     outlier_cutoff: float = 3.0
     tangential: float = 0.1
     nonrigid: NonRigidConfig | None = field(default_factory=NonRigidConfig)
+    single_view: bool = True
     seed: int = 0
 
 
@@ -158,16 +162,22 @@ def orientation_candidates(points: np.ndarray) -> np.ndarray:
 class _Hypotheses:
     """Candidate body frames and their optimisation state: rotation (H, 3, 3), the scan's centre (3,), the
     fit points in each body frame (H, N, 3) metres, state (see RegisteredFitter.start_state); searched: the
-    candidates came from the scan's axes (no orientation given)."""
+    candidates came from the scan's axes (no orientation given); view: (3,) towards the sensor, in the
+    scan's frame, for a single-view scan (:func:`view_direction`), else None; visible: (H, V_stage) the
+    current phase's vertices that face the sensor, or None (all count)."""
 
     rotation: np.ndarray
     centre: np.ndarray
     points: np.ndarray
     state: State
     searched: bool
+    view: np.ndarray | None = None
+    visible: np.ndarray | None = None
 
     def keep(self, rows: np.ndarray) -> None:
         self.rotation, self.points = self.rotation[rows], self.points[rows]
+        if self.visible is not None:
+            self.visible = self.visible[rows]
         r = torch.as_tensor(rows)
         self.state = (self.state[0][r], self.state[1][r], self.state[2][r])
 
@@ -218,6 +228,8 @@ class ScanFitter:
         rng = np.random.default_rng(cfg.seed)
         order = rng.permutation(len(cleaned))
         hyp = self._candidates(cleaned, orientation, start)
+        if cfg.single_view:
+            hyp.view = view_direction(cleaned)
         tree = cKDTree(cleaned)
         iterations, losses = 0, {}
         for phase in cfg.phases:
@@ -226,6 +238,7 @@ class ScanFitter:
             )
             if phase.search_limbs:
                 self._search_limbs(hyp)
+            hyp.visible = self._visible(hyp, self.fitter.index[phase.stage.vertices])
             term = self._chamfer(hyp, phase)
             n_iter, _ = self.fitter.optimise(phase.stage, hyp.state, term)
             iterations += n_iter
@@ -283,13 +296,19 @@ class ScanFitter:
         def rho(d2: torch.Tensor) -> torch.Tensor:
             return d2 * s2 / (d2 + s2)
 
+        seen = None if hyp.visible is None else torch.as_tensor(hyp.visible, dtype=dtype)
+        seen_index = None if hyp.visible is None else [np.flatnonzero(m) for m in hyp.visible]
+
         def term(verts_mm: torch.Tensor) -> torch.Tensor:
             v = verts_mm.detach().double().numpy() / 1000.0
             H = len(v)
             pairs = np.empty(fit_points.shape[:2], np.int64)
             targets = np.empty(v.shape)
             for h in range(H):
-                pairs[h] = cKDTree(v[h]).query(fit_points[h])[1]
+                if seen_index is None:
+                    pairs[h] = cKDTree(v[h]).query(fit_points[h])[1]
+                else:  # a single view's points lie on the surface that faced the sensor
+                    pairs[h] = seen_index[h][cKDTree(v[h, seen_index[h]]).query(fit_points[h])[1]]
                 targets[h] = fit_points[h][point_trees[h].query(v[h])[1]]
             J = torch.as_tensor(pairs).unsqueeze(-1).expand(-1, -1, 3)
             r = torch.gather(verts_mm, 1, J) - P  # (H, N, 3)
@@ -298,10 +317,22 @@ class ScanFitter:
                 n = np.stack([vertex_normals(v[h], faces) for h in range(H)])
                 along = (r * torch.as_tensor(np.take_along_axis(n, pairs[..., None], 1), dtype=dtype)).sum(-1)
                 d2 = along**2 + tangential * (d2 - along**2)
-            m2s = ((verts_mm - torch.as_tensor(targets * 1000.0, dtype=dtype)) ** 2).sum(-1)
-            return (rho(d2).mean(1) if phase.two_way else 0.0) + 0.5 * rho(m2s).mean(1)
+            m2s = rho(((verts_mm - torch.as_tensor(targets * 1000.0, dtype=dtype)) ** 2).sum(-1))
+            m2s_mean = m2s.mean(1) if seen is None else (m2s * seen).sum(1) / seen.sum(1).clamp_min(1.0)
+            return (rho(d2).mean(1) if phase.two_way else 0.0) + 0.5 * m2s_mean
 
         return term
+
+    def _visible(self, hyp: _Hypotheses, index: np.ndarray) -> np.ndarray | None:
+        """(H, len(index)) which of the vertices ``index`` face a single-view scan's sensor in each
+        hypothesis's current state (normal towards it, with a little slack at the silhouette); None for a
+        full scan."""
+        if hyp.view is None:
+            return None
+        verts = self._vertices(hyp.state)
+        towards = hyp.rotation @ hyp.view  # (H, 3) in each body frame
+        normals = np.stack([vertex_normals(v, self.faces)[index] for v in verts])
+        return np.einsum("hvi,hi->hv", normals, towards) > VISIBLE_COS
 
     def _limb_grids(self) -> list[tuple[list[int], np.ndarray]]:
         """Per limb of :data:`LIMB_SEARCH`: the DOFs searched and their candidate values (K_limb, n), spread
@@ -321,45 +352,61 @@ class ScanFitter:
 
     def _search_limbs(self, hyp: _Hypotheses) -> None:
         """Set every limb's searched DOFs (:meth:`_limb_grids`) of every hypothesis to the candidate whose
-        limb lies on the scan (its "subset" vertices close to scan points) and reaches the scan points on
-        its side of the body that the rest of the body leaves unexplained (an arm folded onto the chest lies
-        on the scan too, but reaches nothing); both terms are mean truncated squared distances."""
+        limb lies on the scan (its "subset" vertices close to scan points) and reaches the scan points that
+        neither the rest of the body nor the other limbs explain (an arm folded onto the chest lies on the
+        scan too, but reaches nothing). Limbs take turns, :data:`LIMB_SWEEPS` times, each against the
+        others' latest choice, so an arm crossing the body is not left to the other arm. Both terms are
+        mean truncated squared distances."""
         c, q, root = (t.numpy() for t in self.fitter.parameters(hyp.state))
         decoder = self.fitter.decoders["subset"]
         dtype = self.fitter.config.dtype
         grids = self._limb_grids()
+        trunc2 = LIMB_TRUNCATION_M**2
         for h in range(len(q)):
             K = max(len(g) for _, g in grids)
-            Q = np.repeat(q[h : h + 1], K, axis=0)
+            Q = np.repeat(q[h : h + 1], K + 1, axis=0)  # the grid, then the current pose (last row)
             for dofs, values in grids:
-                Q[:, dofs] = values[np.arange(K) % len(values)]
+                Q[:K, dofs] = values[np.arange(K) % len(values)]
             with torch.no_grad():
-                rows = (np.repeat(c[h : h + 1], K, 0), Q, np.repeat(root[h : h + 1], K, 0))
+                rows = (np.repeat(c[h : h + 1], K + 1, 0), Q, np.repeat(root[h : h + 1], K + 1, 0))
                 v = decoder(*(torch.as_tensor(x, dtype=dtype) for x in rows))[0].double().numpy()
             scan = cKDTree(hyp.points[h])
-            # Scan points the rest of the body does not explain: a limb must reach them, not just touch
-            # the scan (an arm folded onto the chest touches it everywhere).
+            # Scan points the rest of the body does not explain: limbs must reach them, not just touch the
+            # scan (an arm folded onto the chest touches it everywhere).
             rest = cKDTree(v[0, self._non_limb]).query(hyp.points[h])[0]
             loose = hyp.points[h][rest > LIMB_TRUNCATION_M]
             loose = loose[:: max(1, len(loose) // LOOSE_POINTS)]
-            right = loose[:, 2] > root[h, 2]  # +Z is the body's right
-            for (dofs, values), limb, side in zip(grids, self._limb_vertices, LIMB_SIDES, strict=True):
+            on_scan, reach = [], []
+            for (_, values), limb in zip(grids, self._limb_vertices, strict=True):
                 n = len(values)
                 d = scan.query(v[:n, limb].reshape(-1, 3))[0].reshape(n, -1)
-                cost = (np.minimum(d, LIMB_TRUNCATION_M) ** 2).mean(1)
-                mine = loose[right] if side == "r" else loose[~right]
-                if len(mine):
-                    gap = np.stack([cKDTree(v[k, limb]).query(mine)[0] for k in range(n)])
-                    cost += (np.minimum(gap, LIMB_TRUNCATION_M) ** 2).mean(1)
-                q[h, dofs] = values[int(np.argmin(cost))]
+                on_scan.append((np.minimum(d, LIMB_TRUNCATION_M) ** 2).mean(1))
+                # (n, loose): each candidate's distance to each loose point
+                reach.append(np.stack([cKDTree(v[k, limb]).query(loose)[0] for k in range(n)]))
+            chosen = [K] * len(grids)  # the current pose's row
+            placed = [v[K, limb] for limb in self._limb_vertices]
+            for _ in range(LIMB_SWEEPS):
+                for L, ((dofs, values), limb) in enumerate(zip(grids, self._limb_vertices, strict=True)):
+                    cost = on_scan[L].copy()
+                    if len(loose):
+                        others = np.concatenate([placed[M] for M in range(len(grids)) if M != L])
+                        mine = cKDTree(others).query(loose)[0] > LIMB_TRUNCATION_M
+                        if mine.any():
+                            cost += np.minimum(reach[L][:, mine] ** 2, trunc2).mean(1)
+                    chosen[L] = int(np.argmin(cost))
+                    placed[L] = v[chosen[L], limb]
+                    q[h, dofs] = values[chosen[L]]
         hyp.state = self.fitter.start_state(q, root, c)
 
     def _score(self, hyp: _Hypotheses, phase: ScanPhase, tree: cKDTree) -> np.ndarray:
-        """(H,) each hypothesis's robust Chamfer score on all vertices (rho / sigma^2, lower is better)."""
+        """(H,) each hypothesis's robust Chamfer score on the phase's vertices (rho / sigma^2, lower is
+        better; a single view's on the vertices facing its sensor)."""
         verts = self._vertices(hyp.state)[:, self.fitter.index[phase.stage.vertices]]
         sigma = phase.sigma_mm / 1000.0
         score = np.empty(len(verts))
         for h, v in enumerate(verts):
+            if hyp.visible is not None:
+                v = v[hyp.visible[h]]
             d_s = cKDTree(v).query(hyp.points[h])[0]
             d_m = tree.query(v @ hyp.rotation[h] + hyp.centre)[0]
             score[h] = 0.5 * (d_m**2 / (d_m**2 + sigma**2)).mean()
@@ -406,7 +453,9 @@ class ScanFitter:
             np.mean(tree.query(registration, distance_upper_bound=COVERED_MM / 1000)[0] < np.inf)
         )
         seconds = time.perf_counter() - start
-        report = self._report(distances, coverage, offset, hyp.searched, q, iterations, seconds, losses)
+        report = self._report(
+            distances, coverage, offset, hyp.searched, hyp.view, q, iterations, seconds, losses
+        )
         return ScanFit(c, q, root, vertices, registration, joints, scan_to_body, distances, report)
 
     def _report(
@@ -415,6 +464,7 @@ class ScanFitter:
         coverage: float,
         offset: float,
         searched: bool,
+        view: np.ndarray | None,
         q: np.ndarray,
         iterations: int,
         seconds: float,
@@ -438,6 +488,10 @@ class ScanFitter:
                 f"the scan covers {coverage:.0%} of the body surface: the shape and pose of the rest are "
                 "guesses"
             )
+        if view is not None:
+            reasons.append(
+                "the scan is one sensor's view: the side of the body it did not see is the model's guess"
+            )
         if searched:
             reasons.append(
                 "the orientation was searched: on varied poses such fits often match the surface with a "
@@ -448,6 +502,7 @@ class ScanFitter:
             "inlier_fraction": round(fraction, 4),
             "inlier_threshold_mm": INLIER_MM,
             "coverage": round(coverage, 4),
+            "single_view": None if view is None else [round(float(x), 4) for x in view],
             "nonrigid_offset_mm": round(offset * 1000, 2),
             "phase_scores": {k: round(v, 5) for k, v in losses.items()},
         }

@@ -1,0 +1,100 @@
+"""Single-view scans: is a point cloud one sensor's view, and from which side was it seen?
+
+A depth camera sees one layer of surface along its line of sight; a full scan of a closed body has (at
+least) two layers, front and back, along every direction. :func:`view_direction` projects the points along
+candidate directions onto a grid of cells and measures the fraction of points in cells that hold more
+than one layer (a depth spread beyond ``layer_gap``): a single view has a direction where almost no cell
+does. Its sign is the side the sensor was on: seen from the sensor, a body's surface bulges towards it
+(:func:`depth_bulge`).
+
+Used by :mod:`~bodyfit.models.fitting.scan_fit` to fit partial scans with only the surface the sensor could
+see: the back of the body, which has no points, is not pulled into the front's.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ViewConfig:
+    """directions: candidate lines of sight (a Fibonacci sphere's half); cell: grid size across them (m);
+    layer_gap: depth spread within a cell that counts as two layers (m); max_layered: the largest fraction
+    of points in layered cells that still counts as a single view."""
+
+    directions: int = 200
+    cell: float = 0.03
+    layer_gap: float = 0.06
+    max_layered: float = 0.12
+
+
+def _half_sphere(n: int) -> np.ndarray:
+    """(n, 3) unit vectors spread over the half sphere z >= 0 (a Fibonacci lattice)."""
+    k = np.arange(n) + 0.5
+    z = k / n
+    phi = np.pi * (3.0 - np.sqrt(5.0)) * k
+    r = np.sqrt(1.0 - z * z)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], 1)
+
+
+def layered_fraction(points: np.ndarray, direction: np.ndarray, cell: float, gap: float) -> float:
+    """Fraction of points (N, 3) in grid cells (across the unit ``direction``) whose depth spread along it
+    exceeds ``gap``."""
+    d = direction / np.linalg.norm(direction)
+    u = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    w = np.cross(d, u)
+    keys = np.floor(np.stack([points @ u, points @ w], 1) / cell).astype(np.int64)
+    _, cell_of, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    cell_of = cell_of.ravel()
+    depth = points @ d
+    lo = np.full(len(counts), np.inf)
+    hi = np.full(len(counts), -np.inf)
+    np.minimum.at(lo, cell_of, depth)
+    np.maximum.at(hi, cell_of, depth)
+    return float(((hi - lo)[cell_of] > gap).mean())
+
+
+def view_direction(points: np.ndarray, config: ViewConfig | None = None) -> np.ndarray | None:
+    """The unit direction (3,) from the scanned body towards the sensor when ``points`` (N, 3, metres) look
+    like a single view, else None (a full or multi-view scan)."""
+    cfg = config or ViewConfig()
+    p = np.asarray(points, np.float64)
+    if len(p) > 20_000:
+        p = p[:: len(p) // 20_000]
+    p = p - p.mean(0)
+    dirs = _half_sphere(cfg.directions)
+    fractions = np.array([layered_fraction(p, d, cfg.cell, cfg.layer_gap) for d in dirs])
+    best = int(np.argmin(fractions))
+    if fractions[best] > cfg.max_layered:
+        return None
+    d = dirs[best]
+    return d if depth_bulge(p, d, cfg.cell / 2) > 0 else -d
+
+
+def depth_bulge(points: np.ndarray, direction: np.ndarray, cell: float) -> float:
+    """How much the surface seen along ``direction`` bulges towards +direction: the mean over interior grid
+    cells (size ``cell`` across it) of the cell's depth minus its 5 x 5 neighbourhood's. A body seen from
+    +direction is a height field that is concave towards the camera (limbs and trunk are round), so this
+    is positive; seen from the other side, negative. The image-plane grid, unlike 3D neighbours, is not
+    biased by the denser sampling a depth camera gives at grazing angles."""
+    from scipy.ndimage import uniform_filter
+
+    d = direction / np.linalg.norm(direction)
+    u = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    w = np.cross(d, u)
+    ij = np.floor(np.stack([points @ u, points @ w], 1) / cell).astype(np.int64)
+    ij -= ij.min(0)
+    shape = tuple(ij.max(0) + 1)
+    total, count = np.zeros(shape), np.zeros(shape)
+    np.add.at(total, (ij[:, 0], ij[:, 1]), points @ d)
+    np.add.at(count, (ij[:, 0], ij[:, 1]), 1.0)
+    occupied = count > 0
+    depth = np.where(occupied, total / np.maximum(count, 1.0), 0.0)
+    n = uniform_filter(occupied.astype(float), 5, mode="constant") * 25 - occupied
+    around = (uniform_filter(depth, 5, mode="constant") * 25 - depth) / np.maximum(n, 1.0)
+    interior = occupied & (n >= 20)
+    return float((depth - around)[interior].mean()) if interior.any() else 0.0
