@@ -22,12 +22,14 @@ import numpy as np
 class ViewConfig:
     """directions: candidate lines of sight (a Fibonacci sphere's half); cell: grid size across them (m);
     layer_gap: depth spread within a cell that counts as two layers (m); max_layered: the largest fraction
-    of points in layered cells that still counts as a single view."""
+    of points in layered cells that still counts as a single view; max_points: points used (an even
+    subsample of larger scans)."""
 
     directions: int = 200
     cell: float = 0.03
     layer_gap: float = 0.06
     max_layered: float = 0.12
+    max_points: int = 6000
 
 
 def _half_sphere(n: int) -> np.ndarray:
@@ -39,22 +41,27 @@ def _half_sphere(n: int) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], 1)
 
 
-def layered_fraction(points: np.ndarray, direction: np.ndarray, cell: float, gap: float) -> float:
-    """Fraction of points (N, 3) in grid cells (across the unit ``direction``) whose depth spread along it
-    exceeds ``gap``."""
+def _basis(direction: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The unit ``direction`` and two unit vectors across it, (3,) each."""
     d = direction / np.linalg.norm(direction)
     u = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
     u /= np.linalg.norm(u)
-    w = np.cross(d, u)
-    keys = np.floor(np.stack([points @ u, points @ w], 1) / cell).astype(np.int64)
-    _, cell_of, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    cell_of = cell_of.ravel()
-    depth = points @ d
-    lo = np.full(len(counts), np.inf)
-    hi = np.full(len(counts), -np.inf)
-    np.minimum.at(lo, cell_of, depth)
-    np.maximum.at(hi, cell_of, depth)
-    return float(((hi - lo)[cell_of] > gap).mean())
+    return d, u, np.cross(d, u)
+
+
+def layered_fraction(points: np.ndarray, direction: np.ndarray, cell: float, gap: float) -> float:
+    """Fraction of points (N, 3) in grid cells (across the unit ``direction``) whose depth spread along it
+    exceeds ``gap``."""
+    d, u, w = _basis(direction)
+    ij = np.floor(np.stack([points @ u, points @ w], 1) / cell).astype(np.int64)
+    ij -= ij.min(0)
+    key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
+    order = np.argsort(key, kind="stable")
+    key, depth = key[order], (points @ d)[order]
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    spread = np.maximum.reduceat(depth, starts) - np.minimum.reduceat(depth, starts)
+    counts = np.diff(np.r_[starts, len(key)])
+    return float(counts[spread > gap].sum() / len(key))
 
 
 def view_direction(points: np.ndarray, config: ViewConfig | None = None) -> np.ndarray | None:
@@ -62,8 +69,8 @@ def view_direction(points: np.ndarray, config: ViewConfig | None = None) -> np.n
     like a single view, else None (a full or multi-view scan)."""
     cfg = config or ViewConfig()
     p = np.asarray(points, np.float64)
-    if len(p) > 20_000:
-        p = p[:: len(p) // 20_000]
+    if len(p) > cfg.max_points:
+        p = p[:: len(p) // cfg.max_points]
     p = p - p.mean(0)
     dirs = _half_sphere(cfg.directions)
     fractions = np.array([layered_fraction(p, d, cfg.cell, cfg.layer_gap) for d in dirs])
@@ -82,10 +89,7 @@ def depth_bulge(points: np.ndarray, direction: np.ndarray, cell: float) -> float
     biased by the denser sampling a depth camera gives at grazing angles."""
     from scipy.ndimage import uniform_filter
 
-    d = direction / np.linalg.norm(direction)
-    u = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
-    u /= np.linalg.norm(u)
-    w = np.cross(d, u)
+    d, u, w = _basis(direction)
     ij = np.floor(np.stack([points @ u, points @ w], 1) / cell).astype(np.int64)
     ij -= ij.min(0)
     shape = tuple(ij.max(0) + 1)
