@@ -88,6 +88,7 @@ LIMB_SEARCH = tuple(
 )
 LIMB_TRUNCATION_M = 0.05
 LIMB_SWEEPS = 2  # turns of every limb in the search
+REACH_WEIGHT = 3.0  # of the unexplained points a limb must reach, against lying on the scan
 LOOSE_POINTS = 200  # scan points, at most, that a limb candidate is asked to reach
 
 
@@ -356,7 +357,7 @@ class ScanFitter:
         neither the rest of the body nor the other limbs explain (an arm folded onto the chest lies on the
         scan too, but reaches nothing). Limbs take turns, :data:`LIMB_SWEEPS` times, each against the
         others' latest choice, so an arm crossing the body is not left to the other arm. Both terms are
-        mean truncated squared distances."""
+        mean truncated squared distances, the second weighted by :data:`REACH_WEIGHT`."""
         c, q, root = (t.numpy() for t in self.fitter.parameters(hyp.state))
         decoder = self.fitter.decoders["subset"]
         dtype = self.fitter.config.dtype
@@ -392,7 +393,7 @@ class ScanFitter:
                         others = np.concatenate([placed[M] for M in range(len(grids)) if M != L])
                         mine = cKDTree(others).query(loose)[0] > LIMB_TRUNCATION_M
                         if mine.any():
-                            cost += np.minimum(reach[L][:, mine] ** 2, trunc2).mean(1)
+                            cost += REACH_WEIGHT * np.minimum(reach[L][:, mine] ** 2, trunc2).mean(1)
                     chosen[L] = int(np.argmin(cost))
                     placed[L] = v[chosen[L], limb]
                     q[h, dofs] = values[chosen[L]]
