@@ -288,7 +288,7 @@ def upgrade(
     )
 
     try:
-        hints = ShapeHints(sex, height, mass) if (sex, height, mass) != (None, None, None) else None
+        hints = ShapeHints.given(sex, height, mass)
         seq = read_smpl_sequence(sequence)
         given = smpl_model or os.environ.get(ENV_VAR)
         smpl = load_smpl_model(given) if given else None

@@ -167,7 +167,6 @@ def build_all(
     timings["smpl_topology"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     log("smpl proxy: anny's SOMA rig in our topology, as an SMPL-format model (path b of the upgrade)")
-    write_manifest(out, entries, info)
     build_proxy_asset(out, model)
     timings["smpl_proxy"] = time.perf_counter() - t0
     info["build_seconds"] = round(sum(timings.values()), 1)

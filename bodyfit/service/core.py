@@ -539,15 +539,13 @@ class BodyService:
 
 
 def shape_hints(sex: str | None, height_m: float | None, mass_kg: float | None) -> ShapeHints | None:
-    """Path (b)'s shape hints from request fields (None or "" where not given; None when none is).
+    """Path (b)'s shape hints from request fields (:meth:`ShapeHints.given`).
 
     Raises:
         InvalidInputError: naming the hint that cannot describe an adult.
     """
-    if not sex and height_m is None and mass_kg is None:
-        return None
     try:
-        return ShapeHints(sex or None, height_m, mass_kg)
+        return ShapeHints.given(sex, height_m, mass_kg)
     except ShapeHintError as exc:
         raise InvalidInputError(str(exc), field=exc.field) from exc
 

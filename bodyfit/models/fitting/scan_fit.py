@@ -384,8 +384,7 @@ class ScanFitter:
                 on_scan.append((np.minimum(d, LIMB_TRUNCATION_M) ** 2).mean(1))
                 # (n, loose): each candidate's distance to each loose point
                 reach.append(np.stack([cKDTree(v[k, limb]).query(loose)[0] for k in range(n)]))
-            chosen = [K] * len(grids)  # the current pose's row
-            placed = [v[K, limb] for limb in self._limb_vertices]
+            placed = [v[K, limb] for limb in self._limb_vertices]  # the current pose's row
             for _ in range(LIMB_SWEEPS):
                 for L, ((dofs, values), limb) in enumerate(zip(grids, self._limb_vertices, strict=True)):
                     cost = on_scan[L].copy()
@@ -394,9 +393,9 @@ class ScanFitter:
                         mine = cKDTree(others).query(loose)[0] > LIMB_TRUNCATION_M
                         if mine.any():
                             cost += REACH_WEIGHT * np.minimum(reach[L][:, mine] ** 2, trunc2).mean(1)
-                    chosen[L] = int(np.argmin(cost))
-                    placed[L] = v[chosen[L], limb]
-                    q[h, dofs] = values[chosen[L]]
+                    best = int(np.argmin(cost))
+                    placed[L] = v[best, limb]
+                    q[h, dofs] = values[best]
         hyp.state = self.fitter.start_state(q, root, c)
 
     def _score(self, hyp: _Hypotheses, phase: ScanPhase, tree: cKDTree) -> np.ndarray:

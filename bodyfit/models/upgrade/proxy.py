@@ -94,6 +94,17 @@ class ShapeHints:
                     name,
                 )
 
+    @classmethod
+    def given(cls, sex: str | None, height_m: float | None, mass_kg: float | None) -> ShapeHints | None:
+        """The hints from optional fields (an empty sex counts as none given); None when none is given.
+
+        Raises:
+            ShapeHintError: naming the hint that cannot describe an adult.
+        """
+        if not sex and height_m is None and mass_kg is None:
+            return None
+        return cls(sex or None, height_m, mass_kg)
+
 
 @dataclass(frozen=True)
 class SmplProxy:
