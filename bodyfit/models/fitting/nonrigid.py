@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import cg
-from scipy.spatial import cKDTree
 
+from bodyfit.models.fitting.nearest import PointTree
 from bodyfit.models.fitting.surface import laplacian
 
 
@@ -47,7 +47,7 @@ def refine_nonrigid(
     faces: np.ndarray,
     points: np.ndarray,
     config: NonRigidConfig | None = None,
-    scan_tree: cKDTree | None = None,
+    scan_tree: PointTree | None = None,
 ) -> np.ndarray:
     """The registration (V, 3): ``vertices`` (V, 3) moved onto ``points`` (N, 3), same units (metres for
     the default config). ``faces`` (F, 3) give the Laplacian; ``scan_tree``: a kd-tree of ``points``."""
@@ -55,7 +55,7 @@ def refine_nonrigid(
     M = np.asarray(vertices, np.float64)
     P = np.asarray(points, np.float64)
     V = len(M)
-    tree = scan_tree if scan_tree is not None else cKDTree(P)
+    tree = scan_tree if scan_tree is not None else PointTree(P)
     L = laplacian(faces, V)
     regulariser = (cfg.smoothness * (L.T @ L) + cfg.stiffness * sp.identity(V)).tocsr()
     density = V / max(len(P), 1)  # scan -> vertex pairs count like one vertex's worth per vertex
@@ -64,7 +64,7 @@ def refine_nonrigid(
         current = M + D
         d_m, near = tree.query(current)
         w_m = geman_mcclure_weights(d_m, cfg.sigma) * (d_m < cfg.max_distance)
-        d_s, owner = cKDTree(current).query(P)
+        d_s, owner = PointTree(current).query(P)
         w_s = geman_mcclure_weights(d_s, cfg.sigma) * (d_s < cfg.max_distance) * density
         a = w_m + np.bincount(owner, w_s, minlength=V)
         b = w_m[:, None] * P[near]

@@ -22,9 +22,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from bodyfit.models.body.model import BodyModel
+from bodyfit.models.fitting.nearest import PointTree
 from bodyfit.models.fitting.nonrigid import NonRigidConfig, refine_nonrigid
 from bodyfit.models.fitting.registered import DataTerm, RegisteredFitter, Stage, State
 from bodyfit.models.fitting.report import DistanceStats, FitReport
@@ -139,7 +139,7 @@ def clean_points(points: np.ndarray, voxel: float, neighbours: int, cutoff: floa
     thin = points[np.sort(first)]
     if len(thin) <= neighbours + 1:
         return thin
-    d, _ = cKDTree(thin).query(thin, k=neighbours + 1)
+    d, _ = PointTree(thin).query(thin, k=neighbours + 1)
     spread = d[:, 1:].mean(axis=1)
     median = np.median(spread)
     mad = np.median(np.abs(spread - median))
@@ -231,7 +231,7 @@ class ScanFitter:
         hyp = self._candidates(cleaned, orientation, start)
         if cfg.single_view:
             hyp.view = view_direction(cleaned)
-        tree = cKDTree(cleaned)
+        tree = PointTree(cleaned)
         iterations, losses = 0, {}
         for phase in cfg.phases:
             hyp.points = np.einsum(
@@ -287,7 +287,7 @@ class ScanFitter:
         idx = self.fitter.index[phase.stage.vertices]
         P = torch.as_tensor(hyp.points * 1000.0, dtype=dtype)
         fit_points = hyp.points
-        point_trees = [cKDTree(p) for p in fit_points]
+        point_trees = [PointTree(p) for p in fit_points]
         s2 = phase.sigma_mm**2
         tangential = self.config.tangential
         faces = self.faces if phase.plane else None
@@ -307,9 +307,9 @@ class ScanFitter:
             targets = np.empty(v.shape)
             for h in range(H):
                 if seen_index is None:
-                    pairs[h] = cKDTree(v[h]).query(fit_points[h])[1]
+                    pairs[h] = PointTree(v[h]).query(fit_points[h])[1]
                 else:  # a single view's points lie on the surface that faced the sensor
-                    pairs[h] = seen_index[h][cKDTree(v[h, seen_index[h]]).query(fit_points[h])[1]]
+                    pairs[h] = seen_index[h][PointTree(v[h, seen_index[h]]).query(fit_points[h])[1]]
                 targets[h] = fit_points[h][point_trees[h].query(v[h])[1]]
             J = torch.as_tensor(pairs).unsqueeze(-1).expand(-1, -1, 3)
             r = torch.gather(verts_mm, 1, J) - P  # (H, N, 3)
@@ -371,10 +371,10 @@ class ScanFitter:
             with torch.no_grad():
                 rows = (np.repeat(c[h : h + 1], K + 1, 0), Q, np.repeat(root[h : h + 1], K + 1, 0))
                 v = decoder(*(torch.as_tensor(x, dtype=dtype) for x in rows))[0].double().numpy()
-            scan = cKDTree(hyp.points[h])
+            scan = PointTree(hyp.points[h])
             # Scan points the rest of the body does not explain: limbs must reach them, not just touch the
             # scan (an arm folded onto the chest touches it everywhere).
-            rest = cKDTree(v[0, self._non_limb]).query(hyp.points[h])[0]
+            rest = PointTree(v[0, self._non_limb]).query(hyp.points[h])[0]
             loose = hyp.points[h][rest > LIMB_TRUNCATION_M]
             loose = loose[:: max(1, len(loose) // LOOSE_POINTS)]
             on_scan, reach = [], []
@@ -383,14 +383,14 @@ class ScanFitter:
                 d = scan.query(v[:n, limb].reshape(-1, 3))[0].reshape(n, -1)
                 on_scan.append((np.minimum(d, LIMB_TRUNCATION_M) ** 2).mean(1))
                 # (n, loose): each candidate's distance to each loose point
-                reach.append(np.stack([cKDTree(v[k, limb]).query(loose)[0] for k in range(n)]))
+                reach.append(np.stack([PointTree(v[k, limb]).query(loose)[0] for k in range(n)]))
             placed = [v[K, limb] for limb in self._limb_vertices]  # the current pose's row
             for _ in range(LIMB_SWEEPS):
                 for L, ((dofs, values), limb) in enumerate(zip(grids, self._limb_vertices, strict=True)):
                     cost = on_scan[L].copy()
                     if len(loose):
                         others = np.concatenate([placed[M] for M in range(len(grids)) if M != L])
-                        mine = cKDTree(others).query(loose)[0] > LIMB_TRUNCATION_M
+                        mine = PointTree(others).query(loose)[0] > LIMB_TRUNCATION_M
                         if mine.any():
                             cost += REACH_WEIGHT * np.minimum(reach[L][:, mine] ** 2, trunc2).mean(1)
                     best = int(np.argmin(cost))
@@ -398,7 +398,7 @@ class ScanFitter:
                     q[h, dofs] = values[best]
         hyp.state = self.fitter.start_state(q, root, c)
 
-    def _score(self, hyp: _Hypotheses, phase: ScanPhase, tree: cKDTree) -> np.ndarray:
+    def _score(self, hyp: _Hypotheses, phase: ScanPhase, tree: PointTree) -> np.ndarray:
         """(H,) each hypothesis's robust Chamfer score on the phase's vertices (rho / sigma^2, lower is
         better; a single view's on the vertices facing its sensor)."""
         verts = self._vertices(hyp.state)[:, self.fitter.index[phase.stage.vertices]]
@@ -407,7 +407,7 @@ class ScanFitter:
         for h, v in enumerate(verts):
             if hyp.visible is not None:
                 v = v[hyp.visible[h]]
-            d_s = cKDTree(v).query(hyp.points[h])[0]
+            d_s = PointTree(v).query(hyp.points[h])[0]
             d_m = tree.query(v @ hyp.rotation[h] + hyp.centre)[0]
             score[h] = 0.5 * (d_m**2 / (d_m**2 + sigma**2)).mean()
             if phase.two_way:
@@ -419,7 +419,7 @@ class ScanFitter:
         hyp: _Hypotheses,
         points: np.ndarray,
         cleaned: np.ndarray,
-        tree: cKDTree,
+        tree: PointTree,
         iterations: int,
         losses: dict[str, float],
         start: float,
@@ -450,7 +450,7 @@ class ScanFitter:
         distances = point_to_surface(points, registration, self.faces)
         offset = float(np.linalg.norm(registration - vertices, axis=1).mean())
         coverage = float(
-            np.mean(tree.query(registration, distance_upper_bound=COVERED_MM / 1000)[0] < np.inf)
+            np.mean(tree.query(registration, COVERED_MM / 1000)[0] < np.inf)
         )
         seconds = time.perf_counter() - start
         report = self._report(

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.spatial import cKDTree
+
+from bodyfit.models.fitting.nearest import PointTree
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -96,7 +97,7 @@ def closest_on_surface(
         face index (N,), barycentric coordinates in that face (N, 3), distance (N,).
     """
     ring = vertex_faces(faces, len(vertices))
-    _, nearest = cKDTree(vertices).query(points, workers=-1)
+    _, nearest = PointTree(vertices).query(points)
     tri_all = vertices[faces]
     face = np.zeros(len(points), np.int64)
     bary = np.zeros((len(points), 3))
