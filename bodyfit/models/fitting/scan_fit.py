@@ -50,7 +50,8 @@ class ScanPhase:
     points used (a random subset of the cleaned scan); plane: point-to-plane distances (model normals) for
     the scan -> model term instead of point-to-point; two_way: False keeps the model -> scan term only (a
     part of the body fitted inside the whole scan); search_limbs: a grid search of the limbs' poses
-    (:data:`LIMB_SEARCH`) before the phase.
+    (:data:`LIMB_SEARCH`) before the phase; search_distal: a grid search of the head, hands and toes
+    (:data:`DISTAL_SEARCH`) before the phase.
     """
 
     stage: Stage
@@ -60,14 +61,17 @@ class ScanPhase:
     plane: bool = False
     two_way: bool = True
     search_limbs: bool = False
+    search_distal: bool = False
 
 
 DEFAULT_PHASES = (
     ScanPhase(Stage("orient", "trunk", "none", "coarse", 25), 150.0, 4, 500),
     ScanPhase(Stage("pose", "all", "bone", "subset", 30), 60.0, 2, 1500, search_limbs=True),
     ScanPhase(Stage("shape", "all", "all", "subset", 30), 25.0, 1, 3000),
-    ScanPhase(Stage("limbs", "all", "all", "subset", 20), 25.0, 1, 3000, search_limbs=True),
-    ScanPhase(Stage("fine", "all", "all", "all", 15), 10.0, 1, 4000, plane=True),
+    ScanPhase(
+        Stage("limbs", "all", "all", "subset", 20), 25.0, 1, 3000, search_limbs=True, search_distal=True
+    ),
+    ScanPhase(Stage("fine", "all", "all", "all", 15), 10.0, 1, 4000, plane=True, search_distal=True),
 )
 
 # Limb chains searched on a grid before the continuous fit: the chain's bodies and the DOFs sampled (values
@@ -86,9 +90,25 @@ LIMB_SEARCH = tuple(
         ),
     )
 )
+# The small, vertex-dense ends of the body, searched the same way once the limbs are placed: their bodies and
+# DOFs. Their surfaces are small but carry most of the template's vertices (head 32%, hands 24%, toes 11%).
+DISTAL_SEARCH = (
+    (("head", "cervical_link"), {"neck_extension": 5, "neck_bending": 3, "neck_rotation": 7}),
+    *(
+        (bodies, grid)
+        for s in ("r", "l")
+        for bodies, grid in (
+            ((f"hand_{s}",), {f"pro_sup_{s}": 5, f"wrist_flex_{s}": 5, f"wrist_dev_{s}": 3}),
+            ((f"toes_{s}",), {f"mtp_angle_{s}": 7}),
+        )
+    ),
+)
+DISTAL_VERTICES = 400  # of each distal chain's vertices, at most, that score its candidates
+DISTAL_TRUNCATION_M = 0.02
 LIMB_TRUNCATION_M = 0.05
 LIMB_SWEEPS = 2  # turns of every limb in the search
 REACH_WEIGHT = 3.0  # of the unexplained points a limb must reach, against lying on the scan
+ON_SCAN_FRACTION = 0.7  # of a limb's vertices, the closest to the scan, that count for lying on it
 LOOSE_POINTS = 200  # scan points, at most, that a limb candidate is asked to reach
 
 
@@ -198,6 +218,12 @@ class ScanFitter:
             np.flatnonzero(np.isin(owner, [names.index(b) for b in bodies])) for bodies, _ in LIMB_SEARCH
         ]
         self._non_limb = np.setdiff1d(np.arange(len(owner)), np.concatenate(self._limb_vertices))
+        owner_all = np.argmax(model.data["weights"], axis=1)
+        self._distal_vertices = []
+        for bodies, _ in DISTAL_SEARCH:
+            own = np.flatnonzero(np.isin(owner_all, [names.index(b) for b in bodies]))
+            self._distal_vertices.append(own[:: max(1, len(own) // DISTAL_VERTICES)])
+        self._distal_decoder = self.fitter.decoder.restricted(np.concatenate(self._distal_vertices))
 
     def fit(
         self,
@@ -239,6 +265,8 @@ class ScanFitter:
             )
             if phase.search_limbs:
                 self._search_limbs(hyp)
+            if phase.search_distal:
+                self._search_distal(hyp)
             hyp.visible = self._visible(hyp, self.fitter.index[phase.stage.vertices])
             term = self._chamfer(hyp, phase)
             n_iter, _ = self.fitter.optimise(phase.stage, hyp.state, term)
@@ -335,14 +363,16 @@ class ScanFitter:
         normals = np.stack([vertex_normals(v, self.faces)[index] for v in verts])
         return np.einsum("hvi,hi->hv", normals, towards) > VISIBLE_COS
 
-    def _limb_grids(self) -> list[tuple[list[int], np.ndarray]]:
-        """Per limb of :data:`LIMB_SEARCH`: the DOFs searched and their candidate values (K_limb, n), spread
-        over each range (10% in from the limits)."""
+    def _limb_grids(
+        self, table: tuple[tuple[tuple[str, ...], dict[str, int]], ...] = LIMB_SEARCH
+    ) -> list[tuple[list[int], np.ndarray]]:
+        """Per chain of ``table`` (:data:`LIMB_SEARCH` or :data:`DISTAL_SEARCH`): the DOFs searched and their
+        candidate values (K_chain, n), spread over each range (10% in from the limits)."""
         skel = self.model.skeleton
         lo, hi = skel.ranges[:, 0], skel.ranges[:, 1]
         pad = 0.1 * (hi - lo)
         grids = []
-        for _, grid in LIMB_SEARCH:
+        for _, grid in table:
             dofs = [skel.dof_index(n) for n in grid]
             axes = [
                 np.linspace(lo[d] + pad[d], hi[d] - pad[d], n)
@@ -357,7 +387,9 @@ class ScanFitter:
         neither the rest of the body nor the other limbs explain (an arm folded onto the chest lies on the
         scan too, but reaches nothing). Limbs take turns, :data:`LIMB_SWEEPS` times, each against the
         others' latest choice, so an arm crossing the body is not left to the other arm. Both terms are
-        mean truncated squared distances, the second weighted by :data:`REACH_WEIGHT`."""
+        mean truncated squared distances, the second weighted by :data:`REACH_WEIGHT`; the first counts only
+        the limb's :data:`ON_SCAN_FRACTION` of vertices closest to the scan (a limb partly over a hole or on
+        a single view's unseen side still lies on the scan)."""
         c, q, root = (t.numpy() for t in self.fitter.parameters(hyp.state))
         decoder = self.fitter.decoders["subset"]
         dtype = self.fitter.config.dtype
@@ -381,7 +413,8 @@ class ScanFitter:
             for (_, values), limb in zip(grids, self._limb_vertices, strict=True):
                 n = len(values)
                 d = scan.query(v[:n, limb].reshape(-1, 3))[0].reshape(n, -1)
-                on_scan.append((np.minimum(d, LIMB_TRUNCATION_M) ** 2).mean(1))
+                d = np.sort(np.minimum(d, LIMB_TRUNCATION_M) ** 2, axis=1)
+                on_scan.append(d[:, : max(1, round(ON_SCAN_FRACTION * d.shape[1]))].mean(1))
                 # (n, loose): each candidate's distance to each loose point
                 reach.append(np.stack([PointTree(v[k, limb]).query(loose)[0] for k in range(n)]))
             placed = [v[K, limb] for limb in self._limb_vertices]  # the current pose's row
@@ -395,6 +428,33 @@ class ScanFitter:
                             cost += REACH_WEIGHT * np.minimum(reach[L][:, mine] ** 2, trunc2).mean(1)
                     best = int(np.argmin(cost))
                     placed[L] = v[best, limb]
+                    q[h, dofs] = values[best]
+        hyp.state = self.fitter.start_state(q, root, c)
+
+    def _search_distal(self, hyp: _Hypotheses) -> None:
+        """Set the head's, hands' and toes' searched DOFs (:data:`DISTAL_SEARCH`) of every hypothesis to the
+        candidate (or the current pose, if better) whose vertices lie closest to the scan (mean squared
+        distance truncated at :data:`DISTAL_TRUNCATION_M`); the chains are independent of each other."""
+        c, q, root = (t.numpy() for t in self.fitter.parameters(hyp.state))
+        dtype = self.fitter.config.dtype
+        grids = self._limb_grids(DISTAL_SEARCH)
+        K = max(len(g) for _, g in grids)
+        ends = np.cumsum([len(v) for v in self._distal_vertices])
+        for h in range(len(q)):
+            Q = np.repeat(q[h : h + 1], K + 1, axis=0)  # the grid, then the current pose (last row)
+            for dofs, values in grids:
+                Q[:K, dofs] = values[np.arange(K) % len(values)]
+            with torch.no_grad():
+                rows = (np.repeat(c[h : h + 1], K + 1, 0), Q, np.repeat(root[h : h + 1], K + 1, 0))
+                v = self._distal_decoder(*(torch.as_tensor(x, dtype=dtype) for x in rows))[0].double().numpy()
+            d = PointTree(hyp.points[h]).query(v.reshape(-1, 3))[0].reshape(K + 1, -1)
+            d2 = np.minimum(d, DISTAL_TRUNCATION_M) ** 2
+            for L, (dofs, values) in enumerate(grids):
+                a, b = (0 if L == 0 else ends[L - 1]), ends[L]
+                n = len(values)
+                cost = np.append(d2[:n, a:b].mean(1), d2[K, a:b].mean())
+                best = int(np.argmin(cost))
+                if best < n:
                     q[h, dofs] = values[best]
         hyp.state = self.fitter.start_state(q, root, c)
 
@@ -449,9 +509,7 @@ class ScanFitter:
         registration = registration @ R + m
         distances = point_to_surface(points, registration, self.faces)
         offset = float(np.linalg.norm(registration - vertices, axis=1).mean())
-        coverage = float(
-            np.mean(tree.query(registration, COVERED_MM / 1000)[0] < np.inf)
-        )
+        coverage = float(np.mean(tree.query(registration, COVERED_MM / 1000)[0] < np.inf))
         seconds = time.perf_counter() - start
         report = self._report(
             distances, coverage, offset, hyp.searched, hyp.view, q, iterations, seconds, losses
