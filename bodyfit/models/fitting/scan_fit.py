@@ -71,7 +71,7 @@ DEFAULT_PHASES = (
     ScanPhase(
         Stage("limbs", "all", "all", "subset", 20), 25.0, 1, 3000, search_limbs=True, search_distal=True
     ),
-    ScanPhase(Stage("fine", "all", "all", "all", 15), 10.0, 1, 4000, plane=True, search_distal=True),
+    ScanPhase(Stage("fine", "all", "all", "all", 50), 10.0, 1, 4000, plane=True, search_distal=True),
 )
 
 # Limb chains searched on a grid before the continuous fit: the chain's bodies and the DOFs sampled (values
