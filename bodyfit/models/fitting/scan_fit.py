@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from bodyfit.models.body.model import BodyModel
+from bodyfit.models.body.model import BodyDecoder, BodyModel
 from bodyfit.models.fitting.nearest import PointTree
 from bodyfit.models.fitting.nonrigid import NonRigidConfig, refine_nonrigid
 from bodyfit.models.fitting.registered import DataTerm, RegisteredFitter, Stage, State
@@ -381,6 +381,26 @@ class ScanFitter:
             grids.append((dofs, np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(dofs))))
         return grids
 
+    def _grid_vertices(
+        self,
+        decoder: BodyDecoder,
+        grids: list[tuple[list[int], np.ndarray]],
+        c: np.ndarray,
+        q: np.ndarray,
+        root: np.ndarray,
+    ) -> np.ndarray:
+        """(K + 1, V', 3) ``decoder``'s vertices for one hypothesis (shape c, coordinates q, root): row k < K
+        sets every chain of ``grids`` to its candidate k (cycling through shorter grids), with K the longest
+        grid; the last row is the current pose."""
+        K = max(len(g) for _, g in grids)
+        Q = np.repeat(q[None], K + 1, axis=0)
+        for dofs, values in grids:
+            Q[:K, dofs] = values[np.arange(K) % len(values)]
+        rows = (np.repeat(c[None], K + 1, 0), Q, np.repeat(root[None], K + 1, 0))
+        dtype = self.fitter.config.dtype
+        with torch.no_grad():
+            return decoder(*(torch.as_tensor(x, dtype=dtype) for x in rows))[0].double().numpy()
+
     def _search_limbs(self, hyp: _Hypotheses) -> None:
         """Set every limb's searched DOFs (:meth:`_limb_grids`) of every hypothesis to the candidate whose
         limb lies on the scan (its "subset" vertices close to scan points) and reaches the scan points that
@@ -392,17 +412,11 @@ class ScanFitter:
         a single view's unseen side still lies on the scan)."""
         c, q, root = (t.numpy() for t in self.fitter.parameters(hyp.state))
         decoder = self.fitter.decoders["subset"]
-        dtype = self.fitter.config.dtype
         grids = self._limb_grids()
         trunc2 = LIMB_TRUNCATION_M**2
+        K = max(len(g) for _, g in grids)
         for h in range(len(q)):
-            K = max(len(g) for _, g in grids)
-            Q = np.repeat(q[h : h + 1], K + 1, axis=0)  # the grid, then the current pose (last row)
-            for dofs, values in grids:
-                Q[:K, dofs] = values[np.arange(K) % len(values)]
-            with torch.no_grad():
-                rows = (np.repeat(c[h : h + 1], K + 1, 0), Q, np.repeat(root[h : h + 1], K + 1, 0))
-                v = decoder(*(torch.as_tensor(x, dtype=dtype) for x in rows))[0].double().numpy()
+            v = self._grid_vertices(decoder, grids, c[h], q[h], root[h])
             scan = PointTree(hyp.points[h])
             # Scan points the rest of the body does not explain: limbs must reach them, not just touch the
             # scan (an arm folded onto the chest touches it everywhere).
@@ -436,17 +450,11 @@ class ScanFitter:
         candidate (or the current pose, if better) whose vertices lie closest to the scan (mean squared
         distance truncated at :data:`DISTAL_TRUNCATION_M`); the chains are independent of each other."""
         c, q, root = (t.numpy() for t in self.fitter.parameters(hyp.state))
-        dtype = self.fitter.config.dtype
         grids = self._limb_grids(DISTAL_SEARCH)
         K = max(len(g) for _, g in grids)
         ends = np.cumsum([len(v) for v in self._distal_vertices])
         for h in range(len(q)):
-            Q = np.repeat(q[h : h + 1], K + 1, axis=0)  # the grid, then the current pose (last row)
-            for dofs, values in grids:
-                Q[:K, dofs] = values[np.arange(K) % len(values)]
-            with torch.no_grad():
-                rows = (np.repeat(c[h : h + 1], K + 1, 0), Q, np.repeat(root[h : h + 1], K + 1, 0))
-                v = self._distal_decoder(*(torch.as_tensor(x, dtype=dtype) for x in rows))[0].double().numpy()
+            v = self._grid_vertices(self._distal_decoder, grids, c[h], q[h], root[h])
             d = PointTree(hyp.points[h]).query(v.reshape(-1, 3))[0].reshape(K + 1, -1)
             d2 = np.minimum(d, DISTAL_TRUNCATION_M) ** 2
             for L, (dofs, values) in enumerate(grids):
