@@ -19,6 +19,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from itertools import pairwise
 
 import numpy as np
 import torch
@@ -212,18 +213,23 @@ class ScanFitter:
         self.fitter = RegisteredFitter(model)
         self.faces = np.asarray(model.data["faces"], np.int64)
         self.pelvis = [model.skeleton.dof_index(n) for n in PELVIS_ROTATIONS]
-        owner = np.argmax(model.data["weights"], axis=1)[self.fitter.index["subset"]]
+        owner_all = np.argmax(model.data["weights"], axis=1)  # each vertex's body
+        owner = owner_all[self.fitter.index["subset"]]
         names = model.skeleton.body_names
         self._limb_vertices = [
             np.flatnonzero(np.isin(owner, [names.index(b) for b in bodies])) for bodies, _ in LIMB_SEARCH
         ]
         self._non_limb = np.setdiff1d(np.arange(len(owner)), np.concatenate(self._limb_vertices))
-        owner_all = np.argmax(model.data["weights"], axis=1)
-        self._distal_vertices = []
+        distal = []
         for bodies, _ in DISTAL_SEARCH:
             own = np.flatnonzero(np.isin(owner_all, [names.index(b) for b in bodies]))
-            self._distal_vertices.append(own[:: max(1, len(own) // DISTAL_VERTICES)])
-        self._distal_decoder = self.fitter.decoder.restricted(np.concatenate(self._distal_vertices))
+            distal.append(own[:: max(1, len(own) // DISTAL_VERTICES)])
+        self._distal_decoder = self.fitter.decoder.restricted(np.concatenate(distal))
+        # each distal chain's columns in the distal decoder's output
+        bounds = np.cumsum([0] + [len(v) for v in distal])
+        self._distal_columns = [slice(a, b) for a, b in pairwise(bounds)]
+        self._limb_grid = self._grids(LIMB_SEARCH)
+        self._distal_grid = self._grids(DISTAL_SEARCH)
 
     def fit(
         self,
@@ -363,8 +369,8 @@ class ScanFitter:
         normals = np.stack([vertex_normals(v, self.faces)[index] for v in verts])
         return np.einsum("hvi,hi->hv", normals, towards) > VISIBLE_COS
 
-    def _limb_grids(
-        self, table: tuple[tuple[tuple[str, ...], dict[str, int]], ...] = LIMB_SEARCH
+    def _grids(
+        self, table: tuple[tuple[tuple[str, ...], dict[str, int]], ...]
     ) -> list[tuple[list[int], np.ndarray]]:
         """Per chain of ``table`` (:data:`LIMB_SEARCH` or :data:`DISTAL_SEARCH`): the DOFs searched and their
         candidate values (K_chain, n), spread over each range (10% in from the limits)."""
@@ -402,7 +408,7 @@ class ScanFitter:
             return decoder(*(torch.as_tensor(x, dtype=dtype) for x in rows))[0].double().numpy()
 
     def _search_limbs(self, hyp: _Hypotheses) -> None:
-        """Set every limb's searched DOFs (:meth:`_limb_grids`) of every hypothesis to the candidate whose
+        """Set every limb's searched DOFs (:meth:`_grids`) of every hypothesis to the candidate whose
         limb lies on the scan (its "subset" vertices close to scan points) and reaches the scan points that
         neither the rest of the body nor the other limbs explain (an arm folded onto the chest lies on the
         scan too, but reaches nothing). Limbs take turns, :data:`LIMB_SWEEPS` times, each against the
@@ -412,7 +418,7 @@ class ScanFitter:
         a single view's unseen side still lies on the scan)."""
         c, q, root = (t.numpy() for t in self.fitter.parameters(hyp.state))
         decoder = self.fitter.decoders["subset"]
-        grids = self._limb_grids()
+        grids = self._limb_grid
         trunc2 = LIMB_TRUNCATION_M**2
         K = max(len(g) for _, g in grids)
         for h in range(len(q)):
@@ -450,17 +456,15 @@ class ScanFitter:
         candidate (or the current pose, if better) whose vertices lie closest to the scan (mean squared
         distance truncated at :data:`DISTAL_TRUNCATION_M`); the chains are independent of each other."""
         c, q, root = (t.numpy() for t in self.fitter.parameters(hyp.state))
-        grids = self._limb_grids(DISTAL_SEARCH)
+        grids = self._distal_grid
         K = max(len(g) for _, g in grids)
-        ends = np.cumsum([len(v) for v in self._distal_vertices])
         for h in range(len(q)):
             v = self._grid_vertices(self._distal_decoder, grids, c[h], q[h], root[h])
             d = PointTree(hyp.points[h]).query(v.reshape(-1, 3))[0].reshape(K + 1, -1)
             d2 = np.minimum(d, DISTAL_TRUNCATION_M) ** 2
-            for L, (dofs, values) in enumerate(grids):
-                a, b = (0 if L == 0 else ends[L - 1]), ends[L]
+            for (dofs, values), cols in zip(grids, self._distal_columns, strict=True):
                 n = len(values)
-                cost = np.append(d2[:n, a:b].mean(1), d2[K, a:b].mean())
+                cost = np.append(d2[:n, cols].mean(1), d2[K, cols].mean())
                 best = int(np.argmin(cost))
                 if best < n:
                     q[h, dofs] = values[best]
