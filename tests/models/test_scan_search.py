@@ -1,5 +1,6 @@
-"""The scan fit's grid searches on their own: the head's, hands' and toes' search (``_search_distal``) finds
-the pose of a body sampled from the model, and keeps a pose that is already right."""
+"""The scan fit's searches on their own: the head's, hands' and toes' search (``_search_distal``) finds the
+pose of a body sampled from the model, and keeps a pose that is already right; the straight-spine twins
+(``_straighten_spine``) keep the chest where it was."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import pytest
 import torch
 
 from bodyfit.models.body.model import BodyModel
-from bodyfit.models.fitting.scan_fit import ScanFitter, _Hypotheses
+from bodyfit.models.fitting.scan_fit import STRAIGHTENED, ScanFitter, _Hypotheses
 from bodyfit.models.fitting.scan_io import sample_surface
 
 # grid values of DISTAL_SEARCH (10% in from each range's limits), in degrees
@@ -66,3 +67,36 @@ def test_distal_search_keeps_a_pose_that_is_already_right(model: BodyModel) -> N
     fitter = ScanFitter(model)
     found = _searched(fitter, _hypothesis(fitter, points, q))
     np.testing.assert_allclose(found, q, atol=1e-3)  # float32 state
+
+
+def test_straight_spine_twins_keep_the_chest_in_place(model: BodyModel) -> None:
+    skel = model.skeleton
+    bent = {"pelvis_tilt": -0.3, "lumbar_extension": -0.6, "lumbar_bending": 0.2, "thorax_extension": 0.3}
+    rows = []
+    for k in range(3):  # three hypotheses, bent by different amounts
+        q = _start(model)
+        for name, value in bent.items():
+            q[skel.dof_index(name)] = value * (1.0 - 0.3 * k)
+        rows.append(q)
+    q0 = np.stack(rows)
+    rng = np.random.default_rng(0)
+    c0 = 0.5 * rng.standard_normal((3, model.n_shape))
+    fitter = ScanFitter(model)
+    state = fitter.fitter.start_state(q0, rng.normal(0.0, 0.1, (3, 3)), c0)
+    hyp = _Hypotheses(np.repeat(np.eye(3)[None], 3, 0), np.zeros(3), np.zeros((3, 10, 3)), state, True)
+    before = [t.clone() for t in hyp.state]
+    fitter._straighten_spine(hyp)
+    assert len(hyp.rotation) == len(hyp.points) == 3 + STRAIGHTENED
+    c, q, root = (t.numpy() for t in fitter.fitter.parameters(hyp.state))
+    for a, b in zip(before, hyp.state, strict=True):  # the originals are untouched
+        torch.testing.assert_close(a, b[:3])
+    twins = slice(3, 3 + STRAIGHTENED)
+    spine = [i for i, n in enumerate(skel.dof_names) if n.startswith(("lumbar_", "thorax_"))]
+    np.testing.assert_allclose(q[twins][:, spine], 0.0, atol=1e-3)
+    np.testing.assert_allclose(c[twins], c[:STRAIGHTENED], atol=1e-6)
+    frames = fitter._frames(c, q, root)
+    thorax = skel.body_names.index("thorax")
+    # the chest keeps its orientation and place, the pelvis turns by the bend it takes over
+    np.testing.assert_allclose(frames[twins, thorax], frames[:STRAIGHTENED, thorax], atol=2e-3)
+    turn = np.einsum("hij,hij->h", frames[twins, 0, :3, :3], frames[:STRAIGHTENED, 0, :3, :3])
+    assert np.all(np.degrees(np.arccos(np.clip((turn - 1) / 2, -1, 1))) > 10.0)

@@ -3,7 +3,10 @@
 1. Clean: thin to a voxel grid and drop isolated points (statistical outlier removal).
 2. Orientation: the scan's principal axes give 24 candidate body frames (each signed axis as "up", four
    headings about it). All are fitted at once, coarsely (trunk pose and bone lengths on a vertex subset),
-   and the best few by robust Chamfer score go on; after the limbs are posed the best one is kept.
+   and the best few by robust Chamfer score go on; after the limbs are posed the best one is kept. On a full
+   (not single-view) scan the best two also go on with a straight-spine twin (the trunk's bend moved into
+   the pelvis, the chest kept in place), since the orientation phase bends the spine to make up for legs
+   that are still straight.
 3. Coarse to fine (DESIGN.md section 6): iterated closest points in both directions (scan point -> nearest
    model vertex, point-to-plane; model vertex -> nearest scan point), Geman-McClure weights with a shrinking
    scale, each round minimised by the staged L-BFGS of :class:`RegisteredFitter` (joint limits kept by the
@@ -52,7 +55,9 @@ class ScanPhase:
     the scan -> model term instead of point-to-point; two_way: False keeps the model -> scan term only (a
     part of the body fitted inside the whole scan); search_limbs: a grid search of the limbs' poses
     (:data:`LIMB_SEARCH`) before the phase; search_distal: a grid search of the head, hands and toes
-    (:data:`DISTAL_SEARCH`) before the phase.
+    (:data:`DISTAL_SEARCH`) before the phase; straighten: before the phase (and the searches), add to the
+    best :data:`STRAIGHTENED` hypotheses of a full scan a twin with a straight spine
+    (:meth:`ScanFitter._straighten_spine`; on single-view scans it picked wrong twins, so they go without).
     """
 
     stage: Stage
@@ -63,11 +68,12 @@ class ScanPhase:
     two_way: bool = True
     search_limbs: bool = False
     search_distal: bool = False
+    straighten: bool = False
 
 
 DEFAULT_PHASES = (
     ScanPhase(Stage("orient", "trunk", "none", "coarse", 25), 150.0, 4, 500),
-    ScanPhase(Stage("pose", "all", "bone", "subset", 30), 60.0, 2, 1500, search_limbs=True),
+    ScanPhase(Stage("pose", "all", "bone", "subset", 30), 60.0, 2, 1500, search_limbs=True, straighten=True),
     ScanPhase(Stage("shape", "all", "all", "subset", 30), 25.0, 1, 3000),
     ScanPhase(
         Stage("limbs", "all", "all", "subset", 20), 25.0, 1, 3000, search_limbs=True, search_distal=True
@@ -110,6 +116,8 @@ LIMB_TRUNCATION_M = 0.05
 LIMB_SWEEPS = 2  # turns of every limb in the search
 REACH_WEIGHT = 3.0  # of the unexplained points a limb must reach, against lying on the scan
 ON_SCAN_FRACTION = 0.7  # of a limb's vertices, the closest to the scan, that count for lying on it
+SPINE_DOF_PREFIXES = ("lumbar_", "thorax_")
+STRAIGHTENED = 2  # of the hypotheses (best first), those that get a straight-spine twin
 LOOSE_POINTS = 200  # scan points, at most, that a limb candidate is asked to reach
 
 
@@ -228,6 +236,8 @@ class ScanFitter:
         # each distal chain's columns in the distal decoder's output
         bounds = np.cumsum([0] + [len(v) for v in distal])
         self._distal_columns = [slice(a, b) for a, b in pairwise(bounds)]
+        self._spine = [i for i, n in enumerate(model.skeleton.dof_names) if n.startswith(SPINE_DOF_PREFIXES)]
+        self._thorax = names.index("thorax")
         self._limb_grid = self._grids(LIMB_SEARCH)
         self._distal_grid = self._grids(DISTAL_SEARCH)
 
@@ -269,6 +279,8 @@ class ScanFitter:
             hyp.points = np.einsum(
                 "hij,nj->hni", hyp.rotation, cleaned[order[: phase.scan_points]] - hyp.centre
             )
+            if phase.straighten and hyp.view is None:
+                self._straighten_spine(hyp)
             if phase.search_limbs:
                 self._search_limbs(hyp)
             if phase.search_distal:
@@ -450,6 +462,37 @@ class ScanFitter:
                     placed[L] = v[best, limb]
                     q[h, dofs] = values[best]
         hyp.state = self.fitter.start_state(q, root, c)
+
+    def _straighten_spine(self, hyp: _Hypotheses) -> None:
+        """Add, for each of the best :data:`STRAIGHTENED` hypotheses, a twin with its trunk's bend moved into
+        the pelvis: the lumbar and thoracic coordinates go to zero and the pelvis turns (and the root moves)
+        so that the thorax keeps its place. The orientation phase poses the trunk with the legs still
+        straight; on a seated or crouching body it tilts the pelvis back to bring the legs forward and bends
+        the spine to keep the chest upright, a minimum the later phases do not leave. The chest's fit is the
+        reliable part of it."""
+        c, q, root = (t.numpy()[:STRAIGHTENED] for t in self.fitter.parameters(hyp.state))
+        thorax = self._thorax
+        frames = self._frames(c, q, root)
+        straight = q.copy()
+        straight[:, self._spine] = 0.0
+        bent = self._frames(c, straight, root)
+        # pelvis -> thorax rotation with a straight spine; the new pelvis carries the thorax where it was
+        relative = np.swapaxes(bent[:, 0, :3, :3], 1, 2) @ bent[:, thorax, :3, :3]
+        straight[:, self.pelvis] = zxy_angles(frames[:, thorax, :3, :3] @ np.swapaxes(relative, 1, 2))
+        moved = self._frames(c, straight, root)
+        root_straight = root + frames[:, thorax, :3, 3] - moved[:, thorax, :3, 3]
+        state = self.fitter.start_state(straight, root_straight, c)
+        hyp.keep(np.concatenate([np.arange(len(hyp.rotation)), np.arange(len(q))]))
+        H = len(hyp.rotation) - len(q)
+        u, r, s = hyp.state
+        hyp.state = (torch.cat([u[:H], state[0]]), torch.cat([r[:H], state[1]]), torch.cat([s[:H], state[2]]))
+
+    def _frames(self, c: np.ndarray, q: np.ndarray, root: np.ndarray) -> np.ndarray:
+        """(H, n_body, 4, 4) every body's frame for shapes c, coordinates q and roots (H, 3)."""
+        dtype = self.fitter.config.dtype
+        rows = (torch.as_tensor(x, dtype=dtype) for x in (c, q, root))
+        with torch.no_grad():
+            return self.fitter.decoders["coarse"](*rows)[2].double().numpy()
 
     def _search_distal(self, hyp: _Hypotheses) -> None:
         """Set the head's, hands' and toes' searched DOFs (:data:`DISTAL_SEARCH`) of every hypothesis to the
