@@ -116,7 +116,6 @@ LIMB_TRUNCATION_M = 0.05
 LIMB_SWEEPS = 2  # turns of every limb in the search
 REACH_WEIGHT = 3.0  # of the unexplained points a limb must reach, against lying on the scan
 ON_SCAN_FRACTION = 0.7  # of a limb's vertices, the closest to the scan, that count for lying on it
-SPINE_DOF_PREFIXES = ("lumbar_", "thorax_")
 STRAIGHTENED = 2  # of the hypotheses (best first), those that get a straight-spine twin
 LOOSE_POINTS = 200  # scan points, at most, that a limb candidate is asked to reach
 
@@ -236,7 +235,7 @@ class ScanFitter:
         # each distal chain's columns in the distal decoder's output
         bounds = np.cumsum([0] + [len(v) for v in distal])
         self._distal_columns = [slice(a, b) for a, b in pairwise(bounds)]
-        self._spine = [i for i, n in enumerate(model.skeleton.dof_names) if n.startswith(SPINE_DOF_PREFIXES)]
+        self._spine = np.setdiff1d(np.flatnonzero(self.fitter.dof_mask["trunk"].numpy()), self.pelvis)
         self._thorax = names.index("thorax")
         self._limb_grid = self._grids(LIMB_SEARCH)
         self._distal_grid = self._grids(DISTAL_SEARCH)
@@ -481,11 +480,10 @@ class ScanFitter:
         straight[:, self.pelvis] = zxy_angles(frames[:, thorax, :3, :3] @ np.swapaxes(relative, 1, 2))
         moved = self._frames(c, straight, root)
         root_straight = root + frames[:, thorax, :3, 3] - moved[:, thorax, :3, 3]
-        state = self.fitter.start_state(straight, root_straight, c)
-        hyp.keep(np.concatenate([np.arange(len(hyp.rotation)), np.arange(len(q))]))
-        H = len(hyp.rotation) - len(q)
-        u, r, s = hyp.state
-        hyp.state = (torch.cat([u[:H], state[0]]), torch.cat([r[:H], state[1]]), torch.cat([s[:H], state[2]]))
+        H = len(hyp.rotation)
+        hyp.keep(np.concatenate([np.arange(H), np.arange(len(q))]))  # the twins start as copies
+        for rows, twins in zip(hyp.state, self.fitter.start_state(straight, root_straight, c), strict=True):
+            rows[H:] = twins
 
     def _frames(self, c: np.ndarray, q: np.ndarray, root: np.ndarray) -> np.ndarray:
         """(H, n_body, 4, 4) every body's frame for shapes c, coordinates q and roots (H, 3)."""
