@@ -33,7 +33,7 @@ from bodyfit.models.fitting.nonrigid import NonRigidConfig, refine_nonrigid
 from bodyfit.models.fitting.registered import DataTerm, RegisteredFitter, Stage, State
 from bodyfit.models.fitting.report import DistanceStats, FitReport
 from bodyfit.models.fitting.scan_io import MIN_POINTS, Scan, ScanError
-from bodyfit.models.fitting.surface import point_to_surface, vertex_normals
+from bodyfit.models.fitting.surface import face_incidence, point_to_surface, vertex_normals
 from bodyfit.models.fitting.view import view_direction
 from bodyfit.models.rotations import zxy_angles
 from bodyfit.models.skeleton.model import PELVIS_ROTATIONS
@@ -219,6 +219,7 @@ class ScanFitter:
         self.config = config or ScanFitConfig()
         self.fitter = RegisteredFitter(model)
         self.faces = np.asarray(model.data["faces"], np.int64)
+        self._incidence = face_incidence(self.faces, model.n_vertices)
         self.pelvis = [model.skeleton.dof_index(n) for n in PELVIS_ROTATIONS]
         owner_all = np.argmax(model.data["weights"], axis=1)  # each vertex's body
         owner = owner_all[self.fitter.index["subset"]]
@@ -335,8 +336,8 @@ class ScanFitter:
         point_trees = [PointTree(p) for p in fit_points]
         s2 = phase.sigma_mm**2
         tangential = self.config.tangential
-        faces = self.faces if phase.plane else None
-        if faces is not None and len(idx) != self.model.n_vertices:
+        plane = phase.plane
+        if plane and len(idx) != self.model.n_vertices:
             raise ValueError("point-to-plane Chamfer needs the stage to use all vertices")
 
         def rho(d2: torch.Tensor) -> torch.Tensor:
@@ -359,8 +360,8 @@ class ScanFitter:
             J = torch.as_tensor(pairs).unsqueeze(-1).expand(-1, -1, 3)
             r = torch.gather(verts_mm, 1, J) - P  # (H, N, 3)
             d2 = (r**2).sum(-1)
-            if faces is not None:
-                n = np.stack([vertex_normals(v[h], faces) for h in range(H)])
+            if plane:
+                n = vertex_normals(v, self.faces, self._incidence)
                 along = (r * torch.as_tensor(np.take_along_axis(n, pairs[..., None], 1), dtype=dtype)).sum(-1)
                 d2 = along**2 + tangential * (d2 - along**2)
             m2s = rho(((verts_mm - torch.as_tensor(targets * 1000.0, dtype=dtype)) ** 2).sum(-1))
@@ -377,7 +378,7 @@ class ScanFitter:
             return None
         verts = self._vertices(hyp.state)
         towards = hyp.rotation @ hyp.view  # (H, 3) in each body frame
-        normals = np.stack([vertex_normals(v, self.faces)[index] for v in verts])
+        normals = vertex_normals(verts, self.faces, self._incidence)[:, index]
         return np.einsum("hvi,hi->hv", normals, towards) > VISIBLE_COS
 
     def _grids(

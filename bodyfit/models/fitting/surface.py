@@ -1,24 +1,47 @@
 """Triangle-mesh geometry for scan fitting: normals, point-to-surface distances, the mesh Laplacian.
 
-Pure numpy / scipy functions on (V, 3) vertices and (F, 3) counter-clockwise faces, in whatever length unit
-the caller uses.
+Pure functions (numpy and scipy; torch for the per-triangle arithmetic) on (V, 3) vertices and (F, 3)
+counter-clockwise faces, in whatever length unit the caller uses.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+import torch
 
 from bodyfit.models.fitting.nearest import PointTree
 
 
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals (V, 3) of a (V, 3) / (F, 3) mesh; zero for unused vertices."""
-    tri = vertices[faces]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    owner = faces.reshape(-1)
-    acc = np.stack([np.bincount(owner, np.repeat(cross[:, k], 3), len(vertices)) for k in range(3)], axis=1)
-    norm = np.linalg.norm(acc, axis=1, keepdims=True)
+def face_incidence(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
+    """(V, F) sparse matrix, 1 where vertex v is a corner of face f: ``incidence @ x`` sums per-face rows
+    x (F, ...) onto each face's corners."""
+    f = np.asarray(faces, np.int64)
+    corners = f.reshape(-1)
+    owner = np.repeat(np.arange(len(f)), 3)
+    return sp.csr_matrix((np.ones(len(corners)), (corners, owner)), shape=(n_vertices, len(f)))
+
+
+def vertex_normals(
+    vertices: np.ndarray, faces: np.ndarray, incidence: sp.csr_matrix | None = None
+) -> np.ndarray:
+    """Area-weighted unit vertex normals (..., V, 3) of meshes (..., V, 3) sharing faces (F, 3); zero for
+    unused vertices. ``incidence``: :func:`face_incidence` of the faces, when the caller keeps one."""
+    v = np.asarray(vertices, np.float64)
+    a, b, c = (v[..., faces[:, k], :] for k in range(3))
+    e1, e2 = b - a, c - a
+    cross = np.stack(
+        [
+            e1[..., 1] * e2[..., 2] - e1[..., 2] * e2[..., 1],
+            e1[..., 2] * e2[..., 0] - e1[..., 0] * e2[..., 2],
+            e1[..., 0] * e2[..., 1] - e1[..., 1] * e2[..., 0],
+        ],
+        -1,
+    )  # (..., F, 3): twice each face's area along its normal
+    A = face_incidence(faces, v.shape[-2]) if incidence is None else incidence
+    F = len(faces)
+    acc = np.moveaxis((A @ np.moveaxis(cross, -2, 0).reshape(F, -1)).reshape(-1, *v.shape[:-2], 3), 0, -2)
+    norm = np.linalg.norm(acc, axis=-1, keepdims=True)
     return np.divide(acc, norm, out=np.zeros_like(acc), where=norm > 0)
 
 
@@ -36,30 +59,31 @@ def vertex_faces(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     return out
 
 
-def _segment_distance2(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def _segment_distance2(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Squared distance (...,) from points p to segments ab, all (..., 3)."""
     ab = b - a
-    t = np.clip(((p - a) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-300), 0.0, 1.0)
+    t = (((p - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp_min(1e-300)).clamp(0.0, 1.0)
     d = p - (a + t[..., None] * ab)
     return (d * d).sum(-1)
 
 
 def point_triangle_distance(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
-    """Distance (...,) from points p (..., 3) to triangles tri (..., 3, 3): to the plane when the projection
-    falls inside, else to the nearest edge."""
-    a, b, c = tri[..., 0, :], tri[..., 1, :], tri[..., 2, :]
-    n = np.cross(b - a, c - a)
-    n2 = np.maximum((n * n).sum(-1), 1e-300)
-    ap = p - a
+    """Distance (...,) from points p (..., 3) to triangles tri (..., 3, 3), broadcast against each other: to
+    the plane when the projection falls inside, else to the nearest edge (float64, in torch's threads)."""
+    P = torch.as_tensor(p, dtype=torch.float64)
+    T = torch.as_tensor(tri, dtype=torch.float64)
+    a, b, c = T[..., 0, :], T[..., 1, :], T[..., 2, :]
+    n = torch.linalg.cross(b - a, c - a)
+    n2 = (n * n).sum(-1).clamp_min(1e-300)
     # Barycentric coordinates of the projection (signed sub-areas over the full area).
-    u = (np.cross(c - b, p - b) * n).sum(-1) / n2
-    v = (np.cross(a - c, p - c) * n).sum(-1) / n2
-    w = 1.0 - u - v
-    inside = (u >= 0) & (v >= 0) & (w >= 0)
-    plane2 = (ap * n).sum(-1) ** 2 / n2
-    edges = [_segment_distance2(p, a, b), _segment_distance2(p, b, c), _segment_distance2(p, c, a)]
-    edge2 = np.minimum.reduce(edges)
-    return np.sqrt(np.where(inside, plane2, edge2))
+    u = (torch.linalg.cross(c - b, P - b) * n).sum(-1) / n2
+    v = (torch.linalg.cross(a - c, P - c) * n).sum(-1) / n2
+    inside = (u >= 0) & (v >= 0) & (u + v <= 1)
+    plane2 = ((P - a) * n).sum(-1) ** 2 / n2
+    edge2 = torch.minimum(
+        torch.minimum(_segment_distance2(P, a, b), _segment_distance2(P, b, c)), _segment_distance2(P, c, a)
+    )
+    return torch.where(inside, plane2, edge2).sqrt().numpy()
 
 
 def closest_on_triangles(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
@@ -114,8 +138,16 @@ def closest_on_surface(
 
 
 def point_to_surface(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Distance (N,) from each point (N, 3) to the mesh surface (see :func:`closest_on_surface`)."""
-    return closest_on_surface(points, vertices, faces)[2]
+    """Distance (N,) from each point (N, 3) to the mesh surface: to the nearest of the triangles around its
+    nearest vertex, as in :func:`closest_on_surface`."""
+    ring = vertex_faces(faces, len(vertices))[PointTree(vertices).query(points)[1]]  # (N, K)
+    point, slot = np.nonzero(ring >= 0)  # point-major: each point's triangles in one run
+    out = np.full(len(points), np.inf)  # inf where the nearest vertex is on no face
+    if len(point):
+        d = point_triangle_distance(points[point], vertices[faces[ring[point, slot]]])
+        starts = np.flatnonzero(np.diff(point, prepend=-1))
+        out[point[starts]] = np.minimum.reduceat(d, starts)
+    return out
 
 
 def laplacian(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
