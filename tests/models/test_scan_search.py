@@ -100,3 +100,30 @@ def test_straight_spine_twins_keep_the_chest_in_place(model: BodyModel) -> None:
     np.testing.assert_allclose(frames[twins, thorax], frames[:STRAIGHTENED, thorax], atol=2e-3)
     turn = np.einsum("hij,hij->h", frames[twins, 0, :3, :3], frames[:STRAIGHTENED, 0, :3, :3])
     assert np.all(np.degrees(np.arccos(np.clip((turn - 1) / 2, -1, 1))) > 10.0)
+
+
+def test_scapula_twins_move_only_the_scapulae_to_mid_range(model: BodyModel) -> None:
+    skel = model.skeleton
+    rng = np.random.default_rng(1)
+    q0 = np.stack([skel.inside(_start(model) + rng.normal(0.0, 0.2, skel.n_dof), 0.1) for _ in range(2)])
+    fitter = ScanFitter(model)
+    state = fitter.fitter.start_state(
+        q0, rng.normal(0.0, 0.1, (2, 3)), 0.5 * rng.standard_normal((2, model.n_shape))
+    )
+    hyp = _Hypotheses(np.repeat(np.eye(3)[None], 2, 0), np.zeros(3), np.zeros((2, 10, 3)), state, True)
+    before = [t.clone() for t in hyp.state]
+    fitter._scapula_twin(hyp)
+    assert len(hyp.rotation) == len(hyp.points) == 4
+    for a, b in zip(
+        before, hyp.state, strict=True
+    ):  # the originals are untouched; the twins share shape, root
+        torch.testing.assert_close(a, b[:2])
+    for a, b in zip(before[1:], hyp.state[1:], strict=True):
+        torch.testing.assert_close(a, b[2:], atol=1e-5, rtol=1e-5)
+    q = fitter.fitter.parameters(hyp.state)[1].numpy()
+    scapula = [i for i, n in enumerate(skel.dof_names) if n.startswith("scapula_")]
+    assert len(scapula) == 6
+    np.testing.assert_allclose(q[2:, scapula], np.repeat(skel.ranges[scapula].mean(1)[None], 2, 0), atol=1e-5)
+    rest = np.setdiff1d(np.arange(skel.n_dof), scapula)
+    np.testing.assert_allclose(q[2:, rest], q[:2, rest], atol=1e-5)
+    assert np.abs(q[2:, scapula] - q[:2, scapula]).max() > 0.1
