@@ -63,6 +63,20 @@ def test_nonrigid_refinement_moves_a_surface_onto_the_scan() -> None:
     assert before > 0.019 and after < 0.004
 
 
+def test_nonrigid_refinement_leaves_an_unseen_side_alone() -> None:
+    # a thin slab seen from the front: scan points 1 cm in front of its front face, within reach of the back
+    slab = trimesh.creation.box(extents=(0.4, 0.4, 0.02)).subdivide_to_size(0.01)
+    v, f = np.asarray(slab.vertices), np.asarray(slab.faces)
+    rng = np.random.default_rng(0)
+    points = np.column_stack([rng.uniform(-0.15, 0.15, (5000, 2)), np.full(5000, 0.02)])
+    front, back = v[:, 2] > 0, v[:, 2] < 0
+    inner = (np.abs(v[:, :2]) < 0.1).all(axis=1)
+    for seen, back_moves in ((None, True), (front, False)):
+        dz = (refine_nonrigid(v, f, points, seen=seen) - v)[:, 2]
+        assert abs(dz[front & inner].mean() - 0.01) < 1e-3
+        assert (dz[back & inner].mean() > 0.02) == back_moves  # unseen, the back is not pulled through
+
+
 def test_cleaning_drops_isolated_points() -> None:
     rng = np.random.default_rng(1)
     sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.5)

@@ -48,9 +48,12 @@ def refine_nonrigid(
     points: np.ndarray,
     config: NonRigidConfig | None = None,
     scan_tree: PointTree | None = None,
+    seen: np.ndarray | None = None,
 ) -> np.ndarray:
     """The registration (V, 3): ``vertices`` (V, 3) moved onto ``points`` (N, 3), same units (metres for
-    the default config). ``faces`` (F, 3) give the Laplacian; ``scan_tree``: a kd-tree of ``points``."""
+    the default config). ``faces`` (F, 3) give the Laplacian; ``scan_tree``: a kd-tree of ``points``;
+    ``seen``: (V,) bool, the vertices the scan can have points on (a single view's side facing its sensor;
+    default all): only they are paired with scan points, the rest follow through the smoothness term."""
     cfg = config or NonRigidConfig()
     M = np.asarray(vertices, np.float64)
     P = np.asarray(points, np.float64)
@@ -60,11 +63,15 @@ def refine_nonrigid(
     regulariser = (cfg.smoothness * (L.T @ L) + cfg.stiffness * sp.identity(V)).tocsr()
     density = V / max(len(P), 1)  # scan -> vertex pairs count like one vertex's worth per vertex
     D = np.zeros_like(M)
+    paired = np.arange(V) if seen is None else np.flatnonzero(seen)
     for _ in range(cfg.rounds):
         current = M + D
         d_m, near = tree.query(current)
         w_m = geman_mcclure_weights(d_m, cfg.sigma) * (d_m < cfg.max_distance)
-        d_s, owner = PointTree(current).query(P)
+        if seen is not None:
+            w_m = w_m * seen
+        d_s, owner = PointTree(current[paired]).query(P)
+        owner = paired[owner]
         w_s = geman_mcclure_weights(d_s, cfg.sigma) * (d_s < cfg.max_distance) * density
         a = w_m + np.bincount(owner, w_s, minlength=V)
         b = w_m[:, None] * P[near]

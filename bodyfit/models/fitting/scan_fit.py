@@ -575,7 +575,14 @@ class ScanFitter:
         body_points = (cleaned - m) @ R.T
         registration = body_verts
         if self.config.nonrigid is not None:
-            registration = refine_nonrigid(body_verts, self.faces, body_points, self.config.nonrigid)
+            seen = self._visible(hyp, np.arange(model.n_vertices))  # a single view's side facing its sensor
+            registration = refine_nonrigid(
+                body_verts,
+                self.faces,
+                body_points,
+                self.config.nonrigid,
+                seen=None if seen is None else seen[0],
+            )
         # Parameters in the scan's frame when the pelvis angles can hold its orientation.
         out = model.forward(c[None], q[None], root[None], dtype=torch.float64)
         pelvis = out.frames[0, 0].numpy()
