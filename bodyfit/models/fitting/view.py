@@ -23,13 +23,17 @@ class ViewConfig:
     """directions: candidate lines of sight (a Fibonacci sphere's half); cell: grid size across them (m);
     layer_gap: depth spread within a cell that counts as two layers (m); max_layered: the largest fraction
     of points in layered cells that still counts as a single view; max_points: points used (an even
-    subsample of larger scans)."""
+    subsample of larger scans); coarse_directions, coarse_reject: a first pass over this many directions
+    settles a scan as full when even its least layered one exceeds ``coarse_reject`` (full scans measure
+    0.75-0.94 there, single views 0.03-0.09)."""
 
     directions: int = 200
     cell: float = 0.03
     layer_gap: float = 0.06
     max_layered: float = 0.12
     max_points: int = 6000
+    coarse_directions: int = 50
+    coarse_reject: float = 0.5
 
 
 def _half_sphere(n: int) -> np.ndarray:
@@ -72,6 +76,9 @@ def view_direction(points: np.ndarray, config: ViewConfig | None = None) -> np.n
     if len(p) > cfg.max_points:
         p = p[:: len(p) // cfg.max_points]
     p = p - p.mean(0)
+    coarse = _half_sphere(cfg.coarse_directions)
+    if min(layered_fraction(p, d, cfg.cell, cfg.layer_gap) for d in coarse) > cfg.coarse_reject:
+        return None
     dirs = _half_sphere(cfg.directions)
     fractions = np.array([layered_fraction(p, d, cfg.cell, cfg.layer_gap) for d in dirs])
     best = int(np.argmin(fractions))
