@@ -4,12 +4,21 @@ pose of a body sampled from the model, and keeps a pose that is already right; t
 
 from __future__ import annotations
 
+from dataclasses import replace
+from typing import Any
+
 import numpy as np
 import pytest
 import torch
 
 from bodyfit.models.body.model import BodyModel
-from bodyfit.models.fitting.scan_fit import STRAIGHTENED, ScanFitter, _Hypotheses
+from bodyfit.models.fitting.scan_fit import (
+    DEFAULT_PHASES,
+    STRAIGHTENED,
+    ScanFitConfig,
+    ScanFitter,
+    _Hypotheses,
+)
 from bodyfit.models.fitting.scan_io import sample_surface
 
 # grid values of DISTAL_SEARCH (10% in from each range's limits), in degrees
@@ -127,3 +136,58 @@ def test_scapula_twins_move_only_the_scapulae_to_mid_range(model: BodyModel) -> 
     rest = np.setdiff1d(np.arange(skel.n_dof), scapula)
     np.testing.assert_allclose(q[2:, rest], q[:2, rest], atol=1e-5)
     assert np.abs(q[2:, scapula] - q[:2, scapula]).max() > 0.1
+
+
+def test_orientation_phase_seats_a_body_with_its_legs_more_than_its_spine(model: BodyModel) -> None:
+    """A seated body (hips and knees flexed, spine straight) fitted by the orientation phase alone, its
+    orientation given. With the legs' flexion free ("core", the default) the hips and knees take most of
+    the pose; with the trunk alone the legs stay straight and the spine bends 40-50 degrees to bring them
+    towards the thighs, a minimum the later phases do not leave."""
+    skel = model.skeleton
+    q = _start(model)
+    seated = {"hip_flexion_r": 80, "hip_flexion_l": 70, "knee_angle_r": 90, "knee_angle_l": 80}
+    for name, deg in seated.items():
+        q[skel.dof_index(name)] = np.radians(deg)
+    body = model.forward(np.zeros((1, model.n_shape)), q[None], np.zeros((1, 3)), dtype=torch.float64)
+    points, _ = sample_surface(body.vertices[0].numpy(), model.faces, 20_000, seed=2)
+    orient = DEFAULT_PHASES[0]
+    assert orient.stage.coordinates == "core"
+    found = {}
+    for coordinates in ("core", "trunk"):
+        phase = replace(orient, stage=replace(orient.stage, coordinates=coordinates))
+        fitter = ScanFitter(model, ScanFitConfig(phases=(phase,), nonrigid=None, single_view=False))
+        fit = fitter.fit(points, orientation=np.eye(3))
+        found[coordinates] = {n: np.degrees(fit.coordinates[skel.dof_index(n)]) for n in skel.dof_names}
+    core, trunk = found["core"], found["trunk"]
+    assert abs(core["lumbar_extension"]) < abs(trunk["lumbar_extension"]) - 10.0, (core, trunk)
+    for name in ("hip_flexion_r", "hip_flexion_l", "knee_angle_r", "knee_angle_l"):
+        assert core[name] > 35.0, (name, core)
+        assert trunk[name] == pytest.approx(np.degrees(_start(model)[skel.dof_index(name)]), abs=1e-3)
+
+
+def test_the_last_phase_refines_both_limb_hypotheses_and_keeps_the_better(model: BodyModel) -> None:
+    """The limbs phase hands its hypothesis and the scapula twin on together; the score chooses between them
+    only after the last (all-vertex) phase has refined both."""
+    skel = model.skeleton
+    q = _start(model)
+    for name, deg in {"arm_flex_r": 40, "elbow_flex_r": 60, "hip_flexion_l": 50, "knee_angle_l": 60}.items():
+        q[skel.dof_index(name)] = np.radians(deg)
+    body = model.forward(np.zeros((1, model.n_shape)), q[None], np.zeros((1, 3)), dtype=torch.float64)
+    points, _ = sample_surface(body.vertices[0].numpy(), model.faces, 20_000, seed=4)
+    fitter = ScanFitter(model, ScanFitConfig(nonrigid=None, single_view=False))
+    scored: list[tuple[str, np.ndarray]] = []
+    score = fitter._score
+
+    def spy(*args: Any) -> np.ndarray:
+        s = score(*args)
+        scored.append((args[1].stage.name, s))
+        return s
+
+    fitter._score = spy  # type: ignore[method-assign,assignment]
+    fit = fitter.fit(points, orientation=np.eye(3))
+    assert [name for name, _ in scored] == [p.stage.name for p in DEFAULT_PHASES]
+    limbs, last = scored[-2][1], scored[-1][1]
+    assert len(limbs) == 2 and len(last) == 2  # the twin and its original, both refined
+    assert fit.report.extra["phase_scores"][DEFAULT_PHASES[-1].stage.name] == round(float(last.min()), 5)
+    error = np.linalg.norm(fit.vertices - body.vertices[0].numpy(), axis=1).mean() * 1000
+    assert error < 15.0, error

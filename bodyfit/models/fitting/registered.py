@@ -29,6 +29,9 @@ from bodyfit.models.skeleton.model import PELVIS_ROTATIONS, check_finite
 
 TRUNK_BODIES = ("pelvis", "torso", "thoracic_link", "thorax")
 TRUNK_DOF_PREFIXES = ("pelvis_", "lumbar_", "thorax_")
+# The trunk and the legs' flexion: a seated or crouching body's pose, which the trunk alone can only mimic
+# by bending the spine.
+CORE_DOF_PREFIXES = (*TRUNK_DOF_PREFIXES, "hip_flexion_", "knee_angle_")
 CONFIDENT_MEAN_MM = 10.0
 MIN_PART_WEIGHT = 0.7  # a vertex belongs to a body's rigid part above this skinning weight
 MIN_PART_VERTICES = 20
@@ -41,7 +44,8 @@ DataTerm = Callable[[torch.Tensor], torch.Tensor]
 class Stage:
     """One fitting stage.
 
-    coordinates: "trunk" (pelvis, lumbar, thoracic DOFs) or "all"; shape: "none", "bone" or "all";
+    coordinates: "trunk" (pelvis, lumbar, thoracic DOFs), "core" (those and the hips' and knees' flexion)
+    or "all"; shape: "none", "bone" or "all";
     vertices: "trunk", "subset" or "coarse" (farthest-point subsets of the whole body) or "all";
     iterations: L-BFGS iterations.
     """
@@ -133,8 +137,10 @@ class RegisteredFitter:
         }
         self.decoders = self._decoders_of(self.decoder)
         trunk = np.array([n.startswith(TRUNK_DOF_PREFIXES) for n in skel.dof_names])
+        core = np.array([n.startswith(CORE_DOF_PREFIXES) for n in skel.dof_names])
         self.dof_mask = {
             "trunk": torch.as_tensor(trunk, dtype=dtype),
+            "core": torch.as_tensor(core, dtype=dtype),
             "all": torch.ones(skel.n_dof, dtype=dtype),
         }
         nb, ns = model.n_bone, model.n_shape
