@@ -387,7 +387,7 @@ class ScanFitter:
             r = torch.gather(verts_mm, 1, J) - P  # (H, N, 3)
             d2 = (r**2).sum(-1)
             if plane:
-                n = vertex_normals(v, self.faces, self._incidence)
+                n = vertex_normals(verts_mm.detach().numpy(), self.faces, self._incidence)  # float32
                 along = (r * torch.as_tensor(np.take_along_axis(n, pairs[..., None], 1), dtype=dtype)).sum(-1)
                 d2 = along**2 + tangential * (d2 - along**2)
             m2s = rho(((verts_mm - torch.as_tensor(targets * 1000.0, dtype=dtype)) ** 2).sum(-1))

@@ -26,8 +26,10 @@ def vertex_normals(
     vertices: np.ndarray, faces: np.ndarray, incidence: sp.csr_matrix | None = None
 ) -> np.ndarray:
     """Area-weighted unit vertex normals (..., V, 3) of meshes (..., V, 3) sharing faces (F, 3); zero for
-    unused vertices. ``incidence``: :func:`face_incidence` of the faces, when the caller keeps one."""
-    v = np.asarray(vertices, np.float64)
+    unused vertices. ``incidence``: :func:`face_incidence` of the faces, when the caller keeps one. Float32
+    vertices (a fitting loop's) are computed in float32 (about 1.4x faster), others in float64."""
+    v = np.asarray(vertices)
+    v = v if v.dtype == np.float32 else v.astype(np.float64)
     a, b, c = (v[..., faces[:, k], :] for k in range(3))
     e1, e2 = b - a, c - a
     cross = np.stack(
@@ -38,7 +40,7 @@ def vertex_normals(
         ],
         -1,
     )  # (..., F, 3): twice each face's area along its normal
-    A = face_incidence(faces, v.shape[-2]) if incidence is None else incidence
+    A = (face_incidence(faces, v.shape[-2]) if incidence is None else incidence).astype(v.dtype, copy=False)
     F = len(faces)
     acc = np.moveaxis((A @ np.moveaxis(cross, -2, 0).reshape(F, -1)).reshape(-1, *v.shape[:-2], 3), 0, -2)
     norm = np.linalg.norm(acc, axis=-1, keepdims=True)
