@@ -136,13 +136,11 @@ class RegisteredFitter:
             "all": np.arange(model.n_vertices),
         }
         self.decoders = self._decoders_of(self.decoder)
-        trunk = np.array([n.startswith(TRUNK_DOF_PREFIXES) for n in skel.dof_names])
-        core = np.array([n.startswith(CORE_DOF_PREFIXES) for n in skel.dof_names])
         self.dof_mask = {
-            "trunk": torch.as_tensor(trunk, dtype=dtype),
-            "core": torch.as_tensor(core, dtype=dtype),
-            "all": torch.ones(skel.n_dof, dtype=dtype),
+            name: torch.as_tensor([n.startswith(prefixes) for n in skel.dof_names], dtype=dtype)
+            for name, prefixes in (("trunk", TRUNK_DOF_PREFIXES), ("core", CORE_DOF_PREFIXES))
         }
+        self.dof_mask["all"] = torch.ones(skel.n_dof, dtype=dtype)
         nb, ns = model.n_bone, model.n_shape
         self.shape_mask = {
             "none": torch.zeros(ns, dtype=dtype),

@@ -242,7 +242,9 @@ class ScanFitter:
         self.config = config or ScanFitConfig()
         self.fitter = RegisteredFitter(model)
         self.faces = np.asarray(model.data["faces"], np.int64)
-        self._incidence = face_incidence(self.faces, model.n_vertices)
+        # in the fit loop's float type: the point-to-plane phase takes normals at every evaluation
+        loop_float = np.float32 if self.fitter.config.dtype == torch.float32 else np.float64
+        self._incidence = face_incidence(self.faces, model.n_vertices).astype(loop_float)
         self.pelvis = [model.skeleton.dof_index(n) for n in PELVIS_ROTATIONS]
         owner_all = np.argmax(model.data["weights"], axis=1)  # each vertex's body
         owner = owner_all[self.fitter.index["subset"]]
@@ -396,13 +398,15 @@ class ScanFitter:
 
         return term
 
-    def _visible(self, hyp: _Hypotheses, index: np.ndarray) -> np.ndarray | None:
+    def _visible(
+        self, hyp: _Hypotheses, index: np.ndarray, verts: np.ndarray | None = None
+    ) -> np.ndarray | None:
         """(H, len(index)) which of the vertices ``index`` face a single-view scan's sensor in each
         hypothesis's current state (normal towards it, with a little slack at the silhouette); None for a
-        full scan."""
+        full scan. ``verts``: the state's (H, V, 3) vertices (:meth:`_vertices`) when the caller has them."""
         if hyp.view is None:
             return None
-        verts = self._vertices(hyp.state)
+        verts = self._vertices(hyp.state) if verts is None else verts
         towards = hyp.rotation @ hyp.view  # (H, 3) in each body frame
         normals = vertex_normals(verts, self.faces, self._incidence)[:, index]
         return np.einsum("hvi,hi->hv", normals, towards) > VISIBLE_COS
@@ -575,11 +579,13 @@ class ScanFitter:
         model, skel = self.model, self.model.skeleton
         R, m = hyp.rotation[0], hyp.centre
         c, q, root = (t[0].numpy() for t in self.fitter.parameters(hyp.state))
-        body_verts = self._vertices(hyp.state)[0]
+        all_verts = self._vertices(hyp.state)
+        body_verts = all_verts[0]
         body_points = (cleaned - m) @ R.T
         registration = body_verts
         if self.config.nonrigid is not None:
-            seen = self._visible(hyp, np.arange(model.n_vertices))  # a single view's side facing its sensor
+            # a single view's side facing its sensor
+            seen = self._visible(hyp, np.arange(model.n_vertices), all_verts)
             registration = refine_nonrigid(
                 body_verts,
                 self.faces,
