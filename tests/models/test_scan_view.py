@@ -10,7 +10,7 @@ import torch
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting import corrupt
 from bodyfit.models.fitting.scan_io import sample_surface
-from bodyfit.models.fitting.view import view_direction
+from bodyfit.models.fitting.view import Silhouette, view_direction
 from tests.conftest import random_pose
 
 
@@ -47,3 +47,26 @@ def test_full_scans_are_not_single_views(bodies: tuple[BodyModel, np.ndarray]) -
     for k, v in enumerate(verts):
         points, _ = sample_surface(v, model.faces, 100_000, seed=k)
         assert view_direction(corrupt.random_rigid(points, np.random.default_rng(k))[0]) is None
+
+
+def test_a_views_silhouette_holds_the_whole_body_but_not_beside_it(
+    bodies: tuple[BodyModel, np.ndarray],
+) -> None:
+    """Every vertex of the viewed body, its unseen back included, projects inside the silhouette of the
+    camera's points; moved along the line of sight it still does (hidden or in front), moved across it by
+    half a metre it lies outside by about that much."""
+    model, verts = bodies
+    v = verts[0]
+    centre = v.mean(0)
+    points, _ = corrupt.depth_camera_view(
+        v, model.faces, centre + np.array([2.5, 0.0, 0.0]), centre, (240, 320), rng=np.random.default_rng(3)
+    )
+    d = view_direction(points)
+    assert d is not None
+    sil = Silhouette.of(points, d)
+    inside = sil.distance(v)
+    assert np.mean(inside == 0.0) > 0.99 and inside.max() < 0.03
+    assert np.mean(sil.distance(v + 0.4 * d) == 0.0) > 0.99
+    across = sil.distance(v + 0.5 * sil.axes[0])
+    assert np.median(across) > 0.25 and across.max() < 0.55
+    assert sil.distance(v[:7][None]).shape == (1, 7)

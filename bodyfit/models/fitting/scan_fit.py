@@ -40,7 +40,7 @@ from bodyfit.models.fitting.registered import DataTerm, RegisteredFitter, Stage,
 from bodyfit.models.fitting.report import DistanceStats, FitReport
 from bodyfit.models.fitting.scan_io import MIN_POINTS, Scan, ScanError
 from bodyfit.models.fitting.surface import face_incidence, point_to_surface, vertex_normals
-from bodyfit.models.fitting.view import view_direction
+from bodyfit.models.fitting.view import Silhouette, view_direction
 from bodyfit.models.rotations import zxy_angles
 from bodyfit.models.skeleton.model import PELVIS_ROTATIONS
 
@@ -133,6 +133,7 @@ REACH_WEIGHT = 3.0  # of the unexplained points a limb must reach, against lying
 ON_SCAN_FRACTION = 0.7  # of a limb's vertices, the closest to the scan, that count for lying on it
 STRAIGHTENED = 2  # of the hypotheses (best first), those that get a straight-spine twin
 LOOSE_POINTS = 200  # scan points, at most, that a limb candidate is asked to reach
+EMPTY_WEIGHT = 1.0  # of a single view's empty space (outside its silhouette) entered by a limb candidate
 
 
 @dataclass(frozen=True)
@@ -208,7 +209,8 @@ class _Hypotheses:
     fit points in each body frame (H, N, 3) metres, state (see RegisteredFitter.start_state); searched: the
     candidates came from the scan's axes (no orientation given); view: (3,) towards the sensor, in the
     scan's frame, for a single-view scan (:func:`view_direction`), else None; visible: (H, V_stage) the
-    current phase's vertices that face the sensor, or None (all count)."""
+    current phase's vertices that face the sensor, or None (all count); silhouette: a single
+    view's :class:`Silhouette` (scan frame), else None."""
 
     rotation: np.ndarray
     centre: np.ndarray
@@ -217,6 +219,7 @@ class _Hypotheses:
     searched: bool
     view: np.ndarray | None = None
     visible: np.ndarray | None = None
+    silhouette: Silhouette | None = None
 
     def keep(self, rows: np.ndarray) -> None:
         self.rotation, self.points = self.rotation[rows], self.points[rows]
@@ -299,6 +302,8 @@ class ScanFitter:
         hyp = self._candidates(cleaned, orientation, start)
         if cfg.single_view:
             hyp.view = view_direction(cleaned)
+            if hyp.view is not None:
+                hyp.silhouette = Silhouette.of(cleaned, hyp.view)
         tree = PointTree(cleaned)
         iterations, losses = 0, {}
         for phase in cfg.phases:
@@ -457,7 +462,10 @@ class ScanFitter:
         others' latest choice, so an arm crossing the body is not left to the other arm. Both terms are
         mean truncated squared distances, the second weighted by :data:`REACH_WEIGHT`; the first counts only
         the limb's :data:`ON_SCAN_FRACTION` of vertices closest to the scan (a limb partly over a hole or on
-        a single view's unseen side still lies on the scan)."""
+        a single view's unseen side still lies on the scan). On a single view the first term also counts, by
+        :data:`EMPTY_WEIGHT`, how far the limb's vertices lie outside the view's :class:`Silhouette`, in
+        space the sensor saw empty: otherwise an arm the view shows in front of the body may be searched
+        into the air beside it, where nothing contradicts it."""
         c, q, root = (t.numpy() for t in self.fitter.parameters(hyp.state))
         decoder = self.fitter.decoders["subset"]
         grids = self._limb_grid
@@ -477,6 +485,9 @@ class ScanFitter:
                 d = scan.query(v[:n, limb].reshape(-1, 3))[0].reshape(n, -1)
                 d = np.sort(np.minimum(d, LIMB_TRUNCATION_M) ** 2, axis=1)
                 on_scan.append(d[:, : max(1, round(ON_SCAN_FRACTION * d.shape[1]))].mean(1))
+                if hyp.silhouette is not None:  # a single view: no limb where the sensor saw nothing
+                    out = hyp.silhouette.distance(v[:n, limb] @ hyp.rotation[h] + hyp.centre)
+                    on_scan[-1] += EMPTY_WEIGHT * (np.minimum(out, LIMB_TRUNCATION_M) ** 2).mean(1)
                 # (n, loose): each candidate's distance to each loose point
                 reach.append(np.stack([PointTree(v[k, limb]).query(loose)[0] for k in range(n)]))
             placed = [v[K, limb] for limb in self._limb_vertices]  # the current pose's row

@@ -88,6 +88,48 @@ def view_direction(points: np.ndarray, config: ViewConfig | None = None) -> np.n
     return d if depth_bulge(p, d, cfg.cell / 2) > 0 else -d
 
 
+@dataclass(frozen=True)
+class Silhouette:
+    """A single view's silhouette: where the sensor saw the body, on an image-plane grid across its line
+    of sight. A point of the body projecting outside it lay in space the sensor saw empty (it would have
+    been seen there, as nothing in front of it was); inside it, the point may be seen or hidden behind
+    what was seen. The grid is orthographic (the sensor's perspective is ignored, which the margin
+    absorbs at a body's size and range).
+
+    axes: (2, 3) the image plane's unit axes; lo: (2,) the grid's corner along them (m); cell: grid size
+    (m); outside: (I, J) each cell's distance (m) to the silhouette, 0 inside it.
+    """
+
+    axes: np.ndarray
+    lo: np.ndarray
+    cell: float
+    outside: np.ndarray
+
+    @staticmethod
+    def of(points: np.ndarray, direction: np.ndarray, cell: float = 0.02, margin: int = 2) -> Silhouette:
+        """From a single view's points (N, 3) and its line of sight (3,); the silhouette is grown by
+        ``margin`` cells (sparse sampling at grazing angles, perspective)."""
+        from scipy.ndimage import binary_dilation, distance_transform_edt
+
+        _, u, w = _basis(direction)
+        axes = np.stack([u, w])
+        uv = points @ axes.T
+        lo = uv.min(0) - (margin + 1) * cell
+        ij = np.floor((uv - lo) / cell).astype(np.int64)
+        seen = np.zeros(tuple(ij.max(0) + margin + 2), bool)
+        seen[ij[:, 0], ij[:, 1]] = True
+        seen = binary_dilation(seen, iterations=margin)
+        return Silhouette(axes, lo, cell, distance_transform_edt(~seen) * cell)
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """(...,) how far (m) each of ``points`` (..., 3) projects outside the silhouette (0 inside)."""
+        uv = points @ self.axes.T
+        hi = self.lo + self.cell * np.array(self.outside.shape)
+        ij = np.floor((np.clip(uv, self.lo, hi - 1e-9) - self.lo) / self.cell).astype(np.int64)
+        beyond = np.linalg.norm(uv - np.clip(uv, self.lo, hi), axis=-1)  # off the grid
+        return self.outside[ij[..., 0], ij[..., 1]] + beyond
+
+
 def depth_bulge(points: np.ndarray, direction: np.ndarray, cell: float) -> float:
     """How much the surface seen along ``direction`` bulges towards +direction: the mean over interior grid
     cells (size ``cell`` across it) of the cell's depth minus its 5 x 5 neighbourhood's. A body seen from
