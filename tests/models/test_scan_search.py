@@ -1,5 +1,6 @@
 """The scan fit's searches on their own: the head's, hands' and toes' search (``_search_distal``) finds the
-pose of a body sampled from the model, and keeps a pose that is already right; the straight-spine twins
+pose of a body sampled from the model, keeps a pose that is already right and leaves a chain the scan lost
+to the bind pose; the straight-spine twins
 (``_straighten_spine``) keep the chest where it was."""
 
 from __future__ import annotations
@@ -76,6 +77,30 @@ def test_distal_search_keeps_a_pose_that_is_already_right(model: BodyModel) -> N
     fitter = ScanFitter(model)
     found = _searched(fitter, _hypothesis(fitter, points, q))
     np.testing.assert_allclose(found, q, atol=1e-3)  # float32 state
+
+
+def test_distal_search_sets_a_hand_the_scan_lost_to_the_bind_pose(model: BodyModel) -> None:
+    """The right hand's points are removed (a hole): instead of folding the hand onto whatever surface lies
+    near, the search sets its wrist to the bind pose's values; the head and the left hand, which the scan
+    shows, are still searched."""
+    skel = model.skeleton
+    truth = _start(model)
+    for name, deg in TRUTH_DEG.items():
+        truth[skel.dof_index(name)] = np.radians(deg)
+    body = model.forward(np.zeros((1, model.n_shape)), truth[None], np.zeros((1, 3)), dtype=torch.float64)
+    verts = body.vertices[0].numpy()
+    points, _ = sample_surface(verts, model.faces, 40_000, seed=2)
+    owner = np.argmax(model.data["weights"], axis=1)
+    hand = verts[owner == skel.body_names.index("hand_r")]
+    lost = np.linalg.norm(points[:, None] - hand[None, ::20], axis=-1).min(1) < 0.02
+    start = _start(model)
+    hand_dofs = [skel.dof_index(n) for n in ("pro_sup_r", "wrist_flex_r", "wrist_dev_r")]
+    start[hand_dofs] = np.radians([80.0, 60.0, 25.0])  # folded, as a fit left it
+    fitter = ScanFitter(model)
+    found = _searched(fitter, _hypothesis(fitter, points[~lost], start))
+    np.testing.assert_allclose(found[hand_dofs], _start(model)[hand_dofs], atol=1e-3)
+    for name in ("neck_rotation", "neck_extension"):
+        assert abs(np.degrees(found[skel.dof_index(name)]) - TRUTH_DEG[name]) < 1.0, name
 
 
 def test_straight_spine_twins_keep_the_chest_in_place(model: BodyModel) -> None:

@@ -127,6 +127,8 @@ DISTAL_SEARCH = (
 )
 DISTAL_VERTICES = 400  # of each distal chain's vertices, at most, that score its candidates
 DISTAL_TRUNCATION_M = 0.02
+EXPLAINED_M = 0.02  # a scan point this close to the rest of the body is not a distal chain's to explain
+UNSUPPORTED = 0.8  # a distal chain whose best candidate's cost is this share of the truncation's has no data
 LIMB_TRUNCATION_M = 0.05
 LIMB_SWEEPS = 2  # turns of every limb in the search
 REACH_WEIGHT = 3.0  # of the unexplained points a limb must reach, against lying on the scan
@@ -257,9 +259,13 @@ class ScanFitter:
         ]
         self._non_limb = np.setdiff1d(np.arange(len(owner)), np.concatenate(self._limb_vertices))
         distal = []
+        self._distal_rest = []  # per distal chain, the vertices of the rest of the body
         for bodies, _ in DISTAL_SEARCH:
-            own = np.flatnonzero(np.isin(owner_all, [names.index(b) for b in bodies]))
+            mine = np.isin(owner_all, [names.index(b) for b in bodies])
+            own = np.flatnonzero(mine)
             distal.append(own[:: max(1, len(own) // DISTAL_VERTICES)])
+            self._distal_rest.append(np.flatnonzero(~mine))
+        self._neutral = model.skeleton.inside(model.bind_coordinates, 0.1)
         self._distal_decoder = self.fitter.decoder.restricted(np.concatenate(distal))
         # each distal chain's columns in the distal decoder's output
         bounds = np.cumsum([0] + [len(v) for v in distal])
@@ -544,20 +550,33 @@ class ScanFitter:
 
     def _search_distal(self, hyp: _Hypotheses) -> None:
         """Set the head's, hands' and toes' searched DOFs (:data:`DISTAL_SEARCH`) of every hypothesis to the
-        candidate (or the current pose, if better) whose vertices lie closest to the scan (mean squared
-        distance truncated at :data:`DISTAL_TRUNCATION_M`); the chains are independent of each other."""
+        candidate (or the current pose, if better) whose vertices lie closest to the scan points the rest of
+        the body does not explain (further than :data:`EXPLAINED_M` from its vertices; mean squared distance
+        truncated at :data:`DISTAL_TRUNCATION_M`). A chain that no candidate brings near such points (a hand
+        or head the scan lost to a hole) goes to the bind pose's values: searched against all points, it
+        was folded onto whatever surface lay near (a wrist flexed 60 degrees onto the thigh). The chains are
+        independent of each other."""
         c, q, root = (t.numpy() for t in self.fitter.parameters(hyp.state))
         grids = self._distal_grid
         K = max(len(g) for _, g in grids)
+        whole = self._vertices(hyp.state)
         for h in range(len(q)):
             v = self._grid_vertices(self._distal_decoder, grids, c[h], q[h], root[h])
-            d = PointTree(hyp.points[h]).query(v.reshape(-1, 3))[0].reshape(K + 1, -1)
-            d2 = np.minimum(d, DISTAL_TRUNCATION_M) ** 2
-            for (dofs, values), cols in zip(grids, self._distal_columns, strict=True):
+            points = hyp.points[h]
+            chains = zip(grids, self._distal_columns, self._distal_rest, strict=True)
+            for (dofs, values), cols, rest in chains:
+                loose = points[PointTree(whole[h, rest]).query(points)[0] > EXPLAINED_M]
+                if not len(loose):
+                    q[h, dofs] = self._neutral[dofs]
+                    continue
                 n = len(values)
-                cost = np.append(d2[:n, cols].mean(1), d2[K, cols].mean())
+                d = PointTree(loose).query(v[:, cols].reshape(-1, 3))[0].reshape(K + 1, -1)
+                d2 = np.minimum(d, DISTAL_TRUNCATION_M) ** 2
+                cost = np.append(d2[:n].mean(1), d2[K].mean())
                 best = int(np.argmin(cost))
-                if best < n:
+                if cost[best] > UNSUPPORTED * DISTAL_TRUNCATION_M**2:
+                    q[h, dofs] = self._neutral[dofs]
+                elif best < n:
                     q[h, dofs] = values[best]
         hyp.state = self.fitter.start_state(q, root, c)
 
