@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from bodyfit.models.body.anny_posed import random_poses
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting import corrupt
-from bodyfit.models.fitting.nonrigid import refine_nonrigid
+from bodyfit.models.fitting.nonrigid import NonRigidConfig, refine_nonrigid
 from bodyfit.models.fitting.scan_fit import (
     ScanFit,
     ScanFitConfig,
@@ -75,6 +75,21 @@ def test_nonrigid_refinement_leaves_an_unseen_side_alone() -> None:
         dz = (refine_nonrigid(v, f, points, seen=seen) - v)[:, 2]
         assert abs(dz[front & inner].mean() - 0.01) < 1e-3
         assert (dz[back & inner].mean() > 0.02) == back_moves  # unseen, the back is not pulled through
+
+
+def test_nonrigid_refinement_moves_vertices_across_the_surface_not_along_it() -> None:
+    """Scan points on a 3 cm lattice 1 cm in front of a 1 cm mesh: the vertices move 1 cm forward and stay
+    where they were along the surface; with the whole pull kept they slide towards the lattice's points."""
+    slab = trimesh.creation.box(extents=(0.4, 0.4, 0.02)).subdivide_to_size(0.01)
+    v, f = np.asarray(slab.vertices), np.asarray(slab.faces)
+    g = np.arange(-0.15, 0.151, 0.03)
+    points = np.column_stack([*(a.ravel() for a in np.meshgrid(g, g)), np.full(g.size**2, 0.02)])
+    inner = (v[:, 2] > 0) & (np.abs(v[:, :2]) < 0.1).all(axis=1)
+    moved = refine_nonrigid(v, f, points) - v
+    assert abs(moved[inner, 2].mean() - 0.01) < 1.5e-3
+    assert np.sqrt((moved[inner, :2] ** 2).sum(1).mean()) < 3e-4
+    slid = refine_nonrigid(v, f, points, NonRigidConfig(tangential=1.0)) - v
+    assert np.sqrt((slid[inner, :2] ** 2).sum(1).mean()) > 2e-3
 
 
 def test_cleaning_drops_isolated_points() -> None:
