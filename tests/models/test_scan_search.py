@@ -19,6 +19,7 @@ from bodyfit.models.fitting.scan_fit import (
     ScanFitConfig,
     ScanFitter,
     _Hypotheses,
+    distinct,
 )
 from bodyfit.models.fitting.scan_io import sample_surface
 
@@ -216,3 +217,48 @@ def test_the_last_phase_refines_both_limb_hypotheses_and_keeps_the_better(model:
     assert fit.report.extra["phase_scores"][DEFAULT_PHASES[-1].stage.name] == round(float(last.min()), 5)
     error = np.linalg.norm(fit.vertices - body.vertices[0].numpy(), axis=1).mean() * 1000
     assert error < 15.0, error
+
+
+def test_distinct_starts_lie_apart_best_first() -> None:
+    shapes = np.zeros((5, 4, 3))
+    shapes[:, :, 0] = np.array([0.0, 0.01, 0.5, 0.52, 1.0])[:, None]  # two near pairs and a loner
+    cost = np.array([1.0, 2.0, 3.0, 0.5, 9.0])
+    np.testing.assert_array_equal(distinct(shapes, cost, 3, 0.1), [3, 0, 4])
+    # fewer lie apart than asked for: topped up with the next best
+    np.testing.assert_array_equal(distinct(shapes, cost, 4, 0.1), [3, 0, 4, 1])
+
+
+def test_limb_search_refines_an_arm_the_grid_cannot_hold(model: BodyModel) -> None:
+    """The right arm is posed off the grid (the humerus turned, the forearm held forward and twisted, the
+    shoulder girdle raised: a failing benchmark scan's arm); the search starts from the bind pose with the
+    scapulae at mid-range (the limbs phase's twin). The grid's best candidate leaves the forearm far off;
+    refining the best distinct candidates brings it close."""
+    skel = model.skeleton
+    truth = _start(model)
+    pose = {
+        "scapula_abduction_r": 13, "scapula_elevation_r": 15, "scapula_upward_rot_r": 34, "arm_flex_r": 9,
+        "arm_add_r": -9, "arm_rot_r": 22, "elbow_flex_r": 80, "pro_sup_r": 43,
+    }  # fmt: skip
+    for name, deg in pose.items():
+        truth[skel.dof_index(name)] = np.radians(deg)
+    body = model.forward(np.zeros((1, model.n_shape)), truth[None], np.zeros((1, 3)), dtype=torch.float64)
+    points, _ = sample_surface(body.vertices[0].numpy(), model.faces, 20_000, seed=5)
+    start = _start(model)
+    scapula = [i for i, n in enumerate(skel.dof_names) if n.startswith("scapula_")]
+    start[scapula] = skel.ranges[scapula].mean(1)
+    fitter = ScanFitter(model)
+    owner = np.argmax(model.data["weights"], axis=1)
+    forearm = np.isin(owner, [skel.body_names.index(b) for b in ("ulna_r", "radius_r", "hand_r")])
+
+    def forearm_error() -> float:
+        hyp = _hypothesis(fitter, points, start)
+        fitter._search_limbs(hyp)
+        verts = fitter._vertices(hyp.state)[0]
+        return float(np.linalg.norm(verts[forearm] - body.vertices[0].numpy()[forearm], axis=1).mean() * 1000)
+
+    refined = forearm_error()
+    with pytest.MonkeyPatch.context() as patch:  # the grid's best alone
+        patch.setattr(fitter, "_refine_limbs", lambda hyp, scans, c, starts, *rest: starts[:, 0])
+        grid = forearm_error()
+    assert refined < 0.5 * grid, (grid, refined)
+    assert refined < 50.0, (grid, refined)

@@ -318,6 +318,11 @@ class RegisteredFitter:
             c = (z_c * s_c).double().expand(len(q), -1)
         return c, q, root
 
+    def coordinates(self, z_u: torch.Tensor) -> torch.Tensor:
+        """(B, n_dof) coordinates, within the limits and differentiable, of the state's preconditioned
+        unbounded values ``z_u`` (B, n_dof) (:meth:`start_state`)."""
+        return self.model.skeleton.from_unbounded(z_u * self._scales[0])
+
     def _preconditioner(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Per-parameter units (u: (n_dof,), root: (3,), c: (n_shape,)) in which one unit moves the subset's
         vertices by about 1 mm RMS, from the Jacobian at the mean body in the bind pose. L-BFGS starts from a
@@ -356,7 +361,7 @@ class RegisteredFitter:
             iterations run and the final loss per mesh.
         """
         z_u, z_r, z_c = z
-        s_u, s_r, s_c = self._scales
+        _, s_r, s_c = self._scales
         B = z_u.shape[0]
         rows = z_c.shape[0]
         per_row = B // rows
@@ -364,7 +369,6 @@ class RegisteredFitter:
         fd = torch.nonzero(self.dof_mask[stage.coordinates]).flatten()
         fs = torch.nonzero(self.shape_mask[stage.shape]).flatten()
         n_pose = per_row * (len(fd) + 3)
-        skel = self.model.skeleton
         prior = self.config.shape_prior
 
         def unpack(Z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -377,7 +381,7 @@ class RegisteredFitter:
             u, r, c = unpack(Z)
             c_full = c * s_c
             c_mesh = c_full.repeat_interleave(per_row, 0)
-            verts = decoder(c_mesh, skel.from_unbounded(u * s_u), r * s_r)[0]
+            verts = decoder(c_mesh, self.coordinates(u), r * s_r)[0]
             err = data_term(verts * 1000.0)  # (B,)
             return err.reshape(rows, per_row).sum(1) + prior * (c_full**2).sum(1)
 

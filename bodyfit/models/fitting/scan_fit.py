@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 from bodyfit.models.body.model import BodyDecoder, BodyModel
+from bodyfit.models.fitting.lbfgs import batched_lbfgs
 from bodyfit.models.fitting.nearest import PointTree
 from bodyfit.models.fitting.nonrigid import NonRigidConfig, refine_nonrigid
 from bodyfit.models.fitting.registered import DataTerm, RegisteredFitter, Stage, State
@@ -136,6 +137,22 @@ ON_SCAN_FRACTION = 0.7  # of a limb's vertices, the closest to the scan, that co
 STRAIGHTENED = 2  # of the hypotheses (best first), those that get a straight-spine twin
 LOOSE_POINTS = 200  # scan points, at most, that a limb candidate is asked to reach
 EMPTY_WEIGHT = 1.0  # of a single view's empty space (outside its silhouette) entered by a limb candidate
+# Each limb's coordinates refined continuously from its best grid candidates (the grid's DOFs and those it
+# leaves at their current values: the shoulder girdle, the arm's and hip's rotation, the forearm's twist).
+LIMB_REFINED = tuple(
+    names
+    for s in ("r", "l")
+    for names in (
+        (f"hip_flexion_{s}", f"hip_adduction_{s}", f"hip_rotation_{s}", f"knee_angle_{s}"),
+        (
+            *(f"scapula_{n}_{s}" for n in ("abduction", "elevation", "upward_rot")),
+            *(f"{n}_{s}" for n in ("arm_flex", "arm_add", "arm_rot", "elbow_flex", "pro_sup")),
+        ),
+    )
+)
+LIMB_STARTS = 4  # of each limb's grid candidates (best first), those refined
+LIMB_REFINE_ITERATIONS = 15
+LIMB_APART_M = 0.1  # the refined starts of a limb lie this far apart (mean vertex distance), where they can
 
 
 @dataclass(frozen=True)
@@ -205,6 +222,20 @@ def orientation_candidates(points: np.ndarray) -> np.ndarray:
     return np.array(out)
 
 
+def distinct(shapes: np.ndarray, cost: np.ndarray, n: int, apart: float) -> np.ndarray:
+    """Indices (n,) of the lowest-cost ``shapes`` (K, V, 3) that lie at least ``apart`` from each other (mean
+    vertex distance), best first; topped up with the next best when fewer are that far apart."""
+    order = np.argsort(cost)
+    chosen = [order[0]]
+    for k in order[1:]:
+        if len(chosen) == n:
+            break
+        if np.linalg.norm(shapes[chosen] - shapes[k], axis=-1).mean(-1).min() >= apart:
+            chosen.append(k)
+    rest = [k for k in order if k not in chosen]
+    return np.array(chosen + rest[: n - len(chosen)])
+
+
 @dataclass
 class _Hypotheses:
     """Candidate body frames and their optimisation state: rotation (H, 3, 3), the scan's centre (3,), the
@@ -258,6 +289,12 @@ class ScanFitter:
             np.flatnonzero(np.isin(owner, [names.index(b) for b in bodies])) for bodies, _ in LIMB_SEARCH
         ]
         self._non_limb = np.setdiff1d(np.arange(len(owner)), np.concatenate(self._limb_vertices))
+        self._limb_free = [np.array([model.skeleton.dof_index(n) for n in dofs]) for dofs in LIMB_REFINED]
+        # the limbs' "subset" vertices alone, each limb's columns in its output
+        limbs = np.concatenate(self._limb_vertices)
+        self._limb_decoder = self.fitter.decoder.restricted(self.fitter.index["subset"][limbs])
+        ends = np.cumsum([0] + [len(v) for v in self._limb_vertices])
+        self._limb_columns = [slice(a, b) for a, b in pairwise(ends)]
         distal = []
         self._distal_rest = []  # per distal chain, the vertices of the rest of the body
         for bodies, _ in DISTAL_SEARCH:
@@ -465,21 +502,22 @@ class ScanFitter:
         limb lies on the scan (its "subset" vertices close to scan points) and reaches the scan points that
         neither the rest of the body nor the other limbs explain (an arm folded onto the chest lies on the
         scan too, but reaches nothing). Limbs take turns, :data:`LIMB_SWEEPS` times, each against the
-        others' latest choice, so an arm crossing the body is not left to the other arm. Both terms are
-        mean truncated squared distances, the second weighted by :data:`REACH_WEIGHT`; the first counts only
-        the limb's :data:`ON_SCAN_FRACTION` of vertices closest to the scan (a limb partly over a hole or on
-        a single view's unseen side still lies on the scan). On a single view the first term also counts, by
-        :data:`EMPTY_WEIGHT`, how far the limb's vertices lie outside the view's :class:`Silhouette`, in
-        space the sensor saw empty: otherwise an arm the view shows in front of the body may be searched
-        into the air beside it, where nothing contradicts it."""
+        others' latest choice, so an arm crossing the body is not left to the other arm. The cost is
+        :meth:`_on_scan` plus :meth:`_reach`. Each limb's best :data:`LIMB_STARTS` candidates are then
+        refined continuously (:meth:`_refine_limbs`): the grid is coarse and holds the shoulder girdle and
+        the limbs' rotation where they are, so its best candidate can lie far from a pose that fits the
+        limb closely (on scans whose arm was placed wrong, the true arm's vertices cost a third to a half
+        of the grid's best)."""
         c, q, root = (t.numpy() for t in self.fitter.parameters(hyp.state))
         decoder = self.fitter.decoders["subset"]
         grids = self._limb_grid
-        trunc2 = LIMB_TRUNCATION_M**2
         K = max(len(g) for _, g in grids)
+        trunc2 = LIMB_TRUNCATION_M**2
+        scans = [PointTree(p) for p in hyp.points]
+        starts = np.repeat(q[:, None], LIMB_STARTS, axis=1)  # (H, M, n_dof): each limb's best candidates
+        targets: list[list[np.ndarray]] = []  # per hypothesis and limb: the loose points it must reach
         for h in range(len(q)):
             v = self._grid_vertices(decoder, grids, c[h], q[h], root[h])
-            scan = PointTree(hyp.points[h])
             # Scan points the rest of the body does not explain: limbs must reach them, not just touch the
             # scan (an arm folded onto the chest touches it everywhere).
             rest = PointTree(v[0, self._non_limb]).query(hyp.points[h])[0]
@@ -487,28 +525,125 @@ class ScanFitter:
             loose = loose[:: max(1, len(loose) // LOOSE_POINTS)]
             on_scan, reach = [], []
             for (_, values), limb in zip(grids, self._limb_vertices, strict=True):
-                n = len(values)
-                d = scan.query(v[:n, limb].reshape(-1, 3))[0].reshape(n, -1)
-                d = np.sort(np.minimum(d, LIMB_TRUNCATION_M) ** 2, axis=1)
-                on_scan.append(d[:, : max(1, round(ON_SCAN_FRACTION * d.shape[1]))].mean(1))
-                if hyp.silhouette is not None:  # a single view: no limb where the sensor saw nothing
-                    out = hyp.silhouette.distance(v[:n, limb] @ hyp.rotation[h] + hyp.centre)
-                    on_scan[-1] += EMPTY_WEIGHT * (np.minimum(out, LIMB_TRUNCATION_M) ** 2).mean(1)
+                on_scan.append(self._on_scan(hyp, h, scans[h], v[: len(values), limb]))
                 # (n, loose): each candidate's distance to each loose point
-                reach.append(np.stack([PointTree(v[k, limb]).query(loose)[0] for k in range(n)]))
+                reach.append(np.stack([PointTree(x).query(loose)[0] for x in v[: len(values), limb]]))
             placed = [v[K, limb] for limb in self._limb_vertices]  # the current pose's row
+            mine = [np.zeros(len(loose), bool) for _ in grids]
+            cost = list(on_scan)
             for _ in range(LIMB_SWEEPS):
                 for L, ((dofs, values), limb) in enumerate(zip(grids, self._limb_vertices, strict=True)):
-                    cost = on_scan[L].copy()
+                    cost[L] = on_scan[L].copy()
                     if len(loose):
                         others = np.concatenate([placed[M] for M in range(len(grids)) if M != L])
-                        mine = PointTree(others).query(loose)[0] > LIMB_TRUNCATION_M
-                        if mine.any():
-                            cost += REACH_WEIGHT * np.minimum(reach[L][:, mine] ** 2, trunc2).mean(1)
-                    best = int(np.argmin(cost))
+                        mine[L] = PointTree(others).query(loose)[0] > LIMB_TRUNCATION_M
+                        if mine[L].any():
+                            cost[L] += REACH_WEIGHT * np.minimum(reach[L][:, mine[L]] ** 2, trunc2).mean(1)
+                    best = int(np.argmin(cost[L]))
                     placed[L] = v[best, limb]
                     q[h, dofs] = values[best]
+            for L, ((dofs, values), limb) in enumerate(zip(grids, self._limb_vertices, strict=True)):
+                tops = distinct(v[: len(values), limb], cost[L], LIMB_STARTS, LIMB_APART_M)
+                starts[h][:, dofs] = values[tops]
+            targets.append([loose[m] for m in mine])
+        q = self._refine_limbs(hyp, scans, c, starts, root, targets)
         hyp.state = self.fitter.start_state(q, root, c)
+
+    def _on_scan(self, hyp: _Hypotheses, h: int, scan: PointTree, verts: np.ndarray) -> np.ndarray:
+        """(n,) how far limb candidates (n, V_limb, 3) of hypothesis h (body frame) lie from its scan points
+        ``scan``: the mean truncated squared distance of the :data:`ON_SCAN_FRACTION` of vertices closest to
+        the scan (a limb partly over a hole or on a single view's unseen side still lies on the scan). On a
+        single view it also counts, by :data:`EMPTY_WEIGHT`, how far the vertices lie outside the view's
+        :class:`Silhouette`, in space the sensor saw empty: otherwise an arm the view shows in front of the
+        body may be searched into the air beside it, where nothing contradicts it."""
+        n = len(verts)
+        d = scan.query(verts.reshape(-1, 3))[0].reshape(n, -1)
+        d = np.sort(np.minimum(d, LIMB_TRUNCATION_M) ** 2, axis=1)
+        cost = d[:, : max(1, round(ON_SCAN_FRACTION * d.shape[1]))].mean(1)
+        if hyp.silhouette is not None:
+            out = hyp.silhouette.distance(verts @ hyp.rotation[h] + hyp.centre)
+            cost += EMPTY_WEIGHT * (np.minimum(out, LIMB_TRUNCATION_M) ** 2).mean(1)
+        return cost
+
+    @staticmethod
+    def _reach(verts: np.ndarray, targets: np.ndarray) -> np.ndarray:
+        """(n,) how far the scan points ``targets`` (T, 3) that a limb must reach lie from each candidate's
+        vertices (n, V_limb, 3): :data:`REACH_WEIGHT` times their mean truncated squared distance."""
+        if not len(targets):
+            return np.zeros(len(verts))
+        d = np.stack([PointTree(x).query(targets)[0] for x in verts])
+        return REACH_WEIGHT * (np.minimum(d, LIMB_TRUNCATION_M) ** 2).mean(1)
+
+    def _refine_limbs(
+        self,
+        hyp: _Hypotheses,
+        scans: list[PointTree],
+        c: np.ndarray,
+        starts: np.ndarray,
+        root: np.ndarray,
+        targets: list[list[np.ndarray]],
+    ) -> np.ndarray:
+        """Coordinates (H, n_dof): each limb's :data:`LIMB_REFINED` DOFs from the best of its start poses
+        ``starts`` (H, M, n_dof), each refined by :data:`LIMB_REFINE_ITERATIONS` of L-BFGS on a smooth form
+        of the search's cost (vertices pulled onto their nearest scan points, loose points ``targets``
+        (per hypothesis and limb, (T, 3)) pulled onto their nearest limb vertex; the limbs' DOFs are
+        disjoint, so all limbs refine together). Every limb keeps whichever start or refined pose has the
+        lowest search cost (:meth:`_on_scan` + :meth:`_reach`). c (H, n_shape), root (H, 3): the
+        hypotheses' shape and root; ``scans``: each hypothesis's fit points (body frame) as a tree."""
+        H, M, n_dof = starts.shape
+        dtype = self.fitter.config.dtype
+        rows = np.arange(H * M) // M  # each row's hypothesis
+        z_u = self.fitter.start_state(starts.reshape(-1, n_dof), root[rows], c[rows])[0]
+        c_t, root_t = (torch.as_tensor(x[rows], dtype=dtype) for x in (c, root))
+        free = torch.as_tensor(np.concatenate(self._limb_free))
+        cols = self._limb_columns
+        trunc2 = (LIMB_TRUNCATION_M * 1000.0) ** 2
+        # loose points per limb, padded to a common count: (H * M, T_L, 3) mm and their weights (H * M, T_L)
+        pads = []
+        for L in range(len(cols)):
+            T = max(1, max(len(t[L]) for t in targets))
+            pad = np.zeros((H, T, 3))
+            weight = np.zeros((H, T))
+            for h, t in enumerate(targets):
+                pad[h, : len(t[L])] = t[L] * 1000.0
+                weight[h, : len(t[L])] = REACH_WEIGHT / max(1, len(t[L]))
+            pads.append((pad[rows], torch.as_tensor(weight[rows], dtype=dtype)))
+
+        def vertices(u: torch.Tensor) -> torch.Tensor:
+            return self._limb_decoder(c_t, self.fitter.coordinates(u), root_t)[0] * 1000.0
+
+        def losses(Z: torch.Tensor) -> torch.Tensor:
+            v = vertices(z_u.index_copy(1, free, Z))  # (H * M, V_limbs, 3) mm
+            v_np = v.detach().double().numpy()
+            pairs = zip(rows, v_np, strict=True)
+            near = np.stack([hyp.points[h][scans[h].query(x / 1000.0)[1]] for h, x in pairs])
+            d2 = ((v - torch.as_tensor(near * 1000.0, dtype=dtype)) ** 2).sum(-1).clamp(max=trunc2)
+            total = torch.zeros(len(rows), dtype=dtype)
+            for col, (pad, weight) in zip(cols, pads, strict=True):
+                k = max(1, round(ON_SCAN_FRACTION * (col.stop - col.start)))
+                total = total + torch.topk(d2[:, col], k, dim=1, largest=False).values.mean(1)
+                # each loose point's nearest vertex of the limb
+                j = np.stack([PointTree(x[col]).query(p)[1] for x, p in zip(v_np, pad, strict=True)])
+                limb = v[:, col]
+                reached = torch.gather(limb, 1, torch.as_tensor(j)[..., None].expand(-1, -1, 3))
+                r2 = ((reached - torch.as_tensor(pad, dtype=dtype)) ** 2).sum(-1).clamp(max=trunc2)
+                total = total + (r2 * weight).sum(1)
+            return total
+
+        result = batched_lbfgs(losses, z_u[:, free], LIMB_REFINE_ITERATIONS)
+        with torch.no_grad():
+            refined = z_u.index_copy(1, free, result.z)
+            both = torch.cat([z_u, refined])  # the starts, then the refined poses
+            q_all = self.fitter.coordinates(both.double()).numpy()
+            v_all = torch.cat([vertices(z_u), vertices(refined)]).double().numpy() / 1000.0
+        q = starts[:, 0].copy()
+        for h in range(H):
+            mine = np.concatenate([np.flatnonzero(rows == h), len(rows) + np.flatnonzero(rows == h)])
+            for L, (col, dofs) in enumerate(zip(cols, self._limb_free, strict=True)):
+                limb = v_all[mine][:, col]
+                cost = self._on_scan(hyp, h, scans[h], limb) + self._reach(limb, targets[h][L])
+                q[h, dofs] = q_all[mine[int(np.argmin(cost))], dofs]
+        return q
 
     def _straighten_spine(self, hyp: _Hypotheses) -> None:
         """Add, for each of the best :data:`STRAIGHTENED` hypotheses, a twin with its trunk's bend moved into
