@@ -11,12 +11,14 @@
 3. Coarse to fine (DESIGN.md section 6): iterated closest points in both directions (scan point -> nearest
    model vertex, point-to-plane; model vertex -> nearest scan point), Geman-McClure weights with a shrinking
    scale, each round minimised by the staged L-BFGS of :class:`RegisteredFitter` (joint limits kept by the
-   tanh mapping): the limbs, then the identity shape on a vertex subset, then all vertices. Before the limbs
-   are searched a second time the fit also goes on from a twin with the scapulae at mid-range, as fits from
-   the bind pose tend to hold the shoulders up with the scapulae at their limits. Both go through the last
-   (all-vertex) phase and the score picks one only then: refined to the end, the better fit scores better
-   (on 36 held-out scans it picked the one with the lower registration error every time the two differed
-   by more than 3 mm), while after the limbs phase near-ties rank no better than chance.
+   tanh mapping): the limbs, then the identity shape on a vertex subset, then all vertices. The limbs are
+   placed first by a grid search whose best few distinct candidates per limb are refined continuously
+   (:meth:`ScanFitter._search_limbs`), the head, hands and toes later by a grid search of their own. Before
+   the limbs are searched a second time the fit also goes on from a twin with the scapulae at mid-range, as
+   fits from the bind pose tend to hold the shoulders up with the scapulae at their limits. Both go through
+   the last (all-vertex) phase and the score picks one only then: refined to the end, the better fit scores
+   better (on 36 held-out scans it picked the one with the lower registration error every time the two
+   differed by more than 3 mm), while after the limbs phase near-ties rank no better than chance.
 4. Non-rigid refinement (:mod:`.nonrigid`): per-vertex offsets for detail beyond the shape space.
 
 The fitted parameters are expressed in the scan's own frame when the pelvis angles can hold the scan's
@@ -151,7 +153,7 @@ LIMB_REFINED = tuple(
     )
 )
 LIMB_STARTS = 4  # of each limb's grid candidates (best first), those refined
-LIMB_REFINE_ITERATIONS = 15
+LIMB_REFINE_ITERATIONS = 10
 LIMB_APART_M = 0.1  # the refined starts of a limb lie this far apart (mean vertex distance), where they can
 
 
@@ -512,7 +514,7 @@ class ScanFitter:
         decoder = self.fitter.decoders["subset"]
         grids = self._limb_grid
         K = max(len(g) for _, g in grids)
-        trunc2 = LIMB_TRUNCATION_M**2
+        far, trunc2 = LIMB_TRUNCATION_M, LIMB_TRUNCATION_M**2  # distances beyond are all alike
         scans = [PointTree(p) for p in hyp.points]
         starts = np.repeat(q[:, None], LIMB_STARTS, axis=1)  # (H, M, n_dof): each limb's best candidates
         targets: list[list[np.ndarray]] = []  # per hypothesis and limb: the loose points it must reach
@@ -520,14 +522,14 @@ class ScanFitter:
             v = self._grid_vertices(decoder, grids, c[h], q[h], root[h])
             # Scan points the rest of the body does not explain: limbs must reach them, not just touch the
             # scan (an arm folded onto the chest touches it everywhere).
-            rest = PointTree(v[0, self._non_limb]).query(hyp.points[h])[0]
+            rest = PointTree(v[0, self._non_limb]).query(hyp.points[h], LIMB_TRUNCATION_M)[0]
             loose = hyp.points[h][rest > LIMB_TRUNCATION_M]
             loose = loose[:: max(1, len(loose) // LOOSE_POINTS)]
             on_scan, reach = [], []
             for (_, values), limb in zip(grids, self._limb_vertices, strict=True):
                 on_scan.append(self._on_scan(hyp, h, scans[h], v[: len(values), limb]))
                 # (n, loose): each candidate's distance to each loose point
-                reach.append(np.stack([PointTree(x).query(loose)[0] for x in v[: len(values), limb]]))
+                reach.append(np.stack([PointTree(x).query(loose, far)[0] for x in v[: len(values), limb]]))
             placed = [v[K, limb] for limb in self._limb_vertices]  # the current pose's row
             mine = [np.zeros(len(loose), bool) for _ in grids]
             cost = list(on_scan)
@@ -536,7 +538,7 @@ class ScanFitter:
                     cost[L] = on_scan[L].copy()
                     if len(loose):
                         others = np.concatenate([placed[M] for M in range(len(grids)) if M != L])
-                        mine[L] = PointTree(others).query(loose)[0] > LIMB_TRUNCATION_M
+                        mine[L] = PointTree(others).query(loose, far)[0] > far
                         if mine[L].any():
                             cost[L] += REACH_WEIGHT * np.minimum(reach[L][:, mine[L]] ** 2, trunc2).mean(1)
                     best = int(np.argmin(cost[L]))
@@ -557,7 +559,7 @@ class ScanFitter:
         :class:`Silhouette`, in space the sensor saw empty: otherwise an arm the view shows in front of the
         body may be searched into the air beside it, where nothing contradicts it."""
         n = len(verts)
-        d = scan.query(verts.reshape(-1, 3))[0].reshape(n, -1)
+        d = scan.query(verts.reshape(-1, 3), LIMB_TRUNCATION_M)[0].reshape(n, -1)
         d = np.sort(np.minimum(d, LIMB_TRUNCATION_M) ** 2, axis=1)
         cost = d[:, : max(1, round(ON_SCAN_FRACTION * d.shape[1]))].mean(1)
         if hyp.silhouette is not None:
@@ -571,7 +573,7 @@ class ScanFitter:
         vertices (n, V_limb, 3): :data:`REACH_WEIGHT` times their mean truncated squared distance."""
         if not len(targets):
             return np.zeros(len(verts))
-        d = np.stack([PointTree(x).query(targets)[0] for x in verts])
+        d = np.stack([PointTree(x).query(targets, LIMB_TRUNCATION_M)[0] for x in verts])
         return REACH_WEIGHT * (np.minimum(d, LIMB_TRUNCATION_M) ** 2).mean(1)
 
     def _refine_limbs(
@@ -700,12 +702,13 @@ class ScanFitter:
             points = hyp.points[h]
             chains = zip(grids, self._distal_columns, self._distal_rest, strict=True)
             for (dofs, values), cols, rest in chains:
-                loose = points[PointTree(whole[h, rest]).query(points)[0] > EXPLAINED_M]
+                loose = points[PointTree(whole[h, rest]).query(points, EXPLAINED_M)[0] > EXPLAINED_M]
                 if not len(loose):
                     q[h, dofs] = self._neutral[dofs]
                     continue
                 n = len(values)
-                d = PointTree(loose).query(v[:, cols].reshape(-1, 3))[0].reshape(K + 1, -1)
+                d = PointTree(loose).query(v[:, cols].reshape(-1, 3), DISTAL_TRUNCATION_M)[0]
+                d = d.reshape(K + 1, -1)
                 d2 = np.minimum(d, DISTAL_TRUNCATION_M) ** 2
                 cost = np.append(d2[:n].mean(1), d2[K].mean())
                 best = int(np.argmin(cost))
