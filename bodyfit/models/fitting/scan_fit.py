@@ -13,7 +13,7 @@
    scale, each round minimised by the staged L-BFGS of :class:`RegisteredFitter` (joint limits kept by the
    tanh mapping): the limbs, then the identity shape on a vertex subset, then all vertices. The limbs are
    placed first by a grid search whose best few distinct candidates per limb are refined continuously
-   (:meth:`ScanFitter._search_limbs`), the head, hands and toes later by a grid search of their own. Before
+   (:class:`.limb_search.LimbSearch`), the head, hands and toes later by a grid search of their own. Before
    the limbs are searched a second time the fit also goes on from a twin with the scapulae at mid-range, as
    fits from the bind pose tend to hold the shoulders up with the scapulae at their limits. Both go through
    the last (all-vertex) phase and the score picks one only then: refined to the end, the better fit scores
@@ -35,8 +35,13 @@ from itertools import pairwise
 import numpy as np
 import torch
 
-from bodyfit.models.body.model import BodyDecoder, BodyModel
-from bodyfit.models.fitting.lbfgs import batched_lbfgs
+from bodyfit.models.body.model import BodyModel
+from bodyfit.models.fitting.limb_search import (
+    Hypotheses,
+    LimbSearch,
+    grid_vertices,
+    search_grids,
+)
 from bodyfit.models.fitting.nearest import PointTree
 from bodyfit.models.fitting.nonrigid import NonRigidConfig, refine_nonrigid
 from bodyfit.models.fitting.registered import DataTerm, RegisteredFitter, Stage, State
@@ -63,7 +68,7 @@ class ScanPhase:
     points used (a random subset of the cleaned scan); plane: point-to-plane distances (model normals) for
     the scan -> model term instead of point-to-point; two_way: False keeps the model -> scan term only (a
     part of the body fitted inside the whole scan); search_limbs: a grid search of the limbs' poses
-    (:data:`LIMB_SEARCH`) before the phase; search_distal: a grid search of the head, hands and toes
+    (:class:`LimbSearch`) before the phase; search_distal: a grid search of the head, hands and toes
     (:data:`DISTAL_SEARCH`) before the phase; straighten: before the phase (and the searches), add to the
     best :data:`STRAIGHTENED` hypotheses of a full scan a twin with a straight spine
     (:meth:`ScanFitter._straighten_spine`; on single-view scans it picked wrong twins, so they go without);
@@ -99,22 +104,6 @@ DEFAULT_PHASES = (
     ScanPhase(Stage("fine", "all", "all", "all", 50), 10.0, 1, 4000, plane=True, search_distal=True),
 )
 
-# Limb chains searched on a grid before the continuous fit: the chain's bodies and the DOFs sampled (values
-# per DOF, spread over the range). A limb's candidates are scored by how close its vertices lie to the scan.
-LIMB_SEARCH = tuple(
-    (bodies, grid)
-    for s in ("r", "l")
-    for bodies, grid in (
-        (
-            (f"femur_{s}", f"tibia_{s}", f"patella_{s}", f"talus_{s}", f"calcn_{s}", f"toes_{s}"),
-            {f"hip_flexion_{s}": 7, f"hip_adduction_{s}": 4, f"knee_angle_{s}": 4},
-        ),
-        (
-            (f"humerus_{s}", f"ulna_{s}", f"radius_{s}", f"hand_{s}"),
-            {f"arm_flex_{s}": 7, f"arm_add_{s}": 7, f"elbow_flex_{s}": 4},
-        ),
-    )
-)
 # The small, vertex-dense ends of the body, searched the same way once the limbs are placed: their bodies and
 # DOFs. Their surfaces are small but carry most of the template's vertices (head 32%, hands 24%, toes 11%).
 DISTAL_SEARCH = (
@@ -132,29 +121,7 @@ DISTAL_VERTICES = 400  # of each distal chain's vertices, at most, that score it
 DISTAL_TRUNCATION_M = 0.02
 EXPLAINED_M = 0.02  # a scan point this close to the rest of the body is not a distal chain's to explain
 UNSUPPORTED = 0.8  # a distal chain whose best candidate's cost is this share of the truncation's has no data
-LIMB_TRUNCATION_M = 0.05
-LIMB_SWEEPS = 2  # turns of every limb in the search
-REACH_WEIGHT = 3.0  # of the unexplained points a limb must reach, against lying on the scan
-ON_SCAN_FRACTION = 0.7  # of a limb's vertices, the closest to the scan, that count for lying on it
 STRAIGHTENED = 2  # of the hypotheses (best first), those that get a straight-spine twin
-LOOSE_POINTS = 200  # scan points, at most, that a limb candidate is asked to reach
-EMPTY_WEIGHT = 1.0  # of a single view's empty space (outside its silhouette) entered by a limb candidate
-# Each limb's coordinates refined continuously from its best grid candidates (the grid's DOFs and those it
-# leaves at their current values: the shoulder girdle, the arm's and hip's rotation, the forearm's twist).
-LIMB_REFINED = tuple(
-    names
-    for s in ("r", "l")
-    for names in (
-        (f"hip_flexion_{s}", f"hip_adduction_{s}", f"hip_rotation_{s}", f"knee_angle_{s}"),
-        (
-            *(f"scapula_{n}_{s}" for n in ("abduction", "elevation", "upward_rot")),
-            *(f"{n}_{s}" for n in ("arm_flex", "arm_add", "arm_rot", "elbow_flex", "pro_sup")),
-        ),
-    )
-)
-LIMB_STARTS = 4  # of each limb's grid candidates (best first), those refined
-LIMB_REFINE_ITERATIONS = 10
-LIMB_APART_M = 0.1  # the refined starts of a limb lie this far apart (mean vertex distance), where they can
 
 
 @dataclass(frozen=True)
@@ -224,54 +191,6 @@ def orientation_candidates(points: np.ndarray) -> np.ndarray:
     return np.array(out)
 
 
-def distinct(shapes: np.ndarray, cost: np.ndarray, n: int, apart: float) -> np.ndarray:
-    """Indices (n,) of the lowest-cost ``shapes`` (K, V, 3) that lie at least ``apart`` from each other (mean
-    vertex distance), best first; topped up with the next best when fewer are that far apart."""
-    order = np.argsort(cost)
-    chosen = [order[0]]
-    for k in order[1:]:
-        if len(chosen) == n:
-            break
-        if np.linalg.norm(shapes[chosen] - shapes[k], axis=-1).mean(-1).min() >= apart:
-            chosen.append(k)
-    rest = [k for k in order if k not in chosen]
-    return np.array(chosen + rest[: n - len(chosen)])
-
-
-@dataclass
-class _Hypotheses:
-    """Candidate body frames and their optimisation state: rotation (H, 3, 3), the scan's centre (3,), the
-    fit points in each body frame (H, N, 3) metres, state (see RegisteredFitter.start_state); searched: the
-    candidates came from the scan's axes (no orientation given); view: (3,) towards the sensor, in the
-    scan's frame, for a single-view scan (:func:`view_direction`), else None; visible: (H, V_stage) the
-    current phase's vertices that face the sensor, or None (all count); silhouette: a single
-    view's :class:`Silhouette` (scan frame), else None."""
-
-    rotation: np.ndarray
-    centre: np.ndarray
-    points: np.ndarray
-    state: State
-    searched: bool
-    view: np.ndarray | None = None
-    visible: np.ndarray | None = None
-    silhouette: Silhouette | None = None
-
-    def keep(self, rows: np.ndarray) -> None:
-        self.rotation, self.points = self.rotation[rows], self.points[rows]
-        if self.visible is not None:
-            self.visible = self.visible[rows]
-        r = torch.as_tensor(rows)
-        self.state = (self.state[0][r], self.state[1][r], self.state[2][r])
-
-    def add_twins(self, rows: np.ndarray, state: State) -> None:
-        """Append a twin of each hypothesis ``rows`` (K,): same frame and points, optimisation state from
-        ``state`` (K rows)."""
-        H = len(self.rotation)
-        self.keep(np.concatenate([np.arange(H), rows]))
-        for mine, twins in zip(self.state, state, strict=True):
-            mine[H:] = twins
-
-
 class ScanFitter:
     """Fits :class:`BodyModel` to raw scans (one at a time; each scan's hypotheses are batched)."""
 
@@ -284,23 +203,13 @@ class ScanFitter:
         loop_float = np.float32 if self.fitter.config.dtype == torch.float32 else np.float64
         self._incidence = face_incidence(self.faces, model.n_vertices).astype(loop_float)
         self.pelvis = [model.skeleton.dof_index(n) for n in PELVIS_ROTATIONS]
-        owner_all = np.argmax(model.data["weights"], axis=1)  # each vertex's body
-        owner = owner_all[self.fitter.index["subset"]]
+        owner = np.argmax(model.data["weights"], axis=1)  # each vertex's body
         names = model.skeleton.body_names
-        self._limb_vertices = [
-            np.flatnonzero(np.isin(owner, [names.index(b) for b in bodies])) for bodies, _ in LIMB_SEARCH
-        ]
-        self._non_limb = np.setdiff1d(np.arange(len(owner)), np.concatenate(self._limb_vertices))
-        self._limb_free = [np.array([model.skeleton.dof_index(n) for n in dofs]) for dofs in LIMB_REFINED]
-        # the limbs' "subset" vertices alone, each limb's columns in its output
-        limbs = np.concatenate(self._limb_vertices)
-        self._limb_decoder = self.fitter.decoder.restricted(self.fitter.index["subset"][limbs])
-        ends = np.cumsum([0] + [len(v) for v in self._limb_vertices])
-        self._limb_columns = [slice(a, b) for a, b in pairwise(ends)]
+        self.limbs = LimbSearch(self.fitter)
         distal = []
         self._distal_rest = []  # per distal chain, the vertices of the rest of the body
         for bodies, _ in DISTAL_SEARCH:
-            mine = np.isin(owner_all, [names.index(b) for b in bodies])
+            mine = np.isin(owner, [names.index(b) for b in bodies])
             own = np.flatnonzero(mine)
             distal.append(own[:: max(1, len(own) // DISTAL_VERTICES)])
             self._distal_rest.append(np.flatnonzero(~mine))
@@ -312,8 +221,7 @@ class ScanFitter:
         self._spine = np.setdiff1d(np.flatnonzero(self.fitter.dof_mask["trunk"].numpy()), self.pelvis)
         self._thorax = names.index("thorax")
         self._scapula = [i for i, n in enumerate(model.skeleton.dof_names) if n.startswith("scapula_")]
-        self._limb_grid = self._grids(LIMB_SEARCH)
-        self._distal_grid = self._grids(DISTAL_SEARCH)
+        self._distal_grid = search_grids(model.skeleton, DISTAL_SEARCH)
 
     def fit(
         self,
@@ -360,7 +268,7 @@ class ScanFitter:
             if phase.scapula_twin:
                 self._scapula_twin(hyp)
             if phase.search_limbs:
-                self._search_limbs(hyp)
+                self.limbs(hyp)
             if phase.search_distal:
                 self._search_distal(hyp)
             hyp.visible = self._visible(hyp, self.fitter.index[phase.stage.vertices])
@@ -378,7 +286,7 @@ class ScanFitter:
     # -- steps -----------------------------------------------------------------------------------------
     def _candidates(
         self, points: np.ndarray, orientation: np.ndarray | None, start: np.ndarray | None
-    ) -> _Hypotheses:
+    ) -> Hypotheses:
         rotation = orientation_candidates(points) if orientation is None else np.asarray(orientation)[None]
         H = len(rotation)
         model = self.model
@@ -389,7 +297,7 @@ class ScanFitter:
         centre_offset = (tri.mean(1) * area[:, None]).sum(0) / area.sum()  # the surface's centroid
         r0 = np.repeat(-centre_offset[None], H, axis=0)
         state = self.fitter.start_state(q0, r0, np.zeros((H, model.n_shape)))
-        return _Hypotheses(rotation, points.mean(0), np.zeros((H, 0, 3)), state, orientation is None)
+        return Hypotheses(rotation, points.mean(0), np.zeros((H, 0, 3)), state, orientation is None)
 
     def _vertices(self, state: State) -> np.ndarray:
         """(H, V, 3) model vertices (body frames, metres) of the current state."""
@@ -399,7 +307,7 @@ class ScanFitter:
             v = self.fitter.decoder(c.to(dtype), q.to(dtype), root.to(dtype))[0]
         return v.double().numpy()
 
-    def _chamfer(self, hyp: _Hypotheses, phase: ScanPhase) -> DataTerm:
+    def _chamfer(self, hyp: Hypotheses, phase: ScanPhase) -> DataTerm:
         """The robust two-way Chamfer loss of every hypothesis on the stage's vertices (H, V', 3) in mm:
 
             mean_i rho(|v_j(i) - p_i|) + 0.5 mean_j rho(|v_j - s(j)|),  rho(d) = d^2 s^2 / (d^2 + s^2)
@@ -449,7 +357,7 @@ class ScanFitter:
         return term
 
     def _visible(
-        self, hyp: _Hypotheses, index: np.ndarray, verts: np.ndarray | None = None
+        self, hyp: Hypotheses, index: np.ndarray, verts: np.ndarray | None = None
     ) -> np.ndarray | None:
         """(H, len(index)) which of the vertices ``index`` face a single-view scan's sensor in each
         hypothesis's current state (normal towards it, with a little slack at the silhouette); None for a
@@ -461,193 +369,7 @@ class ScanFitter:
         normals = vertex_normals(verts, self.faces, self._incidence)[:, index]
         return np.einsum("hvi,hi->hv", normals, towards) > VISIBLE_COS
 
-    def _grids(
-        self, table: tuple[tuple[tuple[str, ...], dict[str, int]], ...]
-    ) -> list[tuple[list[int], np.ndarray]]:
-        """Per chain of ``table`` (:data:`LIMB_SEARCH` or :data:`DISTAL_SEARCH`): the DOFs searched and their
-        candidate values (K_chain, n), spread over each range (10% in from the limits)."""
-        skel = self.model.skeleton
-        lo, hi = skel.ranges[:, 0], skel.ranges[:, 1]
-        pad = 0.1 * (hi - lo)
-        grids = []
-        for _, grid in table:
-            dofs = [skel.dof_index(n) for n in grid]
-            axes = [
-                np.linspace(lo[d] + pad[d], hi[d] - pad[d], n)
-                for d, n in zip(dofs, grid.values(), strict=True)
-            ]
-            grids.append((dofs, np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(dofs))))
-        return grids
-
-    def _grid_vertices(
-        self,
-        decoder: BodyDecoder,
-        grids: list[tuple[list[int], np.ndarray]],
-        c: np.ndarray,
-        q: np.ndarray,
-        root: np.ndarray,
-    ) -> np.ndarray:
-        """(K + 1, V', 3) ``decoder``'s vertices for one hypothesis (shape c, coordinates q, root): row k < K
-        sets every chain of ``grids`` to its candidate k (cycling through shorter grids), with K the longest
-        grid; the last row is the current pose."""
-        K = max(len(g) for _, g in grids)
-        Q = np.repeat(q[None], K + 1, axis=0)
-        for dofs, values in grids:
-            Q[:K, dofs] = values[np.arange(K) % len(values)]
-        rows = (np.repeat(c[None], K + 1, 0), Q, np.repeat(root[None], K + 1, 0))
-        dtype = self.fitter.config.dtype
-        with torch.no_grad():
-            return decoder(*(torch.as_tensor(x, dtype=dtype) for x in rows))[0].double().numpy()
-
-    def _search_limbs(self, hyp: _Hypotheses) -> None:
-        """Set every limb's searched DOFs (:meth:`_grids`) of every hypothesis to the candidate whose
-        limb lies on the scan (its "subset" vertices close to scan points) and reaches the scan points that
-        neither the rest of the body nor the other limbs explain (an arm folded onto the chest lies on the
-        scan too, but reaches nothing). Limbs take turns, :data:`LIMB_SWEEPS` times, each against the
-        others' latest choice, so an arm crossing the body is not left to the other arm. The cost is
-        :meth:`_on_scan` plus :meth:`_reach`. Each limb's best :data:`LIMB_STARTS` candidates are then
-        refined continuously (:meth:`_refine_limbs`): the grid is coarse and holds the shoulder girdle and
-        the limbs' rotation where they are, so its best candidate can lie far from a pose that fits the
-        limb closely (on scans whose arm was placed wrong, the true arm's vertices cost a third to a half
-        of the grid's best)."""
-        c, q, root = (t.numpy() for t in self.fitter.parameters(hyp.state))
-        decoder = self.fitter.decoders["subset"]
-        grids = self._limb_grid
-        K = max(len(g) for _, g in grids)
-        far, trunc2 = LIMB_TRUNCATION_M, LIMB_TRUNCATION_M**2  # distances beyond are all alike
-        scans = [PointTree(p) for p in hyp.points]
-        starts = np.repeat(q[:, None], LIMB_STARTS, axis=1)  # (H, M, n_dof): each limb's best candidates
-        targets: list[list[np.ndarray]] = []  # per hypothesis and limb: the loose points it must reach
-        for h in range(len(q)):
-            v = self._grid_vertices(decoder, grids, c[h], q[h], root[h])
-            # Scan points the rest of the body does not explain: limbs must reach them, not just touch the
-            # scan (an arm folded onto the chest touches it everywhere).
-            rest = PointTree(v[0, self._non_limb]).query(hyp.points[h], LIMB_TRUNCATION_M)[0]
-            loose = hyp.points[h][rest > LIMB_TRUNCATION_M]
-            loose = loose[:: max(1, len(loose) // LOOSE_POINTS)]
-            on_scan, reach = [], []
-            for (_, values), limb in zip(grids, self._limb_vertices, strict=True):
-                on_scan.append(self._on_scan(hyp, h, scans[h], v[: len(values), limb]))
-                # (n, loose): each candidate's distance to each loose point
-                reach.append(np.stack([PointTree(x).query(loose, far)[0] for x in v[: len(values), limb]]))
-            placed = [v[K, limb] for limb in self._limb_vertices]  # the current pose's row
-            mine = [np.zeros(len(loose), bool) for _ in grids]
-            cost = list(on_scan)
-            for _ in range(LIMB_SWEEPS):
-                for L, ((dofs, values), limb) in enumerate(zip(grids, self._limb_vertices, strict=True)):
-                    cost[L] = on_scan[L].copy()
-                    if len(loose):
-                        others = np.concatenate([placed[M] for M in range(len(grids)) if M != L])
-                        mine[L] = PointTree(others).query(loose, far)[0] > far
-                        if mine[L].any():
-                            cost[L] += REACH_WEIGHT * np.minimum(reach[L][:, mine[L]] ** 2, trunc2).mean(1)
-                    best = int(np.argmin(cost[L]))
-                    placed[L] = v[best, limb]
-                    q[h, dofs] = values[best]
-            for L, ((dofs, values), limb) in enumerate(zip(grids, self._limb_vertices, strict=True)):
-                tops = distinct(v[: len(values), limb], cost[L], LIMB_STARTS, LIMB_APART_M)
-                starts[h][:, dofs] = values[tops]
-            targets.append([loose[m] for m in mine])
-        q = self._refine_limbs(hyp, scans, c, starts, root, targets)
-        hyp.state = self.fitter.start_state(q, root, c)
-
-    def _on_scan(self, hyp: _Hypotheses, h: int, scan: PointTree, verts: np.ndarray) -> np.ndarray:
-        """(n,) how far limb candidates (n, V_limb, 3) of hypothesis h (body frame) lie from its scan points
-        ``scan``: the mean truncated squared distance of the :data:`ON_SCAN_FRACTION` of vertices closest to
-        the scan (a limb partly over a hole or on a single view's unseen side still lies on the scan). On a
-        single view it also counts, by :data:`EMPTY_WEIGHT`, how far the vertices lie outside the view's
-        :class:`Silhouette`, in space the sensor saw empty: otherwise an arm the view shows in front of the
-        body may be searched into the air beside it, where nothing contradicts it."""
-        n = len(verts)
-        d = scan.query(verts.reshape(-1, 3), LIMB_TRUNCATION_M)[0].reshape(n, -1)
-        d = np.sort(np.minimum(d, LIMB_TRUNCATION_M) ** 2, axis=1)
-        cost = d[:, : max(1, round(ON_SCAN_FRACTION * d.shape[1]))].mean(1)
-        if hyp.silhouette is not None:
-            out = hyp.silhouette.distance(verts @ hyp.rotation[h] + hyp.centre)
-            cost += EMPTY_WEIGHT * (np.minimum(out, LIMB_TRUNCATION_M) ** 2).mean(1)
-        return cost
-
-    @staticmethod
-    def _reach(verts: np.ndarray, targets: np.ndarray) -> np.ndarray:
-        """(n,) how far the scan points ``targets`` (T, 3) that a limb must reach lie from each candidate's
-        vertices (n, V_limb, 3): :data:`REACH_WEIGHT` times their mean truncated squared distance."""
-        if not len(targets):
-            return np.zeros(len(verts))
-        d = np.stack([PointTree(x).query(targets, LIMB_TRUNCATION_M)[0] for x in verts])
-        return REACH_WEIGHT * (np.minimum(d, LIMB_TRUNCATION_M) ** 2).mean(1)
-
-    def _refine_limbs(
-        self,
-        hyp: _Hypotheses,
-        scans: list[PointTree],
-        c: np.ndarray,
-        starts: np.ndarray,
-        root: np.ndarray,
-        targets: list[list[np.ndarray]],
-    ) -> np.ndarray:
-        """Coordinates (H, n_dof): each limb's :data:`LIMB_REFINED` DOFs from the best of its start poses
-        ``starts`` (H, M, n_dof), each refined by :data:`LIMB_REFINE_ITERATIONS` of L-BFGS on a smooth form
-        of the search's cost (vertices pulled onto their nearest scan points, loose points ``targets``
-        (per hypothesis and limb, (T, 3)) pulled onto their nearest limb vertex; the limbs' DOFs are
-        disjoint, so all limbs refine together). Every limb keeps whichever start or refined pose has the
-        lowest search cost (:meth:`_on_scan` + :meth:`_reach`). c (H, n_shape), root (H, 3): the
-        hypotheses' shape and root; ``scans``: each hypothesis's fit points (body frame) as a tree."""
-        H, M, n_dof = starts.shape
-        dtype = self.fitter.config.dtype
-        rows = np.arange(H * M) // M  # each row's hypothesis
-        z_u = self.fitter.start_state(starts.reshape(-1, n_dof), root[rows], c[rows])[0]
-        c_t, root_t = (torch.as_tensor(x[rows], dtype=dtype) for x in (c, root))
-        free = torch.as_tensor(np.concatenate(self._limb_free))
-        cols = self._limb_columns
-        trunc2 = (LIMB_TRUNCATION_M * 1000.0) ** 2
-        # loose points per limb, padded to a common count: (H * M, T_L, 3) mm and their weights (H * M, T_L)
-        pads = []
-        for L in range(len(cols)):
-            T = max(1, max(len(t[L]) for t in targets))
-            pad = np.zeros((H, T, 3))
-            weight = np.zeros((H, T))
-            for h, t in enumerate(targets):
-                pad[h, : len(t[L])] = t[L] * 1000.0
-                weight[h, : len(t[L])] = REACH_WEIGHT / max(1, len(t[L]))
-            pads.append((pad[rows], torch.as_tensor(weight[rows], dtype=dtype)))
-
-        def vertices(u: torch.Tensor) -> torch.Tensor:
-            return self._limb_decoder(c_t, self.fitter.coordinates(u), root_t)[0] * 1000.0
-
-        def losses(Z: torch.Tensor) -> torch.Tensor:
-            v = vertices(z_u.index_copy(1, free, Z))  # (H * M, V_limbs, 3) mm
-            v_np = v.detach().double().numpy()
-            pairs = zip(rows, v_np, strict=True)
-            near = np.stack([hyp.points[h][scans[h].query(x / 1000.0)[1]] for h, x in pairs])
-            d2 = ((v - torch.as_tensor(near * 1000.0, dtype=dtype)) ** 2).sum(-1).clamp(max=trunc2)
-            total = torch.zeros(len(rows), dtype=dtype)
-            for col, (pad, weight) in zip(cols, pads, strict=True):
-                k = max(1, round(ON_SCAN_FRACTION * (col.stop - col.start)))
-                total = total + torch.topk(d2[:, col], k, dim=1, largest=False).values.mean(1)
-                # each loose point's nearest vertex of the limb
-                j = np.stack([PointTree(x[col]).query(p)[1] for x, p in zip(v_np, pad, strict=True)])
-                limb = v[:, col]
-                reached = torch.gather(limb, 1, torch.as_tensor(j)[..., None].expand(-1, -1, 3))
-                r2 = ((reached - torch.as_tensor(pad, dtype=dtype)) ** 2).sum(-1).clamp(max=trunc2)
-                total = total + (r2 * weight).sum(1)
-            return total
-
-        result = batched_lbfgs(losses, z_u[:, free], LIMB_REFINE_ITERATIONS)
-        with torch.no_grad():
-            refined = z_u.index_copy(1, free, result.z)
-            both = torch.cat([z_u, refined])  # the starts, then the refined poses
-            q_all = self.fitter.coordinates(both.double()).numpy()
-            v_all = torch.cat([vertices(z_u), vertices(refined)]).double().numpy() / 1000.0
-        q = starts[:, 0].copy()
-        for h in range(H):
-            mine = np.concatenate([np.flatnonzero(rows == h), len(rows) + np.flatnonzero(rows == h)])
-            for L, (col, dofs) in enumerate(zip(cols, self._limb_free, strict=True)):
-                limb = v_all[mine][:, col]
-                cost = self._on_scan(hyp, h, scans[h], limb) + self._reach(limb, targets[h][L])
-                q[h, dofs] = q_all[mine[int(np.argmin(cost))], dofs]
-        return q
-
-    def _straighten_spine(self, hyp: _Hypotheses) -> None:
+    def _straighten_spine(self, hyp: Hypotheses) -> None:
         """Add, for each of the best :data:`STRAIGHTENED` hypotheses, a twin with its trunk's bend moved into
         the pelvis: the lumbar and thoracic coordinates go to zero and the pelvis turns (and the root moves)
         so that the thorax keeps its place. The orientation phase fits the trunk and the legs' flexion
@@ -667,7 +389,7 @@ class ScanFitter:
         root_straight = root + frames[:, thorax, :3, 3] - moved[:, thorax, :3, 3]
         hyp.add_twins(np.arange(len(q)), self.fitter.start_state(straight, root_straight, c))
 
-    def _scapula_twin(self, hyp: _Hypotheses) -> None:
+    def _scapula_twin(self, hyp: Hypotheses) -> None:
         """Add, for every hypothesis, a twin with the scapulae at the middle of their ranges (the limb search
         that follows places the arms from them). Fits started from the bind pose bring the shoulders onto
         the scan by elevating the scapulae to their limit and rotating them down, with the arms flexed
@@ -685,7 +407,7 @@ class ScanFitter:
         with torch.no_grad():
             return self.fitter.decoders["coarse"](*rows)[2].double().numpy()
 
-    def _search_distal(self, hyp: _Hypotheses) -> None:
+    def _search_distal(self, hyp: Hypotheses) -> None:
         """Set the head's, hands' and toes' searched DOFs (:data:`DISTAL_SEARCH`) of every hypothesis to the
         candidate (or the current pose, if better) whose vertices lie closest to the scan points the rest of
         the body does not explain (further than :data:`EXPLAINED_M` from its vertices; mean squared distance
@@ -698,7 +420,7 @@ class ScanFitter:
         K = max(len(g) for _, g in grids)
         whole = self._vertices(hyp.state)
         for h in range(len(q)):
-            v = self._grid_vertices(self._distal_decoder, grids, c[h], q[h], root[h])
+            v = grid_vertices(self._distal_decoder, grids, c[h], q[h], root[h], self.fitter.config.dtype)
             points = hyp.points[h]
             chains = zip(grids, self._distal_columns, self._distal_rest, strict=True)
             for (dofs, values), cols, rest in chains:
@@ -718,7 +440,7 @@ class ScanFitter:
                     q[h, dofs] = values[best]
         hyp.state = self.fitter.start_state(q, root, c)
 
-    def _score(self, hyp: _Hypotheses, phase: ScanPhase, tree: PointTree) -> np.ndarray:
+    def _score(self, hyp: Hypotheses, phase: ScanPhase, tree: PointTree) -> np.ndarray:
         """(H,) each hypothesis's robust Chamfer score on the phase's vertices (rho / sigma^2, lower is
         better; a single view's on the vertices facing its sensor)."""
         verts = self._vertices(hyp.state)[:, self.fitter.index[phase.stage.vertices]]
@@ -736,7 +458,7 @@ class ScanFitter:
 
     def _result(
         self,
-        hyp: _Hypotheses,
+        hyp: Hypotheses,
         points: np.ndarray,
         cleaned: np.ndarray,
         tree: PointTree,
