@@ -20,7 +20,7 @@ from bodyfit.models.fitting.corrupt import (
     remove_patches,
 )
 from bodyfit.models.fitting.scan_io import sample_surface
-from bodyfit.models.fitting.surface import face_incidence, vertex_normals
+from bodyfit.models.fitting.surface import NormalOperators, vertex_normals
 
 
 @pytest.fixture(scope="module")
@@ -128,7 +128,7 @@ def test_clothing_offset_is_outward_smooth_and_bounded() -> None:
     reference = trimesh.Trimesh(v, f, process=False).vertex_normals  # angle-weighted; ours area-weighted
     assert np.einsum("ij,ij->i", normals, reference).min() > 0.99
     # float32 vertices (a fitting loop's, in mm) give float32 normals, equal to float32 rounding
-    single = vertex_normals((v * 1000.0).astype(np.float32), f, face_incidence(f, len(v)))
+    single = vertex_normals((v * 1000.0).astype(np.float32), f, NormalOperators.of(f, len(v), np.float32))
     assert single.dtype == np.float32
     np.testing.assert_allclose(single, normals, atol=1e-5)
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from bodyfit.models.body.anny_posed import random_poses
@@ -41,6 +42,18 @@ def test_point_to_surface_matches_brute_force() -> None:
     np.testing.assert_allclose(point_to_surface(points, sphere.vertices, sphere.faces), brute, atol=1e-12)
     # and it is the distance to a sphere, up to the facets' sagitta
     assert np.abs(brute - np.abs(np.linalg.norm(points, axis=1) - 0.5)).max() < 5e-3
+
+
+def test_point_to_surface_is_the_nearest_ring_triangle_on_a_body(model: BodyModel) -> None:
+    """On a concave mesh (the template: armpits, fingers) and points on both sides of it, every point's
+    distance is that of the nearest triangle around its nearest vertex, measured in full."""
+    v, f = model.data["vertices_mean"], model.faces
+    rng = np.random.default_rng(1)
+    points = v[rng.choice(len(v), 2000)] + rng.normal(0.0, 0.01, (2000, 3))
+    ring = vertex_faces(f, len(v))[cKDTree(v).query(points)[1]]  # (N, K)
+    full = point_triangle_distance(points[:, None, :], v[f[np.maximum(ring, 0)]])
+    expected = np.where(ring >= 0, full, np.inf).min(axis=1)
+    np.testing.assert_allclose(point_to_surface(points, v, f), expected, atol=1e-12)
 
 
 def test_vertex_faces_and_laplacian() -> None:

@@ -47,7 +47,7 @@ from bodyfit.models.fitting.nonrigid import NonRigidConfig, refine_nonrigid
 from bodyfit.models.fitting.registered import DataTerm, RegisteredFitter, Stage, State
 from bodyfit.models.fitting.report import DistanceStats, FitReport
 from bodyfit.models.fitting.scan_io import MIN_POINTS, Scan, ScanError
-from bodyfit.models.fitting.surface import face_incidence, point_to_surface, vertex_normals
+from bodyfit.models.fitting.surface import NormalOperators, point_to_surface, vertex_normals
 from bodyfit.models.fitting.view import Silhouette, view_direction
 from bodyfit.models.rotations import zxy_angles
 from bodyfit.models.skeleton.model import PELVIS_ROTATIONS
@@ -201,7 +201,7 @@ class ScanFitter:
         self.faces = np.asarray(model.data["faces"], np.int64)
         # in the fit loop's float type: the point-to-plane phase takes normals at every evaluation
         loop_float = np.float32 if self.fitter.config.dtype == torch.float32 else np.float64
-        self._incidence = face_incidence(self.faces, model.n_vertices).astype(loop_float)
+        self._normals = NormalOperators.of(self.faces, model.n_vertices, loop_float)
         self.pelvis = [model.skeleton.dof_index(n) for n in PELVIS_ROTATIONS]
         owner = np.argmax(model.data["weights"], axis=1)  # each vertex's body
         names = model.skeleton.body_names
@@ -347,7 +347,7 @@ class ScanFitter:
             r = torch.gather(verts_mm, 1, J) - P  # (H, N, 3)
             d2 = (r**2).sum(-1)
             if plane:
-                n = vertex_normals(verts_mm.detach().numpy(), self.faces, self._incidence)  # float32
+                n = vertex_normals(verts_mm.detach().numpy(), self.faces, self._normals)  # float32
                 along = (r * torch.as_tensor(np.take_along_axis(n, pairs[..., None], 1), dtype=dtype)).sum(-1)
                 d2 = along**2 + tangential * (d2 - along**2)
             m2s = rho(((verts_mm - torch.as_tensor(targets * 1000.0, dtype=dtype)) ** 2).sum(-1))
@@ -366,7 +366,7 @@ class ScanFitter:
             return None
         verts = self._vertices(hyp.state) if verts is None else verts
         towards = hyp.rotation @ hyp.view  # (H, 3) in each body frame
-        normals = vertex_normals(verts, self.faces, self._incidence)[:, index]
+        normals = vertex_normals(verts, self.faces, self._normals)[:, index]
         return np.einsum("hvi,hi->hv", normals, towards) > VISIBLE_COS
 
     def _straighten_spine(self, hyp: Hypotheses) -> None:

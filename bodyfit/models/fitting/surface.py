@@ -6,6 +6,8 @@ counter-clockwise faces, in whatever length unit the caller uses.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.sparse as sp
 import torch
@@ -22,27 +24,43 @@ def face_incidence(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
     return sp.csr_matrix((np.ones(len(corners)), (corners, owner)), shape=(n_vertices, len(f)))
 
 
+@dataclass(frozen=True)
+class NormalOperators:
+    """The sparse matrices :func:`vertex_normals` applies, for meshes sharing faces (F, 3) and V vertices:
+    edges (2F, V), each face's edges b - a (rows 0..F-1) and c - a (rows F..2F-1) from its corners; incidence
+    (V, F) from :func:`face_incidence`. Both in ``dtype`` (a fitting loop's float32, or float64)."""
+
+    edges: sp.csr_matrix
+    incidence: sp.csr_matrix
+
+    @classmethod
+    def of(cls, faces: np.ndarray, n_vertices: int, dtype: type = np.float64) -> NormalOperators:
+        f = np.asarray(faces, np.int64)
+        F = len(f)
+        rows = np.repeat(np.arange(2 * F), 2)
+        cols = np.concatenate([f[:, [0, 1]], f[:, [0, 2]]]).reshape(-1)
+        signs = np.tile([-1.0, 1.0], 2 * F)
+        edges = sp.csr_matrix((signs, (rows, cols)), shape=(2 * F, n_vertices))
+        return cls(edges.astype(dtype), face_incidence(f, n_vertices).astype(dtype))
+
+
 def vertex_normals(
-    vertices: np.ndarray, faces: np.ndarray, incidence: sp.csr_matrix | None = None
+    vertices: np.ndarray, faces: np.ndarray, operators: NormalOperators | None = None
 ) -> np.ndarray:
     """Area-weighted unit vertex normals (..., V, 3) of meshes (..., V, 3) sharing faces (F, 3); zero for
-    unused vertices. ``incidence``: :func:`face_incidence` of the faces, when the caller keeps one. Float32
-    vertices (a fitting loop's) are computed in float32 (about 1.4x faster), others in float64."""
+    unused vertices. ``operators``: :class:`NormalOperators` of the faces, when the caller keeps them.
+    Float32 vertices (a fitting loop's) are computed in float32, others in float64. The edges and the sums
+    onto the corners are sparse products over the vertices of all meshes at once: fancy-indexed corners
+    took twice as long."""
     v = np.asarray(vertices)
     v = v if v.dtype == np.float32 else v.astype(np.float64)
-    a, b, c = (v[..., faces[:, k], :] for k in range(3))
-    e1, e2 = b - a, c - a
-    cross = np.stack(
-        [
-            e1[..., 1] * e2[..., 2] - e1[..., 2] * e2[..., 1],
-            e1[..., 2] * e2[..., 0] - e1[..., 0] * e2[..., 2],
-            e1[..., 0] * e2[..., 1] - e1[..., 1] * e2[..., 0],
-        ],
-        -1,
-    )  # (..., F, 3): twice each face's area along its normal
-    A = (face_incidence(faces, v.shape[-2]) if incidence is None else incidence).astype(v.dtype, copy=False)
-    F = len(faces)
-    acc = np.moveaxis((A @ np.moveaxis(cross, -2, 0).reshape(F, -1)).reshape(-1, *v.shape[:-2], 3), 0, -2)
+    ops = NormalOperators.of(faces, v.shape[-2]) if operators is None else operators
+    F, batch = len(faces), v.shape[:-2]
+    columns = np.moveaxis(v, -2, 0).reshape(v.shape[-2], -1)  # (V, ... * 3)
+    e = (ops.edges.astype(v.dtype, copy=False) @ columns).reshape(2, F, *batch, 3)
+    cross = np.cross(e[0], e[1])  # (F, ..., 3): twice each face's area along its normal
+    summed = ops.incidence.astype(v.dtype, copy=False) @ cross.reshape(F, -1)
+    acc = np.moveaxis(summed.reshape(-1, *batch, 3), 0, -2)
     norm = np.linalg.norm(acc, axis=-1, keepdims=True)
     return np.divide(acc, norm, out=np.zeros_like(acc), where=norm > 0)
 
@@ -139,16 +157,45 @@ def closest_on_surface(
     return face, bary, dist
 
 
+def _face_forms(vertices: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each face's (F, 3) barycentric coordinates u, v (of corners a, b) of a point's projection and its
+    signed height above the plane as affine functions of the point p (3,): ``forms[f] @ p - offsets[f]``.
+    Returns forms (F, 3, 3) and offsets (F, 3); float64 vertices (V, 3)."""
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    n = torch.linalg.cross(b - a, c - a)
+    n2 = (n * n).sum(-1, keepdim=True).clamp_min(1e-300)
+    # u = ((c - b) x (p - b)) . n / |n|^2 = (p - b) . (n x (c - b)) / |n|^2, and likewise for v
+    gu = torch.linalg.cross(n, c - b) / n2
+    gv = torch.linalg.cross(n, a - c) / n2
+    unit = n / n2.sqrt()
+    offsets = torch.stack([(b * gu).sum(-1), (c * gv).sum(-1), (a * unit).sum(-1)], 1)
+    return torch.stack([gu, gv, unit], 1), offsets
+
+
 def point_to_surface(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Distance (N,) from each point (N, 3) to the mesh surface: to the nearest of the triangles around its
-    nearest vertex, as in :func:`closest_on_surface`."""
+    nearest vertex, as in :func:`closest_on_surface` (float64, in torch's threads). A point whose projection
+    falls inside a triangle is at its height above the plane; otherwise the triangle's nearest point lies on
+    an edge the point sees from outside (an edge whose opposite barycentric coordinate is negative), and
+    only those are measured."""
     ring = vertex_faces(faces, len(vertices))[PointTree(vertices).query(points)[1]]  # (N, K)
     point, slot = np.nonzero(ring >= 0)  # point-major: each point's triangles in one run
     out = np.full(len(points), np.inf)  # inf where the nearest vertex is on no face
-    if len(point):
-        d = point_triangle_distance(points[point], vertices[faces[ring[point, slot]]])
-        starts = np.flatnonzero(np.diff(point, prepend=-1))
-        out[point[starts]] = np.minimum.reduceat(d, starts)
+    if not len(point):
+        return out
+    V = torch.as_tensor(vertices, dtype=torch.float64)
+    F = torch.as_tensor(np.asarray(faces, np.int64))
+    forms, offsets = _face_forms(V, F)
+    f = torch.as_tensor(ring[point, slot])
+    P = torch.as_tensor(points, dtype=torch.float64)[torch.as_tensor(point)]
+    u, v, height = (torch.einsum("mij,mj->mi", forms[f], P) - offsets[f]).unbind(1)
+    d2 = torch.where((u >= 0) & (v >= 0) & (u + v <= 1), height * height, torch.inf)
+    a, b, c = (V[F[:, k]] for k in range(3))
+    for coordinate, (x, y) in ((u, (b, c)), (v, (c, a)), (1.0 - u - v, (a, b))):
+        seen = torch.nonzero(coordinate < 0).flatten()
+        d2[seen] = torch.minimum(d2[seen], _segment_distance2(P[seen], x[f[seen]], y[f[seen]]))
+    starts = np.flatnonzero(np.diff(point, prepend=-1))
+    out[point[starts]] = np.minimum.reduceat(d2.sqrt().numpy(), starts)
     return out
 
 
