@@ -1,7 +1,8 @@
 """The scan fit's searches on their own: the head's, hands' and toes' search (``_search_distal``) finds the
 pose of a body sampled from the model, keeps a pose that is already right and leaves a chain the scan lost
 to the bind pose; the limb search (``LimbSearch``) refines an arm its grid cannot hold; the straight-spine
-twins (``_straighten_spine``) keep the chest where it was."""
+twins (``_straighten_spine``) keep the chest where it was; the valley twins (``_valley_twin``) turn the
+pelvis alone."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from bodyfit.models.fitting.limb_search import Hypotheses, distinct
 from bodyfit.models.fitting.scan_fit import (
     DEFAULT_PHASES,
     STRAIGHTENED,
+    VALLEY_TILT,
     ScanFitConfig,
     ScanFitter,
 )
@@ -46,6 +48,11 @@ def _hypothesis(fitter: ScanFitter, points: np.ndarray, q: np.ndarray) -> Hypoth
     model = fitter.model
     state = fitter.fitter.start_state(q[None], np.zeros((1, 3)), np.zeros((1, model.n_shape)))
     return Hypotheses(np.eye(3)[None], np.zeros(3), points[None], state, searched=False)
+
+
+def _turn_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(H,) angles between rotations a and b (H, 3, 3), degrees."""
+    return np.degrees(np.arccos(np.clip((np.einsum("hij,hij->h", a, b) - 1) / 2, -1, 1)))
 
 
 def _searched(fitter: ScanFitter, hyp: Hypotheses) -> np.ndarray:
@@ -132,8 +139,7 @@ def test_straight_spine_twins_keep_the_chest_in_place(model: BodyModel) -> None:
     thorax = skel.body_names.index("thorax")
     # the chest keeps its orientation and place, the pelvis turns by the bend it takes over
     np.testing.assert_allclose(frames[twins, thorax], frames[:STRAIGHTENED, thorax], atol=2e-3)
-    turn = np.einsum("hij,hij->h", frames[twins, 0, :3, :3], frames[:STRAIGHTENED, 0, :3, :3])
-    assert np.all(np.degrees(np.arccos(np.clip((turn - 1) / 2, -1, 1))) > 10.0)
+    assert np.all(_turn_deg(frames[twins, 0, :3, :3], frames[:STRAIGHTENED, 0, :3, :3]) > 10.0)
 
 
 def test_scapula_twins_move_only_the_scapulae_to_mid_range(model: BodyModel) -> None:
@@ -161,6 +167,40 @@ def test_scapula_twins_move_only_the_scapulae_to_mid_range(model: BodyModel) -> 
     rest = np.setdiff1d(np.arange(skel.n_dof), scapula)
     np.testing.assert_allclose(q[2:, rest], q[:2, rest], atol=1e-5)
     assert np.abs(q[2:, scapula] - q[:2, scapula]).max() > 0.1
+
+
+def test_valley_twins_turn_the_pelvis_alone(model: BodyModel) -> None:
+    skel = model.skeleton
+    rng = np.random.default_rng(2)
+    q0 = np.stack([skel.inside(_start(model) + rng.normal(0.0, 0.15, skel.n_dof), 0.2) for _ in range(2)])
+    fitter = ScanFitter(model)
+    state = fitter.fitter.start_state(
+        q0, rng.normal(0.0, 0.1, (2, 3)), 0.5 * rng.standard_normal((2, model.n_shape))
+    )
+    hyp = Hypotheses(np.repeat(np.eye(3)[None], 2, 0), np.zeros(3), np.zeros((2, 10, 3)), state, True)
+    before = [t.clone() for t in hyp.state]
+    fitter._valley_twin(hyp)
+    assert len(hyp.rotation) == len(hyp.points) == 4
+    for a, b in zip(before, hyp.state, strict=True):  # the originals are untouched
+        torch.testing.assert_close(a, b[:2])
+    c, q, root = (t.numpy() for t in fitter.fitter.parameters(hyp.state))
+    frames = fitter._frames(c, q, root)
+    names = skel.body_names
+    # the pelvis turns about its lateral (z) axis ...
+    relative = np.swapaxes(frames[:2, 0, :3, :3], 1, 2) @ frames[2:, 0, :3, :3]
+    cos, sin = np.cos(VALLEY_TILT), np.sin(VALLEY_TILT)
+    turn = np.array([[cos, -sin, 0.0], [sin, cos, 0.0], [0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(relative, np.repeat(turn[None], 2, 0), atol=1e-5)
+    # ... and the thighs and the chest keep their orientation
+    for body in ("femur_r", "femur_l", "thorax"):
+        j = names.index(body)
+        assert np.all(_turn_deg(frames[2:, j, :3, :3], frames[:2, j, :3, :3]) < 0.1), body
+    hips = [names.index("femur_r"), names.index("femur_l")]
+    # the hip joints lie on the pelvis's lateral axis: keeping their midpoint keeps both
+    np.testing.assert_allclose(frames[2:, hips][..., :3, 3], frames[:2, hips][..., :3, 3], atol=1e-6)
+    for name in ("hip_flexion_r", "hip_flexion_l", "lumbar_extension"):
+        i = skel.dof_index(name)
+        np.testing.assert_allclose(q[2:, i] - q[:2, i], -VALLEY_TILT, atol=1e-5)
 
 
 def test_orientation_phase_seats_a_body_with_its_legs_more_than_its_spine(model: BodyModel) -> None:
@@ -192,7 +232,8 @@ def test_orientation_phase_seats_a_body_with_its_legs_more_than_its_spine(model:
 
 def test_the_last_phase_refines_both_limb_hypotheses_and_keeps_the_better(model: BodyModel) -> None:
     """The limbs phase hands its hypothesis and the scapula twin on together; the score chooses between them
-    only after the last (all-vertex) phase has refined both."""
+    only after the all-vertex phase has refined both, and again after the valley phase has refined the
+    chosen one and its valley twin."""
     skel = model.skeleton
     q = _start(model)
     for name, deg in {"arm_flex_r": 40, "elbow_flex_r": 60, "hip_flexion_l": 50, "knee_angle_l": 60}.items():
@@ -211,8 +252,10 @@ def test_the_last_phase_refines_both_limb_hypotheses_and_keeps_the_better(model:
     fitter._score = spy  # type: ignore[method-assign,assignment]
     fit = fitter.fit(points, orientation=np.eye(3))
     assert [name for name, _ in scored] == [p.stage.name for p in DEFAULT_PHASES]
-    limbs, last = scored[-2][1], scored[-1][1]
-    assert len(limbs) == 2 and len(last) == 2  # the twin and its original, both refined
+    by_name = dict(scored)
+    # the scapula twin and its original, both refined; then the better one and its valley twin
+    assert len(by_name["limbs"]) == len(by_name["fine"]) == len(by_name["valley"]) == 2
+    last = by_name["valley"]
     assert fit.report.extra["phase_scores"][DEFAULT_PHASES[-1].stage.name] == round(float(last.min()), 5)
     error = np.linalg.norm(fit.vertices - body.vertices[0].numpy(), axis=1).mean() * 1000
     assert error < 15.0, error
