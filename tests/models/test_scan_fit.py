@@ -116,6 +116,18 @@ def test_cleaning_drops_isolated_points() -> None:
     assert np.abs(np.linalg.norm(kept, axis=1) - 0.5).max() < 0.05  # no stray point survives
 
 
+def test_cleaning_keeps_the_first_point_of_every_voxel() -> None:
+    """One point per occupied 1 cm cell, the first in the scan's order, in that order: also when the scan
+    spans so far (a stray point kilometres away) that the cells cannot be numbered in one integer."""
+    rng = np.random.default_rng(5)
+    near = rng.uniform(-0.05, 0.05, (3000, 3))  # 1,000 cells, three points each on average
+    for points in (near, np.concatenate([near, [[4.0e7, -3.0e7, 2.0e7]]])):
+        cell = np.floor(points / 0.01).astype(np.int64)
+        first = [i for i in range(len(points)) if not (cell[:i] == cell[i]).all(1).any()]
+        kept = clean_points(points, voxel=0.01, neighbours=1, cutoff=1e12)
+        np.testing.assert_array_equal(kept, points[first])
+
+
 def test_orientation_candidates_are_rotations_and_include_the_truth() -> None:
     rng = np.random.default_rng(2)
     points = rng.normal(size=(2000, 3)) * np.array([0.1, 0.8, 0.3])  # thin along x, tall along y
@@ -173,6 +185,8 @@ def test_scan_fit_rejects_bad_input(fitter: ScanFitter) -> None:
         fitter.fit(np.full((1000, 3), np.nan))
     with pytest.raises(ScanError, match="at least"):
         fitter.fit(np.random.default_rng(0).normal(size=(250, 3)) * 0.3)
+    with pytest.raises(ScanError, match="at least"):
+        fitter.fit(np.zeros((0, 3)))
     with pytest.raises(ScanError, match="shape"):
         fitter.fit(np.zeros((10, 2)))
 

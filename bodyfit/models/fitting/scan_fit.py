@@ -173,8 +173,14 @@ class ScanFit:
 def clean_points(points: np.ndarray, voxel: float, neighbours: int, cutoff: float) -> np.ndarray:
     """Points (M, 3): one per occupied ``voxel`` cell, minus isolated ones (mean distance to ``neighbours``
     nearest above median + cutoff * 1.4826 MAD)."""
+    if not len(points):
+        return points
     keys = np.floor(points / voxel).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
+    keys -= keys.min(axis=0)
+    span = keys.max(axis=0) + 1
+    if float(np.prod(span.astype(np.float64))) < 2.0**62:  # one integer per cell: 7x faster than rows
+        keys = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+    _, first = np.unique(keys, axis=0 if keys.ndim == 2 else None, return_index=True)  # first of each cell
     thin = points[np.sort(first)]
     if len(thin) <= neighbours + 1:
         return thin
