@@ -6,6 +6,7 @@ pelvis alone."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
@@ -142,23 +143,33 @@ def test_straight_spine_twins_keep_the_chest_in_place(model: BodyModel) -> None:
     assert np.all(_turn_deg(frames[twins, 0, :3, :3], frames[:STRAIGHTENED, 0, :3, :3]) > 10.0)
 
 
-def test_scapula_twins_move_only_the_scapulae_to_mid_range(model: BodyModel) -> None:
+def _twinned(
+    fitter: ScanFitter, twin: Callable[[Hypotheses], None], seed: int, spread: float, margin: float
+) -> tuple[Hypotheses, list[torch.Tensor]]:
+    """Two random hypotheses (coordinates about the start, ``spread`` radians, ``margin`` inside the
+    limits) after ``twin`` added a twin of each: checks the originals are untouched and returns the
+    hypotheses and the original state."""
+    model = fitter.model
     skel = model.skeleton
-    rng = np.random.default_rng(1)
-    q0 = np.stack([skel.inside(_start(model) + rng.normal(0.0, 0.2, skel.n_dof), 0.1) for _ in range(2)])
-    fitter = ScanFitter(model)
+    rng = np.random.default_rng(seed)
+    q0 = skel.inside(_start(model) + rng.normal(0.0, spread, (2, skel.n_dof)), margin)
     state = fitter.fitter.start_state(
         q0, rng.normal(0.0, 0.1, (2, 3)), 0.5 * rng.standard_normal((2, model.n_shape))
     )
     hyp = Hypotheses(np.repeat(np.eye(3)[None], 2, 0), np.zeros(3), np.zeros((2, 10, 3)), state, True)
     before = [t.clone() for t in hyp.state]
-    fitter._scapula_twin(hyp)
+    twin(hyp)
     assert len(hyp.rotation) == len(hyp.points) == 4
-    for a, b in zip(
-        before, hyp.state, strict=True
-    ):  # the originals are untouched; the twins share shape, root
+    for a, b in zip(before, hyp.state, strict=True):
         torch.testing.assert_close(a, b[:2])
-    for a, b in zip(before[1:], hyp.state[1:], strict=True):
+    return hyp, before
+
+
+def test_scapula_twins_move_only_the_scapulae_to_mid_range(model: BodyModel) -> None:
+    skel = model.skeleton
+    fitter = ScanFitter(model)
+    hyp, before = _twinned(fitter, fitter._scapula_twin, seed=1, spread=0.2, margin=0.1)
+    for a, b in zip(before[1:], hyp.state[1:], strict=True):  # the twins share shape and root
         torch.testing.assert_close(a, b[2:], atol=1e-5, rtol=1e-5)
     q = fitter.fitter.parameters(hyp.state)[1].numpy()
     scapula = [i for i, n in enumerate(skel.dof_names) if n.startswith("scapula_")]
@@ -171,18 +182,8 @@ def test_scapula_twins_move_only_the_scapulae_to_mid_range(model: BodyModel) -> 
 
 def test_valley_twins_turn_the_pelvis_alone(model: BodyModel) -> None:
     skel = model.skeleton
-    rng = np.random.default_rng(2)
-    q0 = np.stack([skel.inside(_start(model) + rng.normal(0.0, 0.15, skel.n_dof), 0.2) for _ in range(2)])
     fitter = ScanFitter(model)
-    state = fitter.fitter.start_state(
-        q0, rng.normal(0.0, 0.1, (2, 3)), 0.5 * rng.standard_normal((2, model.n_shape))
-    )
-    hyp = Hypotheses(np.repeat(np.eye(3)[None], 2, 0), np.zeros(3), np.zeros((2, 10, 3)), state, True)
-    before = [t.clone() for t in hyp.state]
-    fitter._valley_twin(hyp)
-    assert len(hyp.rotation) == len(hyp.points) == 4
-    for a, b in zip(before, hyp.state, strict=True):  # the originals are untouched
-        torch.testing.assert_close(a, b[:2])
+    hyp, _ = _twinned(fitter, fitter._valley_twin, seed=2, spread=0.15, margin=0.2)
     c, q, root = (t.numpy() for t in fitter.fitter.parameters(hyp.state))
     frames = fitter._frames(c, q, root)
     names = skel.body_names
