@@ -24,6 +24,7 @@ from bodyfit.models.fitting.scan_fit import (
     ScanFitter,
 )
 from bodyfit.models.fitting.scan_io import sample_surface
+from bodyfit.models.rotations import rotation_angle_between
 
 # grid values of DISTAL_SEARCH (10% in from each range's limits), in degrees
 TRUTH_DEG = {
@@ -53,7 +54,7 @@ def _hypothesis(fitter: ScanFitter, points: np.ndarray, q: np.ndarray) -> Hypoth
 
 def _turn_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(H,) angles between rotations a and b (H, 3, 3), degrees."""
-    return np.degrees(np.arccos(np.clip((np.einsum("hij,hij->h", a, b) - 1) / 2, -1, 1)))
+    return np.degrees(rotation_angle_between(torch.as_tensor(a), torch.as_tensor(b)).numpy())
 
 
 def _searched(fitter: ScanFitter, hyp: Hypotheses) -> np.ndarray:

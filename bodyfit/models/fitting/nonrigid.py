@@ -25,7 +25,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import cg
 
 from bodyfit.models.fitting.nearest import PointTree
-from bodyfit.models.fitting.surface import laplacian, vertex_normals
+from bodyfit.models.fitting.surface import NormalOperators, laplacian, vertex_normals
 
 
 @dataclass(frozen=True)
@@ -70,6 +70,7 @@ def refine_nonrigid(
     density = V / max(len(P), 1)  # scan -> vertex pairs count like one vertex's worth per vertex
     D = np.zeros_like(M)
     paired = np.arange(V) if seen is None else np.flatnonzero(seen)
+    normal_ops = NormalOperators.of(faces, V) if cfg.tangential != 1.0 else None
     for _ in range(cfg.rounds):
         current = M + D
         d_m, near = tree.query(current)
@@ -85,7 +86,7 @@ def refine_nonrigid(
             b[:, k] += np.bincount(owner, w_s * P[:, k], minlength=V)
         rhs = b - a[:, None] * M
         if cfg.tangential != 1.0:
-            n = vertex_normals(current, faces)
+            n = vertex_normals(current, faces, normal_ops)
             along = (rhs * n).sum(1, keepdims=True) * n
             rhs = along + cfg.tangential * (rhs - along)
         D = solve_offsets(a, rhs, regulariser, D)

@@ -52,7 +52,7 @@ from bodyfit.models.fitting.report import DistanceStats, FitReport
 from bodyfit.models.fitting.scan_io import MIN_POINTS, Scan, ScanError
 from bodyfit.models.fitting.surface import NormalOperators, point_to_surface, vertex_normals
 from bodyfit.models.fitting.view import Silhouette, view_direction
-from bodyfit.models.rotations import zxy_angles
+from bodyfit.models.rotations import euler_xyz_body_fixed, zxy_angles
 from bodyfit.models.skeleton.model import PELVIS_ROTATIONS
 
 CONFIDENT_MEAN_MM = 10.0
@@ -429,13 +429,7 @@ class ScanFitter:
         held-out scans; one turned the other way won 3 times in 102 and is not made)."""
         c, q, root = (t.numpy() for t in self.fitter.parameters(hyp.state))
         frames = self._frames(c, q, root)
-        turn = np.array(
-            [
-                [np.cos(VALLEY_TILT), -np.sin(VALLEY_TILT), 0.0],
-                [np.sin(VALLEY_TILT), np.cos(VALLEY_TILT), 0.0],
-                [0.0, 0.0, 1.0],
-            ]
-        )
+        turn = euler_xyz_body_fixed(np.array([0.0, 0.0, VALLEY_TILT]))  # about the pelvis's z (lateral)
         tilted = q.copy()
         tilted[:, self.pelvis] = zxy_angles(frames[:, 0, :3, :3] @ turn)
         tilted[:, self._valley_back] -= VALLEY_TILT

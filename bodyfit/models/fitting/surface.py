@@ -157,11 +157,10 @@ def closest_on_surface(
     return face, bary, dist
 
 
-def _face_forms(vertices: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Each face's (F, 3) barycentric coordinates u, v (of corners a, b) of a point's projection and its
-    signed height above the plane as affine functions of the point p (3,): ``forms[f] @ p - offsets[f]``.
-    Returns forms (F, 3, 3) and offsets (F, 3); float64 vertices (V, 3)."""
-    a, b, c = (vertices[faces[:, k]] for k in range(3))
+def _face_forms(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each face's barycentric coordinates u, v (of corners a, b) of a point's projection and its signed
+    height above the plane as affine functions of the point p (3,): ``forms[f] @ p - offsets[f]``.
+    Args: the faces' corners a, b, c (F, 3), float64. Returns forms (F, 3, 3) and offsets (F, 3)."""
     n = torch.linalg.cross(b - a, c - a)
     n2 = (n * n).sum(-1, keepdim=True).clamp_min(1e-300)
     # u = ((c - b) x (p - b)) . n / |n|^2 = (p - b) . (n x (c - b)) / |n|^2, and likewise for v
@@ -185,12 +184,12 @@ def point_to_surface(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
         return out
     V = torch.as_tensor(vertices, dtype=torch.float64)
     F = torch.as_tensor(np.asarray(faces, np.int64))
-    forms, offsets = _face_forms(V, F)
+    a, b, c = (V[F[:, k]] for k in range(3))
+    forms, offsets = _face_forms(a, b, c)
     f = torch.as_tensor(ring[point, slot])
     P = torch.as_tensor(points, dtype=torch.float64)[torch.as_tensor(point)]
     u, v, height = (torch.einsum("mij,mj->mi", forms[f], P) - offsets[f]).unbind(1)
     d2 = torch.where((u >= 0) & (v >= 0) & (u + v <= 1), height * height, torch.inf)
-    a, b, c = (V[F[:, k]] for k in range(3))
     for coordinate, (x, y) in ((u, (b, c)), (v, (c, a)), (1.0 - u - v, (a, b))):
         seen = torch.nonzero(coordinate < 0).flatten()
         d2[seen] = torch.minimum(d2[seen], _segment_distance2(P[seen], x[f[seen]], y[f[seen]]))
