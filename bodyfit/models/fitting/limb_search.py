@@ -187,8 +187,7 @@ class LimbSearch:
             on_scan, reach = [], []
             for (_, values), limb in zip(grids, self.vertices, strict=True):
                 on_scan.append(self.on_scan(hyp, h, scans[h], v[: len(values), limb]))
-                # (n, loose): each candidate's distance to each loose point
-                reach.append(np.stack([PointTree(x).query(loose, far)[0] for x in v[: len(values), limb]]))
+                reach.append(self.distances(v[: len(values), limb], loose))
             placed = [v[K, limb] for limb in self.vertices]  # the current pose's row
             mine = [np.zeros(len(loose), bool) for _ in grids]
             cost = list(on_scan)
@@ -232,8 +231,14 @@ class LimbSearch:
         vertices (n, V_limb, 3): :data:`REACH_WEIGHT` times their mean truncated squared distance."""
         if not len(targets):
             return np.zeros(len(verts))
-        d = np.stack([PointTree(x).query(targets, LIMB_TRUNCATION_M)[0] for x in verts])
+        d = LimbSearch.distances(verts, targets)
         return REACH_WEIGHT * (np.minimum(d, LIMB_TRUNCATION_M) ** 2).mean(1)
+
+    @staticmethod
+    def distances(verts: np.ndarray, targets: np.ndarray) -> np.ndarray:
+        """(n, T) each candidate's (n, V_limb, 3) distance to each point ``targets`` (T, 3): to its nearest
+        vertex, inf beyond :data:`LIMB_TRUNCATION_M`."""
+        return np.stack([PointTree(x).query(targets, LIMB_TRUNCATION_M)[0] for x in verts])
 
     def refine(
         self,
