@@ -14,7 +14,13 @@ from scipy.spatial.transform import Rotation
 from bodyfit.models.body.anny_posed import random_poses
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.errors import NonFiniteError, ShapeError
-from bodyfit.models.fitting.registered import BodyFit, RegisteredFitter
+from bodyfit.models.fitting.registered import (
+    BodyFit,
+    RegisteredFitConfig,
+    RegisteredFitter,
+    Stage,
+    vertex_term,
+)
 from bodyfit.models.rotations import kabsch
 
 
@@ -157,3 +163,46 @@ def test_held_out_anny_bodies_fit_within_two_millimetres(fitter: RegisteredFitte
     # The pose is recovered too (ground truth coordinates; pelvis upright in these bodies).
     knee = [model.skeleton.dof_index(n) for n in ("knee_angle_r", "knee_angle_l")]
     assert np.degrees(np.abs(fit.coordinates[:, knee] - bodies.q[:, knee])).mean() < 6.0
+
+
+def test_stage_jacobian_is_the_derivative_of_the_vertices(
+    model: BodyModel, known: dict[str, np.ndarray]
+) -> None:
+    """The forward-difference Jacobian in ``optimise``'s variables agrees with forward-mode autodiff."""
+    fitter = RegisteredFitter(model, RegisteredFitConfig(dtype=torch.float64))
+    stage = Stage("pose", "all", "bone", "subset", 1)
+    z = fitter.start_state(known["q"][:2], known["root"][:2], known["shape"][:2])
+    J = fitter.stage_jacobian(stage, z, "subset", step=1e-6)  # (2, 3V', P)
+    n_bone, n_dof = model.n_bone, model.skeleton.n_dof
+    _, s_r, s_c = fitter._scales
+    assert J.shape == (2, 3 * len(fitter.index["subset"]), n_dof + 3 + n_bone)
+
+    def vertices(Z: torch.Tensor) -> torch.Tensor:
+        u, r, c = Z[:, :n_dof], Z[:, n_dof : n_dof + 3], z[2].clone()
+        c[:, :n_bone] = Z[:, n_dof + 3 :]
+        return fitter.decoders["subset"](c * s_c, fitter.coordinates(u), r * s_r)[0].flatten(1) * 1000.0
+
+    Z0 = torch.cat([z[0], z[1], z[2][:, :n_bone]], 1)
+    d = torch.as_tensor(np.random.default_rng(5).normal(size=Z0.shape))
+    expected = torch.func.jvp(vertices, (Z0,), (d,))[1]
+    np.testing.assert_allclose((J @ d[..., None])[..., 0], expected, atol=1e-3 * expected.abs().max().item())
+
+
+def test_a_gauss_newton_metric_speeds_up_optimise(
+    fitter: RegisteredFitter, known: dict[str, np.ndarray]
+) -> None:
+    """From a start 0.1 rad off in every coordinate, five iterations in the metric's variables fit the
+    bodies far better than five with the diagonal preconditioner alone."""
+    stage = Stage("all", "all", "all", "subset", 5)
+    x = torch.as_tensor(known["vertices"][:3][:, fitter.index["subset"]] * 1000.0, dtype=torch.float32)
+    term = vertex_term(x, torch.ones(x.shape[:2]))
+    q0 = known["q"][:3] + np.random.default_rng(2).normal(scale=0.1, size=known["q"][:3].shape)
+    errors = []
+    for use_metric in (False, True):
+        z = fitter.start_state(q0, known["root"][:3], known["shape"][:3])
+        metric = fitter.metric(stage, z, "subset") if use_metric else None
+        fitter.optimise(stage, z, term, metric)
+        c, q, root = fitter.parameters(z)
+        v = fitter.decoders["subset"](c.float(), q.float(), root.float())[0] * 1000.0
+        errors.append((v - x).norm(dim=-1).mean().item())
+    assert errors[1] < 0.5 * errors[0], errors

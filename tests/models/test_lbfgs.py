@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from bodyfit.models.fitting.lbfgs import batched_lbfgs
@@ -37,3 +38,16 @@ def test_quadratic_is_solved_exactly() -> None:
         lambda z: 0.5 * ((z @ A) * z).sum(1) - z @ b, torch.zeros(1, 4, dtype=torch.float64), 60
     )
     torch.testing.assert_close(result.z[0], torch.linalg.solve(A, b), atol=1e-8, rtol=0)
+
+
+def test_a_newton_start_solves_a_whitened_quadratic_in_one_step() -> None:
+    """Variables scaled so that the Hessian is the identity: the first step is the Newton step."""
+    b = torch.tensor([[30.0, -20.0, 5.0]], dtype=torch.float64)
+
+    def f(z: torch.Tensor) -> torch.Tensor:
+        return 0.5 * ((z - b) ** 2).sum(1)
+
+    newton = batched_lbfgs(f, torch.zeros_like(b), 1, newton_start=True)
+    torch.testing.assert_close(newton.z, b, atol=1e-12, rtol=0)
+    unit = batched_lbfgs(f, torch.zeros_like(b), 1)
+    assert unit.z.norm() == pytest.approx(1.0)  # the default first step has unit length

@@ -203,7 +203,7 @@ def test_a_box_is_not_a_confident_body(model: BodyModel, fitter: ScanFitter) -> 
 def test_a_single_view_is_fitted_on_the_side_it_saw(model: BodyModel) -> None:
     """One depth camera's view of a body (orientation given): detected as a single view and reported as
     such; only the surface that faced the sensor is fitted, so the unseen back of the trunk is not pulled
-    into the front (without the detection the trunk collapses into a shell)."""
+    into the front (without the detection the trunk is pulled towards the front)."""
     rng = np.random.default_rng(13)
     q = random_poses(model.skeleton, 1, rng, spread=0.0)
     shape = rng.normal(size=(1, model.n_shape)) * 0.7
@@ -226,4 +226,5 @@ def test_a_single_view_is_fitted_on_the_side_it_saw(model: BodyModel) -> None:
             assert fit.report.limit_violations == 0
         else:
             assert fit.report.extra["single_view"] is None
-    assert errors[True] < 0.5 * errors[False], errors  # measured: 31 mm against 122 mm on the trunk
+    # measured: 7.1 mm against 13.0 on the trunk (31 against 122 before the phases' Gauss-Newton metric)
+    assert errors[True] < 10.0 and errors[True] < 0.7 * errors[False], errors

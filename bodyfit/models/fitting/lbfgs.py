@@ -38,7 +38,11 @@ def _value_and_grad(
 
 
 def batched_lbfgs(
-    f: Callable[[torch.Tensor], torch.Tensor], z0: torch.Tensor, iterations: int, history: int = 10
+    f: Callable[[torch.Tensor], torch.Tensor],
+    z0: torch.Tensor,
+    iterations: int,
+    history: int = 10,
+    newton_start: bool = False,
 ) -> LbfgsResult:
     """Minimise N independent problems.
 
@@ -47,6 +51,8 @@ def batched_lbfgs(
         z0: (N, P) start points.
         iterations: batched evaluations to spend (one per iteration).
         history: curvature pairs kept per row.
+        newton_start: the first step is -gradient (the variables are scaled so that the Hessian is about
+            the identity); default: a step of unit length along it.
     Returns:
         :class:`LbfgsResult`.
     """
@@ -56,7 +62,7 @@ def batched_lbfgs(
     S = torch.zeros(history, N, P, dtype=z.dtype)
     Y = torch.zeros(history, N, P, dtype=z.dtype)
     rho = torch.zeros(history, N, dtype=z.dtype)
-    gamma = 1.0 / g.norm(dim=1).clamp_min(1e-12)  # first step: unit length
+    gamma = torch.ones(N, dtype=z.dtype) if newton_start else 1.0 / g.norm(dim=1).clamp_min(1e-12)
     step = torch.ones(N, dtype=z.dtype)
     slot = 0
     for _ in range(iterations):

@@ -349,7 +349,9 @@ class RegisteredFitter:
         scale = 1.0 / rms
         return scale[:n_dof], scale[n_dof : n_dof + 3], scale[n_dof + 3 :]
 
-    def optimise(self, stage: Stage, z: State, data_term: DataTerm) -> tuple[int, float]:
+    def optimise(
+        self, stage: Stage, z: State, data_term: DataTerm, metric: torch.Tensor | None = None
+    ) -> tuple[int, float]:
         """Minimise ``data_term`` + shape prior over the stage's parameters by :func:`batched_lbfgs`: one
         problem per mesh, or one for the whole batch when the shape is shared. Updates ``z`` (u: (B, n_dof),
         root: (B, 3), c: (1 or B, n_shape), from :meth:`start_state`) in place.
@@ -357,6 +359,8 @@ class RegisteredFitter:
         Args:
             data_term: maps the model's vertices ``self.index[stage.vertices]`` (B, V_stage, 3) in mm to a
                 (B,) loss in mm^2.
+            metric: (B, P, P) positive definite, one problem per mesh (:meth:`metric`): L-BFGS then runs in
+                the variables that make it the identity, starting with a Newton step.
         Returns:
             iterations run and the final loss per mesh.
         """
@@ -386,12 +390,77 @@ class RegisteredFitter:
             return err.reshape(rows, per_row).sum(1) + prior * (c_full**2).sum(1)
 
         Z0 = torch.cat([torch.cat([z_u[:, fd], z_r], 1).reshape(rows, n_pose), z_c[:, fs]], 1)
-        result = batched_lbfgs(losses, Z0, stage.iterations)
-        u, r, c = unpack(result.z)
+        if metric is None:
+            result = batched_lbfgs(losses, Z0, stage.iterations)
+            Z = result.z
+        elif rows != B:
+            raise ValueError("a metric needs one problem per mesh (no shared shape)")
+        else:
+            L = torch.linalg.cholesky(metric)  # metric = L L^T; Z = Z0 + L^-T y
+
+            def to_z(y: torch.Tensor) -> torch.Tensor:
+                return Z0 + torch.linalg.solve_triangular(L.mT, y[..., None], upper=True)[..., 0]
+
+            result = batched_lbfgs(
+                lambda y: losses(to_z(y)), torch.zeros_like(Z0), stage.iterations, newton_start=True
+            )
+            Z = to_z(result.z)
+        u, r, c = unpack(Z)
         z_u.copy_(u)
         z_r.copy_(r)
         z_c.copy_(c)
         return stage.iterations, float(result.loss.sum()) / B
+
+    def stage_jacobian(self, stage: Stage, z: State, vertices: str, step: float = 0.05) -> torch.Tensor:
+        """(B, V' * 3, P) d vertices (mm) / d the stage's variables (``optimise``'s layout, one problem per
+        mesh), by forward differences of ``step`` units, on the vertex set ``vertices``."""
+        z_u, z_r, z_c = z
+        _, s_r, s_c = self._scales
+        B = z_u.shape[0]
+        fd = torch.nonzero(self.dof_mask[stage.coordinates]).flatten()
+        fs = torch.nonzero(self.shape_mask[stage.shape]).flatten()
+        P = len(fd) + 3 + len(fs)
+        decoder = self.decoders[vertices]
+        Z0 = torch.cat([z_u[:, fd], z_r, z_c[:, fs].expand(B, -1)], 1)
+        Z = Z0[:, None].repeat(1, P + 1, 1)
+        Z[:, 1:] += step * torch.eye(P, dtype=Z.dtype)
+        Z = Z.reshape(B * (P + 1), P)
+        u = z_u.repeat_interleave(P + 1, 0).index_copy(1, fd, Z[:, : len(fd)])
+        c = z_c.expand(B, -1).repeat_interleave(P + 1, 0).index_copy(1, fs, Z[:, len(fd) + 3 :])
+        with torch.no_grad():
+            v = decoder(c * s_c, self.coordinates(u), Z[:, len(fd) : len(fd) + 3] * s_r)[0] * 1000.0
+        v = v.reshape(B, P + 1, -1)
+        return ((v[:, 1:] - v[:, :1]) / step).mT
+
+    def metric(
+        self,
+        stage: Stage,
+        z: State,
+        vertices: str,
+        normals: np.ndarray | None = None,
+        tangential: float = 1.0,
+        regularise: float = 1e-3,
+    ) -> torch.Tensor:
+        """(B, P, P) Gauss-Newton metric of a vertex-to-surface loss in ``optimise``'s variables at ``z``:
+
+            2 mean_v J_v^T N_v J_v + the shape prior's Hessian + regularise * mean(diag) I,
+
+        J_v (3, P) the Jacobian of vertex v of ``vertices`` (mm per unit, :meth:`stage_jacobian`);
+        N_v = n n^T + tangential (I - n n^T) for normals (B, V', 3), the identity without them."""
+        J = self.stage_jacobian(stage, z, vertices).double()
+        B, _, P = J.shape
+        J = J.reshape(B, -1, 3, P)
+        M = tangential * torch.einsum("bvkp,bvkq->bpq", J, J)
+        if normals is not None:
+            Jn = torch.einsum("bvk,bvkp->bvp", torch.as_tensor(normals, dtype=J.dtype), J)
+            M += (1.0 - tangential) * Jn.mT @ Jn
+        M *= 2.0 / J.shape[1]
+        n_shape = int(self.shape_mask[stage.shape].sum())
+        if n_shape:
+            s_c = self._scales[2][self.shape_mask[stage.shape] > 0].double()
+            M[:, P - n_shape :, P - n_shape :] += torch.diag(2.0 * self.config.shape_prior * s_c**2)
+        M += regularise * M.diagonal(dim1=1, dim2=2).mean(1)[:, None, None] * torch.eye(P, dtype=M.dtype)
+        return M.to(self.config.dtype)
 
     def _report(
         self,

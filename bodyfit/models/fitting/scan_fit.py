@@ -292,7 +292,8 @@ class ScanFitter:
                 self._search_distal(hyp)
             hyp.visible = self._visible(hyp, self.fitter.index[phase.stage.vertices])
             term = self._chamfer(hyp, phase)
-            n_iter, _ = self.fitter.optimise(phase.stage, hyp.state, term)
+            metric = self._metric(hyp, phase.stage) if phase.plane else None
+            n_iter, _ = self.fitter.optimise(phase.stage, hyp.state, term, metric)
             iterations += n_iter
             score = self._score(hyp, phase, tree)
             losses[phase.stage.name] = float(score.min())
@@ -374,6 +375,14 @@ class ScanFitter:
             return (rho(d2).mean(1) if phase.two_way else 0.0) + 0.5 * m2s_mean
 
         return term
+
+    def _metric(self, hyp: Hypotheses, stage: Stage) -> torch.Tensor:
+        """(H, P, P) the Gauss-Newton metric of a point-to-plane phase's loss (``stage``'s variables) at
+        each hypothesis's current state (:meth:`RegisteredFitter.metric` on the vertex subset, with the
+        config's tangential weight): the phase's L-BFGS runs in the variables it makes the identity."""
+        index = self.fitter.index["subset"]
+        normals = vertex_normals(self._vertices(hyp.state), self.faces, self._normals)[:, index]
+        return self.fitter.metric(stage, hyp.state, "subset", normals, self.config.tangential)
 
     def _visible(
         self, hyp: Hypotheses, index: np.ndarray, verts: np.ndarray | None = None
