@@ -206,3 +206,19 @@ def test_a_gauss_newton_metric_speeds_up_optimise(
         v = fitter.decoders["subset"](c.float(), q.float(), root.float())[0] * 1000.0
         errors.append((v - x).norm(dim=-1).mean().item())
     assert errors[1] < 0.5 * errors[0], errors
+
+
+def test_a_metric_that_is_not_positive_definite_is_not_used(
+    fitter: RegisteredFitter, known: dict[str, np.ndarray]
+) -> None:
+    stage = Stage("all", "all", "all", "subset", 10)
+    x = torch.as_tensor(known["vertices"][:2][:, fitter.index["subset"]] * 1000.0, dtype=torch.float32)
+    term = vertex_term(x, torch.ones(x.shape[:2]))
+    q0 = known["q"][:2] + 0.05
+    z = fitter.start_state(q0, known["root"][:2], known["shape"][:2])
+    metric = fitter.metric(stage, z, "subset")
+    metric[1] = 0.0  # singular
+    before = term(fitter.decoders["subset"](*(t.float() for t in fitter.parameters(z)))[0] * 1000.0)
+    fitter.optimise(stage, z, term, metric)
+    after = term(fitter.decoders["subset"](*(t.float() for t in fitter.parameters(z)))[0] * 1000.0)
+    assert torch.isfinite(after).all() and (after < 0.5 * before).all(), (before, after)

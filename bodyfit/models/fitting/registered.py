@@ -360,7 +360,8 @@ class RegisteredFitter:
             data_term: maps the model's vertices ``self.index[stage.vertices]`` (B, V_stage, 3) in mm to a
                 (B,) loss in mm^2.
             metric: (B, P, P) positive definite, one problem per mesh (:meth:`metric`): L-BFGS then runs in
-                the variables that make it the identity, starting with a Newton step.
+                the variables that make it the identity, starting with a Newton step (a row whose metric is
+                not positive definite runs in the stage's own variables).
         Returns:
             iterations run and the final loss per mesh.
         """
@@ -396,7 +397,9 @@ class RegisteredFitter:
         elif rows != B:
             raise ValueError("a metric needs one problem per mesh (no shared shape)")
         else:
-            L = torch.linalg.cholesky(metric)  # metric = L L^T; Z = Z0 + L^-T y
+            L, failed = torch.linalg.cholesky_ex(metric)  # metric = L L^T; Z = Z0 + L^-T y
+            eye = torch.eye(L.shape[-1], dtype=L.dtype)
+            L = torch.where((failed != 0)[:, None, None], eye, L)  # not positive definite: no metric
 
             def to_z(y: torch.Tensor) -> torch.Tensor:
                 return Z0 + torch.linalg.solve_triangular(L.mT, y[..., None], upper=True)[..., 0]
