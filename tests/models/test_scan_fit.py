@@ -3,6 +3,8 @@ millimetres, and bad input (too few points, non-finite values, a shape that is n
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -15,6 +17,8 @@ from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting import corrupt
 from bodyfit.models.fitting.nonrigid import NonRigidConfig, refine_nonrigid
 from bodyfit.models.fitting.scan_fit import (
+    DEFAULT_PHASES,
+    REACH_MM,
     ScanFit,
     ScanFitConfig,
     ScanFitter,
@@ -228,3 +232,28 @@ def test_a_single_view_is_fitted_on_the_side_it_saw(model: BodyModel) -> None:
             assert fit.report.extra["single_view"] is None
     # measured: 7.1 mm against 13.0 on the trunk (31 against 122 before the phases' Gauss-Newton metric)
     assert errors[True] < 10.0 and errors[True] < 0.7 * errors[False], errors
+
+
+def test_vertices_out_of_the_scans_reach_are_not_pulled_in_the_point_to_plane_phases(
+    model: BodyModel, fitter: ScanFitter
+) -> None:
+    """The top 20 cm of a body is a hole in its scan: in a point-to-plane phase the head's vertices there
+    feel no pull towards the hole's rim; in a point-to-point phase they do."""
+    q = model.skeleton.inside(model.bind_coordinates, 0.1)[None]
+    out = model.forward(np.zeros((1, model.n_shape)), q, np.zeros((1, 3)), dtype=torch.float64)
+    v = out.vertices[0].numpy()
+    points, _ = sample_surface(v, model.faces, 20_000, seed=1)
+    points = points[points[:, 1] < v[:, 1].max() - 0.2]
+    hyp = fitter._candidates(points, np.eye(3), None)
+    hyp.points = (points - hyp.centre)[None]
+    far = cKDTree(points).query(v)[0] > 2 * REACH_MM / 1000.0
+    assert far.sum() > 100
+    fine = next(p for p in DEFAULT_PHASES if p.plane)
+    pulls = []
+    for phase in (fine, dataclasses.replace(fine, plane=False)):
+        verts = torch.tensor((v - hyp.centre)[None] * 1000.0, dtype=torch.float32, requires_grad=True)
+        fitter._chamfer(hyp, phase)(verts).sum().backward()
+        assert verts.grad is not None
+        pulls.append(verts.grad[0].norm(dim=1).numpy())
+    assert pulls[0][far].max() == 0.0 and pulls[1][far].min() > 0.0
+    assert pulls[0][~far].max() > 0.0
