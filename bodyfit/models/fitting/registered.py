@@ -349,6 +349,13 @@ class RegisteredFitter:
         scale = 1.0 / rms
         return scale[:n_dof], scale[n_dof : n_dof + 3], scale[n_dof + 3 :]
 
+    def free_variables(self, stage: Stage) -> tuple[torch.Tensor, torch.Tensor]:
+        """The stage's free coordinates and shape coefficients (their indices): ``optimise``'s variables
+        are these coordinates, the root (3) and these coefficients, in that order."""
+        fd = torch.nonzero(self.dof_mask[stage.coordinates]).flatten()
+        fs = torch.nonzero(self.shape_mask[stage.shape]).flatten()
+        return fd, fs
+
     def optimise(
         self, stage: Stage, z: State, data_term: DataTerm, metric: torch.Tensor | None = None
     ) -> tuple[int, float]:
@@ -371,8 +378,7 @@ class RegisteredFitter:
         rows = z_c.shape[0]
         per_row = B // rows
         decoder = self.decoders[stage.vertices]
-        fd = torch.nonzero(self.dof_mask[stage.coordinates]).flatten()
-        fs = torch.nonzero(self.shape_mask[stage.shape]).flatten()
+        fd, fs = self.free_variables(stage)
         n_pose = per_row * (len(fd) + 3)
         prior = self.config.shape_prior
 
@@ -420,8 +426,7 @@ class RegisteredFitter:
         z_u, z_r, z_c = z
         _, s_r, s_c = self._scales
         B = z_u.shape[0]
-        fd = torch.nonzero(self.dof_mask[stage.coordinates]).flatten()
-        fs = torch.nonzero(self.shape_mask[stage.shape]).flatten()
+        fd, fs = self.free_variables(stage)
         P = len(fd) + 3 + len(fs)
         decoder = self.decoders[vertices]
         Z0 = torch.cat([z_u[:, fd], z_r, z_c[:, fs].expand(B, -1)], 1)
@@ -458,10 +463,10 @@ class RegisteredFitter:
             Jn = torch.einsum("bvk,bvkp->bvp", torch.as_tensor(normals, dtype=J.dtype), J)
             M += (1.0 - tangential) * Jn.mT @ Jn
         M *= 2.0 / J.shape[1]
-        n_shape = int(self.shape_mask[stage.shape].sum())
-        if n_shape:
-            s_c = self._scales[2][self.shape_mask[stage.shape] > 0].double()
-            M[:, P - n_shape :, P - n_shape :] += torch.diag(2.0 * self.config.shape_prior * s_c**2)
+        fs = self.free_variables(stage)[1]
+        if len(fs):  # the shape's variables come last
+            s_c = self._scales[2][fs].double()
+            M[:, P - len(fs) :, P - len(fs) :] += torch.diag(2.0 * self.config.shape_prior * s_c**2)
         M += regularise * M.diagonal(dim1=1, dim2=2).mean(1)[:, None, None] * torch.eye(P, dtype=M.dtype)
         return M.to(self.config.dtype)
 
