@@ -208,6 +208,34 @@ def test_a_gauss_newton_metric_speeds_up_optimise(
     assert errors[1] < 0.5 * errors[0], errors
 
 
+def test_a_gauss_newton_metric_speeds_up_a_shared_shape_fit(
+    fitter: RegisteredFitter, known: dict[str, np.ndarray]
+) -> None:
+    """Three poses of one person, one shape for all (one problem), from the mean shape: ten iterations in the
+    metric's variables (the poses' blocks, their couplings to the shape and the shape's block summed) fit
+    far better than ten without (17.0 against 9.6 mm; 18.9 with the couplings left out, 21.2 with one pose's
+    shape block instead of the sum)."""
+    stage = Stage("all", "all", "all", "subset", 10)
+    shape = np.repeat(known["shape"][:1], 3, axis=0)
+    out = fitter.decoders["subset"](
+        *(torch.as_tensor(a, dtype=torch.float32) for a in (shape, known["q"][:3], known["root"][:3]))
+    )
+    x = out[0].detach() * 1000.0
+    term = vertex_term(x, torch.ones(x.shape[:2]))
+    q0 = known["q"][:3] + np.random.default_rng(3).normal(scale=0.1, size=known["q"][:3].shape)
+    errors = []
+    for use_metric in (False, True):
+        z = fitter.start_state(q0, known["root"][:3], np.zeros((1, shape.shape[1])))
+        metric = fitter.metric(stage, z, "subset") if use_metric else None
+        n = 3 * (fitter.model.skeleton.n_dof + 3) + shape.shape[1]  # three poses and roots, one shape
+        assert metric is None or metric.shape == (1, n, n)
+        fitter.optimise(stage, z, term, metric)
+        c, q, root = fitter.parameters(z)
+        v = fitter.decoders["subset"](c.float(), q.float(), root.float())[0] * 1000.0
+        errors.append((v - x).norm(dim=-1).mean().item())
+    assert errors[1] < 0.7 * errors[0], errors
+
+
 def test_a_metric_that_is_not_positive_definite_is_not_used(
     fitter: RegisteredFitter, known: dict[str, np.ndarray]
 ) -> None:
