@@ -18,6 +18,7 @@ from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting import corrupt
 from bodyfit.models.fitting.nonrigid import NonRigidConfig, refine_nonrigid
 from bodyfit.models.fitting.scan_fit import (
+    DEFAULT_BRANCHES,
     DEFAULT_PHASES,
     REACH_MM,
     ScanFit,
@@ -175,6 +176,17 @@ def test_scan_fit_recovers_a_turned_body(fitted: tuple[ScanFit, np.ndarray, np.n
     assert fit.report.confident and fit.report.limit_violations == 0
     assert fit.report.extra["inlier_fraction"] > 0.95 and fit.report.extra["coverage"] > 0.9
     assert len(fit.point_distances) == 60_000
+
+
+def test_the_fit_keeps_the_branch_that_lies_closest_to_the_scan(
+    fitted: tuple[ScanFit, np.ndarray, np.ndarray],
+) -> None:
+    report = fitted[0].report
+    scan_mm = report.extra["branch_scan_mm"]
+    assert len(scan_mm) == len(DEFAULT_BRANCHES) == 2
+    assert report.extra["branch"] == int(np.argmin(scan_mm))
+    assert report.distances.mean == pytest.approx(min(scan_mm), abs=1e-3)
+    assert report.seconds > 0 and report.iterations > sum(p.stage.iterations for p in DEFAULT_PHASES)
 
 
 def test_scan_fit_parameters_reproduce_its_body(

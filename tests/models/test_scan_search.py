@@ -17,6 +17,7 @@ import torch
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting.limb_search import Hypotheses, distinct
 from bodyfit.models.fitting.scan_fit import (
+    DEFAULT_BRANCHES,
     DEFAULT_PHASES,
     STRAIGHTENED,
     VALLEY_TILT,
@@ -242,7 +243,8 @@ def test_the_last_phase_refines_both_limb_hypotheses_and_keeps_the_better(model:
         q[skel.dof_index(name)] = np.radians(deg)
     body = model.forward(np.zeros((1, model.n_shape)), q[None], np.zeros((1, 3)), dtype=torch.float64)
     points, _ = sample_surface(body.vertices[0].numpy(), model.faces, 20_000, seed=4)
-    fitter = ScanFitter(model, ScanFitConfig(nonrigid=None, single_view=False))
+    config = ScanFitConfig(nonrigid=None, single_view=False, branches=DEFAULT_BRANCHES[:1])  # one branch
+    fitter = ScanFitter(model, config)
     scored: list[tuple[str, np.ndarray]] = []
     score = fitter._score
 

@@ -5,7 +5,7 @@ leaves unexplained (:class:`LimbSearch`); and the optimisation state the scan fi
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from itertools import pairwise
 
 import numpy as np
@@ -98,6 +98,15 @@ class Hypotheses:
             self.visible = self.visible[rows]
         r = torch.as_tensor(rows)
         self.state = (self.state[0][r], self.state[1][r], self.state[2][r])
+
+    def copy(self) -> Hypotheses:
+        """An independent copy: its arrays and optimisation state are its own."""
+        z_u, z_r, z_c = self.state
+        visible = None if self.visible is None else self.visible.copy()
+        return replace(
+            self, rotation=self.rotation.copy(), points=self.points.copy(), visible=visible,
+            state=(z_u.clone(), z_r.clone(), z_c.clone()),
+        )  # fmt: skip
 
     def add_twins(self, rows: np.ndarray, state: State) -> None:
         """Append a twin of each hypothesis ``rows`` (K,): same frame and points, optimisation state from
