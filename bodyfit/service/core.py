@@ -418,7 +418,7 @@ class BodyService:
             fitters = self.fitters
             registered = scan.n_points == self.model.n_vertices
             smpl = scan.n_points == SMPL_VERTICES and scan.faces is not None
-            total = 1 if registered or smpl else len(fitters.scan.config.phases)
+            total = 1 if registered or smpl else fitters.scan.progress_steps()
             job.report("fit", 0, total, f"{scan.n_points} points")
             if registered:
                 fit = _first(fitters.registered.fit(scan.points), "registered")

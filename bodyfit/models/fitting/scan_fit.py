@@ -341,9 +341,7 @@ class ScanFitter:
             if hyp.view is not None:
                 hyp.silhouette = Silhouette.of(cleaned, hyp.view)
         tree = PointTree(cleaned)
-        names = [phase.stage.name for phase in cfg.phases]
-        split = names.index(cfg.branch_from) if cfg.branch_from in names else len(names)
-        branches = cfg.branches if split < len(names) else cfg.branches[:1]
+        split, branches = self._branches()
         run = _PhaseRun(cleaned, order, tree, progress)
         self._run_phases(hyp, cfg.phases[:split], branches[0], run, "")
         starts = [hyp] + [hyp.copy() for _ in branches[1:]]
@@ -359,6 +357,20 @@ class ScanFitter:
         seconds = time.perf_counter() - began
         report = replace(report, iterations=run.iterations, seconds=seconds, extra=extra)
         return replace(fits[best], report=report)
+
+    def progress_steps(self) -> int:
+        """How many times :meth:`fit` calls its ``progress``: once per phase, the branched ones once per
+        branch."""
+        split, branches = self._branches()
+        return split + len(branches) * (len(self.config.phases) - split)
+
+    def _branches(self) -> tuple[int, tuple[ScanBranch, ...]]:
+        """The index of the first branched phase (``config.branch_from``; the number of phases when there is
+        none) and the branches that run (the first alone when no phase branches)."""
+        names = [phase.stage.name for phase in self.config.phases]
+        if self.config.branch_from not in names:
+            return len(names), self.config.branches[:1]
+        return names.index(self.config.branch_from), self.config.branches
 
     def _run_phases(
         self, hyp: Hypotheses, phases: tuple[ScanPhase, ...], branch: ScanBranch, run: _PhaseRun, label: str
