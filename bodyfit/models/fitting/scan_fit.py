@@ -317,7 +317,7 @@ class ScanFitter:
 
         Args:
             scan: a :class:`Scan` from ``load_scan``, or (N, 3) points in metres.
-            progress: called with a line after each phase.
+            progress: called with a line after each phase of each branch (:meth:`progress_steps` times).
             orientation: (3, 3) rotation from the scan's axes to the body's (+X forward, +Y up, +Z right)
                 when it is known (e.g. a dataset's convention); default: searched.
             start: (n_dof,) coordinates to start from (e.g. a T-pose); default: the bind pose.
