@@ -259,15 +259,13 @@ def orientation_candidates(points: np.ndarray) -> np.ndarray:
 
 @dataclass
 class _PhaseRun:
-    """What one scan's phases share: the cleaned points (M, 3), their random order (M,), their tree, the
-    progress callback, and the iterations and per-phase scores counted so far."""
+    """What one scan's phases share: the cleaned points (M, 3), their random order (M,), their tree and the
+    progress callback."""
 
     cleaned: np.ndarray
     order: np.ndarray
     tree: PointTree
     progress: Callable[[str], None] | None
-    iterations: int = 0
-    losses: dict[str, float] = field(default_factory=dict)
 
 
 class ScanFitter:
@@ -343,19 +341,20 @@ class ScanFitter:
         tree = PointTree(cleaned)
         split, branches = self._branches()
         run = _PhaseRun(cleaned, order, tree, progress)
-        self._run_phases(hyp, cfg.phases[:split], branches[0], run, "")
+        iterations, shared = self._run_phases(hyp, cfg.phases[:split], branches[0], run, "")
         starts = [hyp] + [hyp.copy() for _ in branches[1:]]
-        fits, shared_losses = [], dict(run.losses)
+        fits = []
         for b, (branch, mine) in enumerate(zip(branches, starts, strict=True)):
-            run.losses = dict(shared_losses)
-            self._run_phases(mine, cfg.phases[split:], branch, run, f"branch {b + 1}: " * (len(branches) > 1))
-            fits.append(self._result(mine, points, cleaned, tree, run.iterations, run.losses, began))
+            label = f"branch {b + 1}: " * (len(branches) > 1)
+            n_iter, losses = self._run_phases(mine, cfg.phases[split:], branch, run, label)
+            iterations += n_iter
+            fits.append(self._result(mine, points, cleaned, tree, iterations, {**shared, **losses}, began))
         scan_mm = [f.report.distances.mean for f in fits]
         best = int(np.argmin(scan_mm))
         report = fits[best].report
         extra = {**report.extra, "branch": best, "branch_scan_mm": [round(d, 3) for d in scan_mm]}
         seconds = time.perf_counter() - began
-        report = replace(report, iterations=run.iterations, seconds=seconds, extra=extra)
+        report = replace(report, iterations=iterations, seconds=seconds, extra=extra)
         return replace(fits[best], report=report)
 
     def progress_steps(self) -> int:
@@ -374,8 +373,10 @@ class ScanFitter:
 
     def _run_phases(
         self, hyp: Hypotheses, phases: tuple[ScanPhase, ...], branch: ScanBranch, run: _PhaseRun, label: str
-    ) -> None:
-        """Run ``phases`` on ``hyp`` (updated in place) the way ``branch`` says, counting into ``run``."""
+    ) -> tuple[int, dict[str, float]]:
+        """Run ``phases`` on ``hyp`` (updated in place) the way ``branch`` says; returns the iterations run
+        and each phase's best robust score."""
+        iterations, losses = 0, {}
         for phase in phases:
             hyp.points = np.einsum(
                 "hij,nj->hni", hyp.rotation, run.cleaned[run.order[: phase.scan_points]] - hyp.centre
@@ -396,13 +397,14 @@ class ScanFitter:
             if phase.stage.name in branch.metric_phases:
                 metric = self._metric(hyp, phase, branch.damping)
             n_iter, _ = self.fitter.optimise(phase.stage, hyp.state, term, metric)
-            run.iterations += n_iter
+            iterations += n_iter
             score = self._score(hyp, phase, run.tree)
-            run.losses[phase.stage.name] = float(score.min())
+            losses[phase.stage.name] = float(score.min())
             if phase.keep < len(hyp.rotation):
                 hyp.keep(self._kept(hyp, phase, score))
             if run.progress is not None:
                 run.progress(f"{label}{phase.stage.name}: robust score {score.min():.3f}")
+        return iterations, losses
 
     # -- steps -----------------------------------------------------------------------------------------
     def _candidates(
