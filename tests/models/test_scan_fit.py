@@ -193,8 +193,32 @@ def test_the_fit_goes_on_with_the_branch_that_scores_best_before_the_valley_phas
     assert report.seconds > 0
     names = [p.stage.name for p in DEFAULT_PHASES]
     expected = [*names[:2], *(f"branch {b}: {n}" for b in (1, 2) for n in names[2:5]), names[5]]
-    assert [line.split(": robust")[0] for line in lines] == expected
+    got = [line.split(": robust")[0] for line in lines]  # the branches run at once: theirs interleave
+    assert got[:2] == expected[:2] and got[-1] == expected[-1] and sorted(got) == sorted(expected)
+    for b in (1, 2):  # each branch's own phases in order
+        assert [x for x in got if x.startswith(f"branch {b}")] == [f"branch {b}: {n}" for n in names[2:5]]
     assert len(lines) == fitter.progress_steps() == 9
+
+
+def test_the_branches_fit_alike_one_after_the_other_or_at_once(model: BodyModel) -> None:
+    """The branches run on threads of their own; each refines its own copy of the hypotheses, so running
+    them at once gives the fit that running them one after the other gives."""
+    rng = np.random.default_rng(5)
+    q = random_poses(model.skeleton, 1, rng, spread=0.3)
+    body = model.forward(np.zeros((1, model.n_shape)), q, np.zeros((1, 3)), dtype=torch.float64)
+    points, _ = sample_surface(body.vertices[0].numpy(), model.faces, 20_000, seed=5)
+    short = tuple(
+        dataclasses.replace(p, stage=dataclasses.replace(p.stage, iterations=5)) for p in DEFAULT_PHASES
+    )
+    fits = [
+        ScanFitter(model, ScanFitConfig(short, nonrigid=None, single_view=False, workers=w)).fit(
+            points, orientation=np.eye(3)
+        )
+        for w in (1, 2)
+    ]
+    assert fits[0].report.extra["branch_scores"] == fits[1].report.extra["branch_scores"]
+    np.testing.assert_array_equal(fits[0].coordinates, fits[1].coordinates)
+    np.testing.assert_array_equal(fits[0].registration, fits[1].registration)
 
 
 def test_scan_fit_parameters_reproduce_its_body(

@@ -46,8 +46,10 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from itertools import pairwise
+from threading import Lock
 
 import numpy as np
 import torch
@@ -191,7 +193,9 @@ class ScanFitConfig:
     branches: each runs the phases from the one named ``branch_from`` up to the one named ``branch_until``
     (the earlier ones run once, as the first branch says; no phase of that name: to the end); the branch
     whose hypothesis scores best on the last branched phase goes on alone, the way it says; one branch, or
-    no phase named ``branch_from``, fits once."""
+    no phase named ``branch_from``, fits once; workers: threads the branches run on at once (they are
+    independent, so the fit does not depend on it; torch's intra-op threads add little at these sizes:
+    ``torch.set_num_threads(1)`` and 2 workers suit 2 cores)."""
 
     phases: tuple[ScanPhase, ...] = DEFAULT_PHASES
     branches: tuple[ScanBranch, ...] = DEFAULT_BRANCHES
@@ -204,6 +208,7 @@ class ScanFitConfig:
     nonrigid: NonRigidConfig | None = field(default_factory=NonRigidConfig)
     single_view: bool = True
     seed: int = 0
+    workers: int = 2
 
 
 @dataclass(frozen=True)
@@ -264,13 +269,21 @@ def orientation_candidates(points: np.ndarray) -> np.ndarray:
 
 @dataclass
 class _PhaseRun:
-    """What one scan's phases share: the cleaned points (M, 3), their random order (M,), their tree and the
-    progress callback."""
+    """What one scan's phases share: the cleaned points (M, 3), their random order (M,), their tree, the
+    progress callback and the threads the branches run on."""
 
     cleaned: np.ndarray
     order: np.ndarray
     tree: PointTree
     progress: Callable[[str], None] | None
+    pool: ThreadPoolExecutor
+    lock: Lock = field(default_factory=Lock)
+
+    def report(self, line: str) -> None:
+        """Pass ``line`` to the progress callback, one branch's thread at a time."""
+        if self.progress is not None:
+            with self.lock:
+                self.progress(line)
 
 
 class ScanFitter:
@@ -344,15 +357,26 @@ class ScanFitter:
             if hyp.view is not None:
                 hyp.silhouette = Silhouette.of(cleaned, hyp.view)
         tree = PointTree(cleaned)
+        with ThreadPoolExecutor(cfg.workers) as pool:
+            run = _PhaseRun(cleaned, order, tree, progress, pool)
+            return self._fit_branches(hyp, points, run, began)
+
+    def _fit_branches(self, hyp: Hypotheses, points: np.ndarray, run: _PhaseRun, began: float) -> ScanFit:
+        """The phases on the start hypotheses ``hyp``, the branched ones once per branch, and the result
+        (the scan's raw points (N, 3))."""
+        cfg = self.config
         split, until, branches = self._branches()
-        run = _PhaseRun(cleaned, order, tree, progress)
         phases = cfg.phases
         iterations, losses = self._run_phases(hyp, phases[:split], branches[0], run, "")
         starts = [hyp] + [hyp.copy() for _ in branches[1:]]
-        branch_losses = []
-        for b, (branch, mine) in enumerate(zip(branches, starts, strict=True)):
+
+        def run_branch(b: int) -> tuple[int, dict[str, float]]:
             label = f"branch {b + 1}: " * (len(branches) > 1)
-            n_iter, mine_losses = self._run_phases(mine, phases[split:until], branch, run, label)
+            return self._run_phases(starts[b], phases[split:until], branches[b], run, label)
+
+        ran = run.pool.map(run_branch, range(len(branches)))  # at once, on the pool's threads
+        branch_losses = []
+        for n_iter, mine_losses in ran:
             iterations += n_iter
             branch_losses.append(mine_losses)
         # each branch's score on its last phase (none when no phase branches)
@@ -362,7 +386,7 @@ class ScanFitter:
         n_iter, tail = self._run_phases(hyp, phases[until:], branches[best], run, "")
         iterations += n_iter
         fit = self._result(
-            hyp, points, cleaned, tree, iterations, {**losses, **branch_losses[best], **tail}, began
+            hyp, points, run.cleaned, run.tree, iterations, {**losses, **branch_losses[best], **tail}, began
         )
         extra = {
             **fit.report.extra,
@@ -423,8 +447,7 @@ class ScanFitter:
             losses[phase.stage.name] = float(score.min())
             if phase.keep < len(hyp.rotation):
                 hyp.keep(self._kept(hyp, phase, score))
-            if run.progress is not None:
-                run.progress(f"{label}{phase.stage.name}: robust score {score.min():.3f}")
+            run.report(f"{label}{phase.stage.name}: robust score {score.min():.3f}")
         return iterations, losses
 
     # -- steps -----------------------------------------------------------------------------------------
