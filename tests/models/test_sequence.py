@@ -178,6 +178,11 @@ def test_no_seams_between_chunks(
     whole = SequenceFitter(seq_fitter.fitter, SequenceConfig(chunk=T)).fit(x[:100])
     chunked = seq_fitter.fit(x[:100])
     assert np.abs(whole.registration() - chunked.registration()).max() < 1e-4
+    # Nor do the threads a chunk's frames are split over.
+    config = replace(seq_fitter.config, workers=1)
+    assert seq_fitter.config.workers == 2
+    one_thread = SequenceFitter(seq_fitter.fitter, config).fit(x[:100])
+    assert np.abs(one_thread.registration() - chunked.registration()).max() < 1e-4  # float32 rounding
 
 
 def test_model_sequence_and_progress(model: BodyModel, moved: Retargeted, seq_fitter: SequenceFitter) -> None:

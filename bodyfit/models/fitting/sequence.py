@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -68,7 +69,8 @@ class SequenceConfig:
     the per-frame fits, ``q[t] <- (1 - 2 b) q[t] + b (q[t-1] + q[t+1])``: symmetric in time, so it adds
     no lag; a convex combination, so it stays within the limits; 0 turns it off;
     offsets: fit the person's rest-pose offsets (:mod:`~bodyfit.models.fitting.offsets`: surface detail
-    beyond the shape space) on the shape keyframes and fit every pose with them; None: shape space only."""
+    beyond the shape space) on the shape keyframes and fit every pose with them; None: shape space only;
+    workers: threads a chunk's pose fits are split over (frames are independent problems)."""
 
     keyframes: int = 8
     stride: int = 8
@@ -78,6 +80,7 @@ class SequenceConfig:
     frame_stages: tuple[Stage, ...] = FRAME_STAGES
     blend: float = 0.02
     offsets: OffsetConfig | None = None
+    workers: int = 2
 
 
 @dataclass(frozen=True)
@@ -362,7 +365,7 @@ class SequenceFitter:
             k = keys[lo : lo + cfg.chunk]
             x_k, w_k, G_k, o_k = self._frames(source, k)
             q0, r0 = self.fitter.bone_start(_turn(x_k, G_k, o_k), w_k)
-            q_key[lo : lo + len(k)], r_key[lo : lo + len(k)] = self._pose(
+            q_key[lo : lo + len(k)], r_key[lo : lo + len(k)] = self._pose_split(
                 pose_fitter, x_k, w_k, G_k, o_k, c, q0, r0, cfg.key_stages
             )
         q_init = np.stack([np.interp(np.arange(T), keys, q_key[:, j]) for j in range(n_dof)], 1)
@@ -401,7 +404,7 @@ class SequenceFitter:
         for lo in range(0, T, cfg.chunk):
             hi = min(T, lo + cfg.chunk)
             x, w, G[lo:hi], origin[lo:hi] = self._frames(source, np.arange(lo, hi))
-            q_c[lo:hi], root_c[lo:hi] = self._pose(
+            q_c[lo:hi], root_c[lo:hi] = self._pose_split(
                 pose_fitter, x, w, G[lo:hi], origin[lo:hi], c, q_init[lo:hi], r_init[lo:hi], cfg.frame_stages
             )
             if pending is not None:  # one chunk behind: its last frame's blend needs this chunk's first
@@ -476,6 +479,28 @@ class SequenceFitter:
             raise ShapeError(f"the frame source gave {len(x)} frames for {len(idx)} requested")
         heading, origin = self.headings(x, w)
         return x, w, _yaw(-heading), origin
+
+    def _pose_split(
+        self,
+        fitter: RegisteredFitter,
+        x: np.ndarray,
+        w: np.ndarray,
+        G: np.ndarray,
+        origin: np.ndarray,
+        c: np.ndarray,
+        q0: np.ndarray,
+        r0: np.ndarray,
+        stages: tuple[Stage, ...],
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_pose` with the frames split into ``config.workers`` runs fitted at once, a thread each."""
+        runs = np.array_split(np.arange(len(x)), max(1, min(self.config.workers, len(x))))
+        with ThreadPoolExecutor(len(runs)) as pool:
+            done = list(
+                pool.map(
+                    lambda r: self._pose(fitter, x[r], w[r], G[r], origin[r], c, q0[r], r0[r], stages), runs
+                )
+            )
+        return np.concatenate([q for q, _ in done]), np.concatenate([root for _, root in done])
 
     def _pose(
         self,
