@@ -365,7 +365,7 @@ class SequenceFitter:
             k = keys[lo : lo + cfg.chunk]
             x_k, w_k, G_k, o_k = self._frames(source, k)
             q0, r0 = self.fitter.bone_start(_turn(x_k, G_k, o_k), w_k)
-            q_key[lo : lo + len(k)], r_key[lo : lo + len(k)] = self._pose_split(
+            q_key[lo : lo + len(k)], r_key[lo : lo + len(k)] = self._pose(
                 pose_fitter, x_k, w_k, G_k, o_k, c, q0, r0, cfg.key_stages
             )
         q_init = np.stack([np.interp(np.arange(T), keys, q_key[:, j]) for j in range(n_dof)], 1)
@@ -404,7 +404,7 @@ class SequenceFitter:
         for lo in range(0, T, cfg.chunk):
             hi = min(T, lo + cfg.chunk)
             x, w, G[lo:hi], origin[lo:hi] = self._frames(source, np.arange(lo, hi))
-            q_c[lo:hi], root_c[lo:hi] = self._pose_split(
+            q_c[lo:hi], root_c[lo:hi] = self._pose(
                 pose_fitter, x, w, G[lo:hi], origin[lo:hi], c, q_init[lo:hi], r_init[lo:hi], cfg.frame_stages
             )
             if pending is not None:  # one chunk behind: its last frame's blend needs this chunk's first
@@ -480,28 +480,6 @@ class SequenceFitter:
         heading, origin = self.headings(x, w)
         return x, w, _yaw(-heading), origin
 
-    def _pose_split(
-        self,
-        fitter: RegisteredFitter,
-        x: np.ndarray,
-        w: np.ndarray,
-        G: np.ndarray,
-        origin: np.ndarray,
-        c: np.ndarray,
-        q0: np.ndarray,
-        r0: np.ndarray,
-        stages: tuple[Stage, ...],
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`_pose` with the frames split into ``config.workers`` runs fitted at once, a thread each."""
-        runs = np.array_split(np.arange(len(x)), max(1, min(self.config.workers, len(x))))
-        with ThreadPoolExecutor(len(runs)) as pool:
-            done = list(
-                pool.map(
-                    lambda r: self._pose(fitter, x[r], w[r], G[r], origin[r], c, q0[r], r0[r], stages), runs
-                )
-            )
-        return np.concatenate([q for q, _ in done]), np.concatenate([root for _, root in done])
-
     def _pose(
         self,
         fitter: RegisteredFitter,
@@ -515,17 +493,25 @@ class SequenceFitter:
         stages: tuple[Stage, ...],
     ) -> tuple[np.ndarray, np.ndarray]:
         """Pose-only fit, in the canonical frames (G, origin), of world frames x (B, V, 3) with weights
-        w (B, V), the shape c (1, n_shape) frozen, from q0 (B, n_dof) and r0 (B, 3): one problem per frame.
-        Only the stages' vertices are turned. Returns coordinates (B, n_dof) and root (B, 3)."""
+        w (B, V), the shape c (1, n_shape) frozen, from q0 (B, n_dof) and r0 (B, 3): one problem per frame,
+        the frames split into ``config.workers`` runs fitted at once, a thread each. Only the stages'
+        vertices are turned. Returns coordinates (B, n_dof) and root (B, 3)."""
         dtype = fitter.config.dtype
-        z = fitter.start_state(q0, r0, np.repeat(c, len(x), axis=0))
-        for stage in stages:
-            idx = fitter.index[stage.vertices]
-            xt = torch.as_tensor(_turn(x[:, idx], G, origin) * 1000.0, dtype=dtype)
-            wt = torch.as_tensor(w[:, idx] / w.mean(axis=1, keepdims=True), dtype=dtype)
-            fitter.optimise(stage, z, vertex_term(xt, wt))
-        _, q, root = fitter.parameters(z)
-        return q.numpy(), root.numpy()
+
+        def fit(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            z = fitter.start_state(q0[rows], r0[rows], np.repeat(c, len(rows), axis=0))
+            for stage in stages:
+                idx = fitter.index[stage.vertices]
+                xt = torch.as_tensor(_turn(x[rows][:, idx], G[rows], origin[rows]) * 1000.0, dtype=dtype)
+                wt = torch.as_tensor(w[rows][:, idx] / w[rows].mean(axis=1, keepdims=True), dtype=dtype)
+                fitter.optimise(stage, z, vertex_term(xt, wt))
+            _, q, root = fitter.parameters(z)
+            return q.numpy(), root.numpy()
+
+        runs = np.array_split(np.arange(len(x)), max(1, min(self.config.workers, len(x))))
+        with ThreadPoolExecutor(len(runs)) as pool:
+            done = list(pool.map(fit, runs))
+        return np.concatenate([q for q, _ in done]), np.concatenate([root for _, root in done])
 
     def _report(self, stats: DistanceStats, q: np.ndarray, iterations: int, seconds: float) -> FitReport:
         reasons = []
