@@ -32,11 +32,11 @@
    (:meth:`ScanFitter._valley_twin`), and the score picks again: pelvis tilt, lumbar bend and hip flexion
    trade along a valley the all-vertex phase does not run to its end.
 4. Non-rigid refinement (:mod:`.nonrigid`): per-vertex offsets for detail beyond the shape space.
-5. Branches (:data:`DEFAULT_BRANCHES`): from the shape phase on, steps 3-4 run twice from the same state,
-   once as above and once with the subset phases in the metric's variables too (more damped), and the
-   registration whose scan points lie closer (mean distance) is kept. Each branch alone ends in a gross error
-   (an arm folded over a hole, a head turned) on scans where the other does not, and the scan-to-model
-   distance tells which.
+5. Branches (:data:`DEFAULT_BRANCHES`): from the shape phase up to the valley phase, step 3 runs twice from
+   the same state, at once on a thread each: once as above and once with the subset phases in the metric's
+   variables too (more damped). The branch whose hypothesis scores best after the all-vertex phase goes on
+   alone to the valley phase and step 4. Each branch alone ends in a gross error (an arm folded over a hole,
+   a head turned) on scans where the other does not, and the robust score tells which.
 
 The fitted parameters are expressed in the scan's own frame when the pelvis angles can hold the scan's
 orientation (an upright-ish body); otherwise they stay in the body frame and ``scan_to_body`` maps between.

@@ -499,11 +499,12 @@ class SequenceFitter:
         dtype = fitter.config.dtype
 
         def fit(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            x_r, w_r, G_r, o_r = x[rows], w[rows], G[rows], origin[rows]
             z = fitter.start_state(q0[rows], r0[rows], np.repeat(c, len(rows), axis=0))
             for stage in stages:
                 idx = fitter.index[stage.vertices]
-                xt = torch.as_tensor(_turn(x[rows][:, idx], G[rows], origin[rows]) * 1000.0, dtype=dtype)
-                wt = torch.as_tensor(w[rows][:, idx] / w[rows].mean(axis=1, keepdims=True), dtype=dtype)
+                xt = torch.as_tensor(_turn(x_r[:, idx], G_r, o_r) * 1000.0, dtype=dtype)
+                wt = torch.as_tensor(w_r[:, idx] / w_r.mean(axis=1, keepdims=True), dtype=dtype)
                 fitter.optimise(stage, z, vertex_term(xt, wt))
             _, q, root = fitter.parameters(z)
             return q.numpy(), root.numpy()
