@@ -178,11 +178,14 @@ def test_no_seams_between_chunks(
     whole = SequenceFitter(seq_fitter.fitter, SequenceConfig(chunk=T)).fit(x[:100])
     chunked = seq_fitter.fit(x[:100])
     assert np.abs(whole.registration() - chunked.registration()).max() < 1e-4
-    # Nor do the threads a chunk's frames are split over.
+    # Nor do the threads a chunk's frames are split over, beyond rounding: the batches differ, so float32
+    # rounds differently and a few frames' optimisation carries that further (measured on the benchmark's
+    # clip: 0.04 mm mean, 2.3 mm at worst). Frames mixed up between the runs would be centimetres off.
     config = replace(seq_fitter.config, workers=1)
     assert seq_fitter.config.workers == 2
     one_thread = SequenceFitter(seq_fitter.fitter, config).fit(x[:100])
-    assert np.abs(one_thread.registration() - chunked.registration()).max() < 1e-4  # float32 rounding
+    apart = np.linalg.norm(one_thread.registration() - chunked.registration(), axis=-1)
+    assert apart.mean() < 2e-4 and apart.max() < 5e-3
 
 
 def test_model_sequence_and_progress(model: BodyModel, moved: Retargeted, seq_fitter: SequenceFitter) -> None:

@@ -186,10 +186,14 @@ class RegisteredFitter:
 
     # -- input -----------------------------------------------------------------------------------------
     def validate(
-        self, targets: np.ndarray | torch.Tensor, weights: np.ndarray | None
+        self,
+        targets: np.ndarray | torch.Tensor,
+        weights: np.ndarray | None,
+        dtype: type[np.floating] = np.float64,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """(B, V, 3) targets and (B, V) weights as float64 arrays; raises ShapeError / NonFiniteError."""
-        x = np.asarray(targets, np.float64)
+        """(B, V, 3) targets as an array of ``dtype`` (no copy when they already are one) and (B, V) weights,
+        float64; raises ShapeError / NonFiniteError."""
+        x: np.ndarray = np.asarray(targets, dtype)
         V = self.model.n_vertices
         if x.ndim == 2:
             x = x[None]
@@ -397,7 +401,8 @@ class RegisteredFitter:
         def unpack(Z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
             pose = Z[:, :n_pose].reshape(B, len(fd) + 3)
             u = z_u.index_copy(1, fd, pose[:, : len(fd)])
-            c = z_c.index_copy(1, fs, Z[:, n_pose:])
+            # A frozen shape stays out of the graph: backward then skips the skin's rest-shape half.
+            c = z_c.index_copy(1, fs, Z[:, n_pose:]) if len(fs) else z_c
             return u, pose[:, len(fd) :], c
 
         def losses(Z: torch.Tensor) -> torch.Tensor:

@@ -321,7 +321,10 @@ class SequenceFitter:
             raise ShapeError(f"vertex weights must have shape {x.shape[:2]}; got {w.shape}")
 
         def source(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-            return x[idx], None if w is None else w[idx]
+            rows: np.ndarray | slice = idx
+            if len(idx) and idx[-1] - idx[0] == len(idx) - 1 and (np.diff(idx) == 1).all():
+                rows = slice(idx[0], idx[-1] + 1)  # a run of frames: a view, not a copy
+            return x[rows], None if w is None else w[rows]
 
         return self.fit_frames(source, len(x), progress, keep_vertices=True)
 
@@ -396,7 +399,7 @@ class SequenceFitter:
             joints[lo:hi] = (j @ Gk + o).double().numpy()
             if verts is not None:
                 verts[lo:hi] = v_world
-            totals.add(x.astype(np.float32), v_world, w)
+            totals.add(x, v_world, w)
             if progress is not None:
                 progress(hi, T)
 
@@ -474,7 +477,7 @@ class SequenceFitter:
         """Frames idx (k,) from the source, checked, with their canonical frames (step 1): x (k, V, 3) and
         w (k, V) as given, G (k, 3, 3) world -> canonical rotations and the pelvis origins (k, 3)."""
         x, w = source(idx)
-        x, w = self.fitter.validate(x, w)
+        x, w = self.fitter.validate(x, w, np.float32)
         if len(x) != len(idx):
             raise ShapeError(f"the frame source gave {len(x)} frames for {len(idx)} requested")
         heading, origin = self.headings(x, w)
@@ -498,18 +501,23 @@ class SequenceFitter:
         vertices are turned. Returns coordinates (B, n_dof) and root (B, 3)."""
         dtype = fitter.config.dtype
 
-        def fit(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            x_r, w_r, G_r, o_r = x[rows], w[rows], G[rows], origin[rows]
-            z = fitter.start_state(q0[rows], r0[rows], np.repeat(c, len(rows), axis=0))
+        def fit(rows: slice) -> tuple[np.ndarray, np.ndarray]:
+            w_r, G_r, o_r = w[rows], G[rows], origin[rows]
+            w_mean = w_r.mean(axis=1, keepdims=True)
+            z = fitter.start_state(q0[rows], r0[rows], np.repeat(c, len(w_r), axis=0))
             for stage in stages:
                 idx = fitter.index[stage.vertices]
-                xt = torch.as_tensor(_turn(x_r[:, idx], G_r, o_r) * 1000.0, dtype=dtype)
-                wt = torch.as_tensor(w_r[:, idx] / w_r.mean(axis=1, keepdims=True), dtype=dtype)
+                xt = torch.as_tensor(_turn(x[rows, idx], G_r, o_r) * 1000.0, dtype=dtype)
+                wt = torch.as_tensor(w_r[:, idx] / w_mean, dtype=dtype)
                 fitter.optimise(stage, z, vertex_term(xt, wt))
             _, q, root = fitter.parameters(z)
             return q.numpy(), root.numpy()
 
-        runs = np.array_split(np.arange(len(x)), max(1, min(self.config.workers, len(x))))
+        runs = [
+            slice(int(r[0]), int(r[-1]) + 1)
+            for r in np.array_split(np.arange(len(x)), self.config.workers)
+            if len(r)
+        ]
         with ThreadPoolExecutor(len(runs)) as pool:
             done = list(pool.map(fit, runs))
         return np.concatenate([q for q, _ in done]), np.concatenate([root for _, root in done])
