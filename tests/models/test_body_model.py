@@ -104,6 +104,26 @@ def test_gradients_match_finite_differences_in_float64(body: BodyModel) -> None:
     assert torch.autograd.gradcheck(f, args, eps=1e-6, atol=1e-5, rtol=1e-4)
 
 
+def test_the_skin_of_a_fixed_shape_is_the_decoder_s_and_so_are_its_gradients(body: BodyModel) -> None:
+    """BodyDecoder.posed: whole template, a vertex subset and a template with offsets, in float64."""
+    shape, q, root = _random_inputs(body, 3, seed=11)
+    full = body.decoder(torch.float64)
+    offsets = np.random.default_rng(2).normal(scale=0.01, size=(body.n_vertices, 3))
+    for dec in (full, full.restricted(np.arange(0, body.n_vertices, 7)), full.with_offsets(offsets)):
+        c = torch.as_tensor(shape[:1])
+        qt = torch.tensor(q, requires_grad=True)
+        rt = torch.tensor(root, requires_grad=True)
+        ref = dec(c.expand(3, -1), qt, rt)[0]
+        got = dec.posed(c)(qt, rt)
+        assert got.shape == ref.shape
+        assert float((got - ref).abs().max()) < 1e-12
+        probe = torch.randn(ref.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+        g_ref = torch.autograd.grad((ref * probe).sum(), [qt, rt])
+        g_got = torch.autograd.grad((got * probe).sum(), [qt, rt])
+        for a, b in zip(g_got, g_ref, strict=True):
+            assert float((a - b).abs().max()) < 1e-9 * max(1.0, float(b.abs().max()))
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_any_batch_size_and_both_dtypes(body: BodyModel, dtype: torch.dtype) -> None:
     for n in (0, 1, 5):

