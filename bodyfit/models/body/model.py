@@ -247,9 +247,7 @@ class BodyDecoder(nn.Module):
         Returns:
             vertices (B, V, 3), joints (B, J, 3), frames (B, n_body, 4, 4), scales (B, n_seg, 3).
         """
-        B = shape.shape[0]
-        scales = (self.scale_mean + shape[:, : self.n_bone] @ self.scale_basis).reshape(B, self.n_seg, 3)
-        coeffs = torch.cat([torch.ones_like(shape[:, :1]), shape], dim=1)  # (B, 1 + n_shape)
+        scales, coeffs = self._shape_terms(shape)
         world = self.fk.frames_cm(q, root, scales)  # (4, 4, n_body, B)
         transforms = self._transforms(world, self._bind_shift(coeffs))
         rows = blend_rows(transforms)
@@ -269,8 +267,7 @@ class BodyDecoder(nn.Module):
         """
         with torch.no_grad():
             shape = shape.reshape(1, -1).to(self.scale_mean.dtype)
-            scales = (self.scale_mean + shape[:, : self.n_bone] @ self.scale_basis).reshape(1, self.n_seg, 3)
-            coeffs = torch.cat([torch.ones_like(shape[:, :1]), shape], dim=1)
+            scales, coeffs = self._shape_terms(shape)
             shift = self._bind_shift(coeffs)
             blocks = []
             for block in self.skin:
@@ -288,6 +285,13 @@ class BodyDecoder(nn.Module):
             return torch.cat(parts, 2).permute(1, 2, 0)
 
         return skin
+
+    def _shape_terms(self, shape: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Segment scales (B, n_seg, 3) and skin coefficients [1, c] (B, 1 + n_shape) of shapes c
+        (B, n_shape)."""
+        scales = self.scale_mean + shape[:, : self.n_bone] @ self.scale_basis
+        coeffs = torch.cat([torch.ones_like(shape[:, :1]), shape], dim=1)
+        return scales.reshape(len(shape), self.n_seg, 3), coeffs
 
     def _bind_shift(self, coeffs: torch.Tensor) -> torch.Tensor:
         """Rb^T tb of every body for shapes [1, c] (B, 1 + n_shape): (3, n_body, B), component-major."""

@@ -322,7 +322,7 @@ class SequenceFitter:
 
         def source(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
             rows: np.ndarray | slice = idx
-            if len(idx) and idx[-1] - idx[0] == len(idx) - 1 and (np.diff(idx) == 1).all():
+            if len(idx) and (np.diff(idx) == 1).all():
                 rows = slice(idx[0], idx[-1] + 1)  # a run of frames: a view, not a copy
             return x[rows], None if w is None else w[rows]
 
@@ -474,8 +474,8 @@ class SequenceFitter:
     def _frames(
         self, source: FrameSource, idx: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Frames idx (k,) from the source, checked, with their canonical frames (step 1): x (k, V, 3) and
-        w (k, V) as given, G (k, 3, 3) world -> canonical rotations and the pelvis origins (k, 3)."""
+        """Frames idx (k,) from the source, checked, with their canonical frames (step 1): x (k, V, 3) float32
+        and w (k, V) float64, G (k, 3, 3) world -> canonical rotations and the pelvis origins (k, 3)."""
         x, w = source(idx)
         x, w = self.fitter.validate(x, w, np.float32)
         if len(x) != len(idx):
