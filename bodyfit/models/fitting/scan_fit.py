@@ -385,9 +385,7 @@ class ScanFitter:
         hyp = starts[best]
         n_iter, tail = self._run_phases(hyp, phases[until:], branches[best], run, "")
         iterations += n_iter
-        fit = self._result(
-            hyp, points, run.cleaned, run.tree, iterations, {**losses, **branch_losses[best], **tail}, began
-        )
+        fit = self._result(hyp, points, run, iterations, {**losses, **branch_losses[best], **tail}, began)
         extra = {
             **fit.report.extra,
             "branch": best,
@@ -676,18 +674,19 @@ class ScanFitter:
         self,
         hyp: Hypotheses,
         points: np.ndarray,
-        cleaned: np.ndarray,
-        tree: PointTree,
+        run: _PhaseRun,
         iterations: int,
         losses: dict[str, float],
         start: float,
     ) -> ScanFit:
+        """The fit of the best hypothesis of ``hyp``: refined, in the scan's frame, with every raw point's
+        (N, 3) distance to the registration (in parts, on the run's threads) and the report."""
         model, skel = self.model, self.model.skeleton
         R, m = hyp.rotation[0], hyp.centre
         c, q, root = (t[0].numpy() for t in self.fitter.parameters(hyp.state))
         all_verts = self._vertices(hyp.state)
         body_verts = all_verts[0]
-        body_points = (cleaned - m) @ R.T
+        body_points = (run.cleaned - m) @ R.T
         registration = body_verts
         if self.config.nonrigid is not None:
             # a single view's side facing its sensor
@@ -714,9 +713,12 @@ class ScanFitter:
         joints = out.joints[0].numpy() @ R + m
         vertices = body_verts @ R + m
         registration = registration @ R + m
-        distances = point_to_surface(points, registration, self.faces)
+        parts = np.array_split(points, self.config.workers)
+        distances = np.concatenate(
+            list(run.pool.map(lambda part: point_to_surface(part, registration, self.faces), parts))
+        )
         offset = float(np.linalg.norm(registration - vertices, axis=1).mean())
-        coverage = float(np.mean(tree.query(registration, COVERED_MM / 1000)[0] < np.inf))
+        coverage = float(np.mean(run.tree.query(registration, COVERED_MM / 1000)[0] < np.inf))
         seconds = time.perf_counter() - start
         report = self._report(
             distances, coverage, offset, hyp.searched, hyp.view, q, iterations, seconds, losses
