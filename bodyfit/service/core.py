@@ -188,7 +188,6 @@ class BodyService:
             threads: threads of ONNX Runtime and torch (default: their own choice).
             fitters: build the fitters now (a server); otherwise on first use (synthesis only).
             smpl_model: an SMPL-family model file for upgrades (path a); checked now when given.
-            fitters: build the fitters now (a server); otherwise on first use (synthesis only).
         Raises:
             AssetError: a missing or corrupted asset, with how to rebuild it.
         """
