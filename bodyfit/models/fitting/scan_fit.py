@@ -302,12 +302,13 @@ class ScanFitter:
         names = model.skeleton.body_names
         self.limbs = LimbSearch(self.fitter)
         distal = []
-        self._distal_rest = []  # per distal chain, the vertices of the rest of the body
+        self._distal_parts = []  # each distal chain's vertices, then those of no chain
         for bodies, _ in DISTAL_SEARCH:
-            mine = np.isin(owner, [names.index(b) for b in bodies])
-            own = np.flatnonzero(mine)
+            own = np.flatnonzero(np.isin(owner, [names.index(b) for b in bodies]))
             distal.append(own[:: max(1, len(own) // DISTAL_VERTICES)])
-            self._distal_rest.append(np.flatnonzero(~mine))
+            self._distal_parts.append(own)
+        chained = np.concatenate(self._distal_parts)
+        self._distal_parts.append(np.setdiff1d(np.arange(model.n_vertices), chained))
         self._neutral = model.skeleton.inside(model.bind_coordinates, 0.1)
         self._distal_decoder = self.fitter.decoder.restricted(np.concatenate(distal))
         # each distal chain's columns in the distal decoder's output
@@ -636,17 +637,18 @@ class ScanFitter:
         for h in range(len(q)):
             v = grid_vertices(self._distal_decoder, grids, c[h], q[h], root[h], self.fitter.config.dtype)
             points = hyp.points[h]
-            chains = zip(grids, self._distal_columns, self._distal_rest, strict=True)
-            for (dofs, values), cols, rest in chains:
-                loose = points[PointTree(whole[h, rest]).query(points, EXPLAINED_M)[0] > EXPLAINED_M]
+            # each point's distance to each part (the chains, the rest), inf beyond EXPLAINED_M
+            parts = self._distal_parts
+            near = np.stack([PointTree(whole[h, p]).query(points, EXPLAINED_M)[0] for p in parts])
+            for chain, ((dofs, values), cols) in enumerate(zip(grids, self._distal_columns, strict=True)):
+                loose = points[np.delete(near, chain, axis=0).min(0) > EXPLAINED_M]
                 if not len(loose):
                     q[h, dofs] = self._neutral[dofs]
                     continue
                 n = len(values)
-                d = PointTree(loose).query(v[:, cols].reshape(-1, 3), DISTAL_TRUNCATION_M)[0]
-                d = d.reshape(K + 1, -1)
-                d2 = np.minimum(d, DISTAL_TRUNCATION_M) ** 2
-                cost = np.append(d2[:n].mean(1), d2[K].mean())
+                mine = np.append(np.arange(n), K)  # this chain's candidates, then the current pose
+                d = PointTree(loose).query(v[mine][:, cols].reshape(-1, 3), DISTAL_TRUNCATION_M)[0]
+                cost = (np.minimum(d, DISTAL_TRUNCATION_M) ** 2).reshape(n + 1, -1).mean(1)
                 best = int(np.argmin(cost))
                 if cost[best] > UNSUPPORTED * DISTAL_TRUNCATION_M**2:
                     q[h, dofs] = self._neutral[dofs]
