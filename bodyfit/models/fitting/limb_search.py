@@ -5,6 +5,7 @@ leaves unexplained (:class:`LimbSearch`); and the optimisation state the scan fi
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, replace
 from itertools import pairwise
 
@@ -19,6 +20,8 @@ from bodyfit.models.fitting.view import Silhouette
 from bodyfit.models.skeleton.model import Skeleton
 
 Grids = list[tuple[list[int], np.ndarray]]  # per chain: the DOFs searched, their candidates (K_chain, n)
+# how a function of a hypothesis's row is mapped over the rows: ``map``, or a thread pool's
+Mapper = Callable[[Callable[[int], list[np.ndarray]], Iterable[int]], Iterable[list[np.ndarray]]]
 
 # Limb chains searched on a grid before the continuous fit: the chain's bodies and the DOFs sampled (values
 # per DOF, spread over the range). A limb's candidates are scored by how close its vertices lie to the scan.
@@ -167,7 +170,7 @@ class LimbSearch:
         self.columns = [slice(a, b) for a, b in pairwise(ends)]
         self.grids = search_grids(model.skeleton, LIMB_SEARCH)
 
-    def __call__(self, hyp: Hypotheses) -> None:
+    def __call__(self, hyp: Hypotheses, over: Mapper = map) -> None:
         """Set every limb's searched DOFs (:func:`search_grids`) of every hypothesis to the candidate whose
         limb lies on the scan (its "subset" vertices close to scan points) and reaches the scan points that
         neither the rest of the body nor the other limbs explain (an arm folded onto the chest lies on the
@@ -177,46 +180,61 @@ class LimbSearch:
         refined continuously (:meth:`refine`): the grid is coarse and holds the shoulder girdle and
         the limbs' rotation where they are, so its best candidate can lie far from a pose that fits the
         limb closely (on scans whose arm was placed wrong, the true arm's vertices cost a third to a half
-        of the grid's best)."""
+        of the grid's best). ``over`` maps the hypotheses' grid searches, which are independent (a thread
+        pool's ``map`` runs them at once)."""
         c, q, root = (t.numpy() for t in self.fitter.parameters(hyp.state))
+        scans = [PointTree(p) for p in hyp.points]
+        starts = np.repeat(q[:, None], LIMB_STARTS, axis=1)  # (H, M, n_dof): each limb's best candidates
+        # per hypothesis and limb: the loose points it must reach
+        targets = list(over(lambda h: self._grid(hyp, h, scans[h], c, q, root, starts), range(len(q))))
+        q = self.refine(hyp, scans, c, starts, root, targets)
+        hyp.state = self.fitter.start_state(q, root, c)
+
+    def _grid(
+        self,
+        hyp: Hypotheses,
+        h: int,
+        scan: PointTree,
+        c: np.ndarray,
+        q: np.ndarray,
+        root: np.ndarray,
+        starts: np.ndarray,
+    ) -> list[np.ndarray]:
+        """The grid search of hypothesis h (its fit points ``scan``; shapes c, coordinates q, roots (H, ...)):
+        sets its row of q to every limb's best candidate and its row of ``starts`` (H, M, n_dof) to every
+        limb's best distinct candidates; returns, per limb, the loose points (T, 3) it must reach."""
         decoder = self.fitter.decoders["subset"]
         grids = self.grids
         K = max(len(g) for _, g in grids)
         far, trunc2 = LIMB_TRUNCATION_M, LIMB_TRUNCATION_M**2  # distances beyond are all alike
-        scans = [PointTree(p) for p in hyp.points]
-        starts = np.repeat(q[:, None], LIMB_STARTS, axis=1)  # (H, M, n_dof): each limb's best candidates
-        targets: list[list[np.ndarray]] = []  # per hypothesis and limb: the loose points it must reach
-        for h in range(len(q)):
-            v = grid_vertices(decoder, grids, c[h], q[h], root[h], self.fitter.config.dtype)
-            # Scan points the rest of the body does not explain: limbs must reach them, not just touch the
-            # scan (an arm folded onto the chest touches it everywhere).
-            rest = PointTree(v[0, self.non_limb]).query(hyp.points[h], LIMB_TRUNCATION_M)[0]
-            loose = hyp.points[h][rest > LIMB_TRUNCATION_M]
-            loose = loose[:: max(1, len(loose) // LOOSE_POINTS)]
-            on_scan, reach = [], []
-            for (_, values), limb in zip(grids, self.vertices, strict=True):
-                on_scan.append(self.on_scan(hyp, h, scans[h], v[: len(values), limb]))
-                reach.append(self.distances(v[: len(values), limb], loose))
-            placed = [v[K, limb] for limb in self.vertices]  # the current pose's row
-            mine = [np.zeros(len(loose), bool) for _ in grids]
-            cost = list(on_scan)
-            for _ in range(LIMB_SWEEPS):
-                for L, ((dofs, values), limb) in enumerate(zip(grids, self.vertices, strict=True)):
-                    cost[L] = on_scan[L].copy()
-                    if len(loose):
-                        others = np.concatenate([placed[M] for M in range(len(grids)) if M != L])
-                        mine[L] = PointTree(others).query(loose, far)[0] > far
-                        if mine[L].any():
-                            cost[L] += REACH_WEIGHT * np.minimum(reach[L][:, mine[L]] ** 2, trunc2).mean(1)
-                    best = int(np.argmin(cost[L]))
-                    placed[L] = v[best, limb]
-                    q[h, dofs] = values[best]
+        v = grid_vertices(decoder, grids, c[h], q[h], root[h], self.fitter.config.dtype)
+        # Scan points the rest of the body does not explain: limbs must reach them, not just touch the
+        # scan (an arm folded onto the chest touches it everywhere).
+        rest = PointTree(v[0, self.non_limb]).query(hyp.points[h], LIMB_TRUNCATION_M)[0]
+        loose = hyp.points[h][rest > LIMB_TRUNCATION_M]
+        loose = loose[:: max(1, len(loose) // LOOSE_POINTS)]
+        on_scan, reach = [], []
+        for (_, values), limb in zip(grids, self.vertices, strict=True):
+            on_scan.append(self.on_scan(hyp, h, scan, v[: len(values), limb]))
+            reach.append(self.distances(v[: len(values), limb], loose))
+        placed = [v[K, limb] for limb in self.vertices]  # the current pose's row
+        mine = [np.zeros(len(loose), bool) for _ in grids]
+        cost = list(on_scan)
+        for _ in range(LIMB_SWEEPS):
             for L, ((dofs, values), limb) in enumerate(zip(grids, self.vertices, strict=True)):
-                tops = distinct(v[: len(values), limb], cost[L], LIMB_STARTS, LIMB_APART_M)
-                starts[h][:, dofs] = values[tops]
-            targets.append([loose[m] for m in mine])
-        q = self.refine(hyp, scans, c, starts, root, targets)
-        hyp.state = self.fitter.start_state(q, root, c)
+                cost[L] = on_scan[L].copy()
+                if len(loose):
+                    others = np.concatenate([placed[M] for M in range(len(grids)) if M != L])
+                    mine[L] = PointTree(others).query(loose, far)[0] > far
+                    if mine[L].any():
+                        cost[L] += REACH_WEIGHT * np.minimum(reach[L][:, mine[L]] ** 2, trunc2).mean(1)
+                best = int(np.argmin(cost[L]))
+                placed[L] = v[best, limb]
+                q[h, dofs] = values[best]
+        for L, ((dofs, values), limb) in enumerate(zip(grids, self.vertices, strict=True)):
+            tops = distinct(v[: len(values), limb], cost[L], LIMB_STARTS, LIMB_APART_M)
+            starts[h][:, dofs] = values[tops]
+        return [loose[m] for m in mine]
 
     def on_scan(self, hyp: Hypotheses, h: int, scan: PointTree, verts: np.ndarray) -> np.ndarray:
         """(n,) how far limb candidates (n, V_limb, 3) of hypothesis h (body frame) lie from its scan points

@@ -58,6 +58,7 @@ from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting.limb_search import (
     Hypotheses,
     LimbSearch,
+    Mapper,
     grid_vertices,
     search_grids,
 )
@@ -368,12 +369,13 @@ class ScanFitter:
         cfg = self.config
         split, until, branches = self._branches()
         phases = cfg.phases
-        iterations, losses = self._run_phases(hyp, phases[:split], branches[0], run, "")
+        # before and after the branches the pool's threads are free for a phase's own work
+        iterations, losses = self._run_phases(hyp, phases[:split], branches[0], run, "", run.pool.map)
         starts = [hyp] + [hyp.copy() for _ in branches[1:]]
 
         def run_branch(b: int) -> tuple[int, dict[str, float]]:
             label = f"branch {b + 1}: " * (len(branches) > 1)
-            return self._run_phases(starts[b], phases[split:until], branches[b], run, label)
+            return self._run_phases(starts[b], phases[split:until], branches[b], run, label, map)
 
         ran = run.pool.map(run_branch, range(len(branches)))  # at once, on the pool's threads
         branch_losses = []
@@ -384,7 +386,7 @@ class ScanFitter:
         scores = [mine[phases[until - 1].stage.name] for mine in branch_losses] if split < until else [0.0]
         best = int(np.argmin(scores))
         hyp = starts[best]
-        n_iter, tail = self._run_phases(hyp, phases[until:], branches[best], run, "")
+        n_iter, tail = self._run_phases(hyp, phases[until:], branches[best], run, "", run.pool.map)
         iterations += n_iter
         fit = self._result(hyp, points, run, iterations, {**losses, **branch_losses[best], **tail}, began)
         extra = {
@@ -416,10 +418,18 @@ class ScanFitter:
         return split, until, self.config.branches
 
     def _run_phases(
-        self, hyp: Hypotheses, phases: tuple[ScanPhase, ...], branch: ScanBranch, run: _PhaseRun, label: str
+        self,
+        hyp: Hypotheses,
+        phases: tuple[ScanPhase, ...],
+        branch: ScanBranch,
+        run: _PhaseRun,
+        label: str,
+        over: Mapper,
     ) -> tuple[int, dict[str, float]]:
         """Run ``phases`` on ``hyp`` (updated in place) the way ``branch`` says; returns the iterations run
-        and each phase's best robust score."""
+        and each phase's best robust score. ``over`` maps the limb search over the hypotheses (the run's
+        pool where its threads are free: from within a branch, which holds one of them, it would wait on
+        itself with a single worker)."""
         iterations, losses = 0, {}
         for phase in phases:
             hyp.points = np.einsum(
@@ -432,7 +442,7 @@ class ScanFitter:
             if phase.valley_twin:
                 self._valley_twin(hyp)
             if phase.search_limbs:
-                self.limbs(hyp)
+                self.limbs(hyp, over)
             if phase.search_distal:
                 self._search_distal(hyp)
             hyp.visible = self._visible(hyp, self.fitter.index[phase.stage.vertices])
