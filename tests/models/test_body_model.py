@@ -105,7 +105,8 @@ def test_gradients_match_finite_differences_in_float64(body: BodyModel) -> None:
 
 
 def test_the_skin_of_a_fixed_shape_is_the_decoder_s_and_so_are_its_gradients(body: BodyModel) -> None:
-    """BodyDecoder.posed: whole template, a vertex subset and a template with offsets, in float64."""
+    """BodyDecoder.posed (vertices, and joints with them): whole template, a vertex subset and a template with
+    offsets, in float64."""
     shape, q, root = _random_inputs(body, 3, seed=11)
     full = body.decoder(torch.float64)
     offsets = np.random.default_rng(2).normal(scale=0.01, size=(body.n_vertices, 3))
@@ -113,10 +114,14 @@ def test_the_skin_of_a_fixed_shape_is_the_decoder_s_and_so_are_its_gradients(bod
         c = torch.as_tensor(shape[:1])
         qt = torch.tensor(q, requires_grad=True)
         rt = torch.tensor(root, requires_grad=True)
-        ref = dec(c.expand(3, -1), qt, rt)[0]
+        ref, ref_joints, _, _ = dec(c.expand(3, -1), qt, rt)
         got = dec.posed(c)(qt, rt)
         assert got.shape == ref.shape
         assert float((got - ref).abs().max()) < 1e-12
+        both, joints = dec.posed(c).with_joints(qt, rt)
+        assert float((both - ref).abs().max()) < 1e-12
+        assert joints.shape == ref_joints.shape
+        assert float((joints - ref_joints).abs().max()) < 1e-12
         probe = torch.randn(ref.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
         g_ref = torch.autograd.grad((ref * probe).sum(), [qt, rt])
         g_got = torch.autograd.grad((got * probe).sum(), [qt, rt])

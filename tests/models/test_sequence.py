@@ -5,7 +5,7 @@ sequences of one person: accuracy on held-out anny bodies, one shape, no seams b
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import replace
+from dataclasses import astuple, replace
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +17,7 @@ from bodyfit.models.errors import NonFiniteError, ShapeError
 from bodyfit.models.fitting.bvh import CMU_UNITS, BvhMotion, read_bvh
 from bodyfit.models.fitting.mocap_io import MocapFormatError
 from bodyfit.models.fitting.registered import RegisteredFitter, Stage
+from bodyfit.models.fitting.report import DistanceStats
 from bodyfit.models.fitting.retarget import Retargeted, retarget, wrap_pelvis
 from bodyfit.models.fitting.sequence import JitterSum, SequenceConfig, SequenceFit, SequenceFitter, jitter
 
@@ -275,6 +276,26 @@ def test_jitter_definition() -> None:
     for part in np.array_split(np.arange(11), [1, 2, 6]):  # chunks of 1, 1, 4 and 5 frames
         running.add(y[part], w[part])
     assert running.mm() == pytest.approx(jitter(y, w))
+
+
+def test_per_frame_statistics_at_once_are_each_frame_s() -> None:
+    """DistanceStats.of_rows: every row kept (float32, no copy), the same columns dropped in every row, and
+    rows that keep different entries or hold NaN (one row at a time) all agree with DistanceStats.of."""
+    rng = np.random.default_rng(3)
+    d = rng.uniform(0.0, 0.01, size=(6, 50)).astype(np.float32)
+    every = np.ones(d.shape, bool)
+    same = every.copy()
+    same[:, ::3] = False
+    mixed = rng.uniform(size=d.shape) < 0.7
+    with_nan = d.copy()
+    with_nan[2, 4] = np.nan
+    for metres, keep in ((d, every), (d, same), (d, mixed), (with_nan, every)):
+        got = DistanceStats.of_rows(metres, keep)
+        for row, stats in enumerate(got):
+            want = DistanceStats.of(metres[row][keep[row]])
+            for a, b in zip(astuple(stats), astuple(want), strict=True):
+                assert a == pytest.approx(b, rel=1e-5)
+    assert DistanceStats.of_rows(d, every)[0].max == pytest.approx(float(d[0].max()) * 1000.0, rel=1e-6)
 
 
 def test_bad_sequences_raise(model: BodyModel, seq_fitter: SequenceFitter) -> None:

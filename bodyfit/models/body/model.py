@@ -15,7 +15,6 @@ standard normal draw is a plausible body). Coordinates are the skeleton's (OpenS
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -253,38 +252,18 @@ class BodyDecoder(nn.Module):
         rows = blend_rows(transforms)
         vertices = torch.cat([block(coeffs, *rows) for block in self.skin], dim=1)
         frames = world.permute(3, 2, 0, 1).contiguous()
-        joints = body_points(frames, scales, self.joint_body, self.joint_segment, self.joint_local)
-        return vertices, joints, frames, scales
+        return vertices, self.joints(frames, scales), frames, scales
 
-    def posed(self, shape: torch.Tensor) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
-        """The skin of one fixed shape (1, n_shape) as a function of the pose alone: ``skin(q (B, n_dof),
-        root (B, 3))`` gives the vertices (B, V, 3) of ``forward(shape.expand(B, -1), q, root)``.
+    def joints(self, frames: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+        """Anatomical joint centres (B, J, 3) of body frames (B, n_body, 4, 4) and segment scales
+        (B, n_seg, 3)."""
+        return body_points(frames, scales, self.joint_body, self.joint_segment, self.joint_local)
 
-        With the rest shape fixed, each block's skin is one GEMM, (3 B, 4 m) @ (4 m, V_k): the m bodies'
-        transforms against the rest coordinates weighted by their skinning weights, [w x; w y; w z; w],
-        computed here once. Pose fits with a frozen shape (a sequence's frames) so skip the (3, B, 3, V)
-        products of :func:`blend_block` and its backward: about a fifth of an evaluation.
-        """
-        with torch.no_grad():
-            shape = shape.reshape(1, -1).to(self.scale_mean.dtype)
-            scales, coeffs = self._shape_terms(shape)
-            shift = self._bind_shift(coeffs)
-            blocks = []
-            for block in self.skin:
-                assert isinstance(block, SkinBlock)
-                rest, w = (coeffs @ block.basis).reshape(3, -1), block.weights_t
-                blocks.append((block.bodies, torch.cat([w[None] * rest[:, None], w[None]]).flatten(0, 1)))
-
-        def skin(q: torch.Tensor, root: torch.Tensor) -> torch.Tensor:
-            B = q.shape[0]
-            transforms = self._transforms(self.fk.frames_cm(q, root, scales.expand(B, -1, -1)), shift)
-            parts = [
-                (transforms[:, :, bodies].permute(0, 3, 1, 2).reshape(3 * B, -1) @ M).reshape(3, B, -1)
-                for bodies, M in blocks
-            ]
-            return torch.cat(parts, 2).permute(1, 2, 0)
-
-        return skin
+    def posed(self, shape: torch.Tensor) -> PosedSkin:
+        """The skin of one fixed shape (1, n_shape) as a function of the pose alone (:class:`PosedSkin`):
+        ``skin(q (B, n_dof), root (B, 3))`` gives the vertices (B, V, 3) of ``forward(shape.expand(B, -1),
+        q, root)``."""
+        return PosedSkin(self, shape)
 
     def _shape_terms(self, shape: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Segment scales (B, n_seg, 3) and skin coefficients [1, c] (B, 1 + n_shape) of shapes c
@@ -303,6 +282,51 @@ class BodyDecoder(nn.Module):
         (4, 4, n_body, B), with ``shift`` (3, n_body, B or 1) from :meth:`_bind_shift`; component-major."""
         R, t = world[:3, :3], world[:3, 3]
         return torch.cat([cm_matmul(R, self.bind_rot_t), (t - cm_matvec(R, shift)).unsqueeze(1)], 1)
+
+
+class PosedSkin:
+    """The skin of one fixed shape as a function of the pose alone (:meth:`BodyDecoder.posed`).
+
+    With the rest shape fixed, each block's skin is one GEMM, (3 B, 4 m) @ (4 m, V_k): the m bodies'
+    transforms against the rest coordinates weighted by their skinning weights, [w x; w y; w z; w], computed
+    here once. Pose fits with a frozen shape (a sequence's frames) so skip the (3, B, 3, V) products of
+    :func:`blend_block` and its backward: about a fifth of an evaluation.
+    """
+
+    def __init__(self, decoder: BodyDecoder, shape: torch.Tensor) -> None:
+        self.decoder = decoder
+        with torch.no_grad():
+            shape = shape.reshape(1, -1).to(decoder.scale_mean.dtype)
+            self.scales, coeffs = decoder._shape_terms(shape)
+            self.shift = decoder._bind_shift(coeffs)
+            self.blocks: list[tuple[torch.Tensor, torch.Tensor]] = []  # each block's bodies and GEMM matrix
+            for block in decoder.skin:
+                assert isinstance(block, SkinBlock)
+                rest, w = (coeffs @ block.basis).reshape(3, -1), block.weights_t
+                weighted = torch.cat([w[None] * rest[:, None], w[None]]).flatten(0, 1)
+                self.blocks.append((block.bodies, weighted))
+
+    def __call__(self, q: torch.Tensor, root: torch.Tensor) -> torch.Tensor:
+        """Vertices (B, V, 3) of coordinates q (B, n_dof) and roots (B, 3)."""
+        return self._skin(self._world(q, root))
+
+    def with_joints(self, q: torch.Tensor, root: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Vertices (B, V, 3) and anatomical joint centres (B, J, 3) of q (B, n_dof) and roots (B, 3)."""
+        world = self._world(q, root)
+        frames = world.permute(3, 2, 0, 1)
+        return self._skin(world), self.decoder.joints(frames, self.scales.expand(q.shape[0], -1, -1))
+
+    def _world(self, q: torch.Tensor, root: torch.Tensor) -> torch.Tensor:
+        return self.decoder.fk.frames_cm(q, root, self.scales.expand(q.shape[0], -1, -1))
+
+    def _skin(self, world: torch.Tensor) -> torch.Tensor:
+        B = world.shape[-1]
+        transforms = self.decoder._transforms(world, self.shift)
+        parts = [
+            (transforms[:, :, bodies].permute(0, 3, 1, 2).reshape(3 * B, -1) @ M).reshape(3, B, -1)
+            for bodies, M in self.blocks
+        ]
+        return torch.cat(parts, 2).permute(1, 2, 0)
 
 
 @dataclass(frozen=True)

@@ -31,12 +31,15 @@ class DistanceStats:
         """One :meth:`of` per row of distances (k, N) metres, over the entries where ``keep`` (k, N) is
         true; all rows at once when every row keeps the same entries and they are finite."""
         columns = keep[0]
-        chosen = np.asarray(metres)[:, columns]
+        chosen = np.asarray(metres)
+        if not columns.all():
+            chosen = chosen[:, columns]
         if (keep == columns).all() and np.isfinite(chosen).all() and chosen.shape[1] > 0:
-            d = chosen * 1000.0  # float32 distances stay float32 (sub-micrometre at this scale)
-            mean, peak = d.mean(axis=1), d.max(axis=1)
-            median, p95 = np.percentile(d, [50, 95], axis=1)
-            return [cls(*map(float, row)) for row in zip(mean, median, p95, peak, strict=True)]
+            # in the distances' own float type (float32: sub-micrometre at this scale), then in mm
+            mean, peak = chosen.mean(axis=1), chosen.max(axis=1)
+            median, p95 = np.percentile(chosen, [50, 95], axis=1)
+            rows = zip(mean, median, p95, peak, strict=True)
+            return [cls(*(float(x) * 1000.0 for x in row)) for row in rows]
         return [cls.of(row[k]) for row, k in zip(metres, keep, strict=True)]
 
 

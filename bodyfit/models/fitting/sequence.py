@@ -194,14 +194,17 @@ class _Totals:
         self.jitter_fit = JitterSum()
 
     def add(self, x: np.ndarray, fitted: np.ndarray, w: np.ndarray) -> None:
-        """Input frames x (k, V, 3), fitted skins (k, V, 3), weights (k, V); float32 metres."""
-        dist = _lengths(fitted - x)
-        used = dist[w > 0]
-        self.distance_sum += float(used.sum(dtype=np.float64))
-        self.distance_count += used.size
-        self.frames.extend(DistanceStats.of_rows(dist, w > 0))
-        self.jitter_input.add(x, w)
-        self.jitter_fit.add(fitted, w)
+        """Input frames x (k, V, 3), fitted skins (k, V, 3), weights (k, V); float32 metres. The jitter is
+        summed on a second thread meanwhile (numpy's array operations release the interpreter)."""
+        with ThreadPoolExecutor(1) as pool:
+            smooth = pool.submit(lambda: (self.jitter_input.add(x, w), self.jitter_fit.add(fitted, w)))
+            dist = _lengths(fitted - x)
+            seen = w > 0
+            used = dist if seen.all() else dist[seen]
+            self.distance_sum += float(used.sum(dtype=np.float64))
+            self.distance_count += used.size
+            self.frames.extend(DistanceStats.of_rows(dist, seen))
+            smooth.result()
 
 
 def jitter(x: np.ndarray, weights: np.ndarray | None = None) -> float:
@@ -375,28 +378,26 @@ class SequenceFitter:
         r_init = np.stack([np.interp(np.arange(T), keys, r_key[:, j]) for j in range(3)], 1)
 
         q_c, root_c = np.empty_like(q_init), np.empty((T, 3))
-        q_s = np.empty_like(q_init)  # after the blend
+        q, root = np.empty_like(q_init), np.empty((T, 3))  # blended, in the world
         G, origin = np.empty((T, 3, 3)), np.empty((T, 3))
         verts = np.empty((T, self.model.n_vertices, 3), np.float32) if keep_vertices else None
         joints = np.empty((T, len(self.model.joint_names), 3))
         totals = _Totals()
         dtype = pose_fitter.config.dtype
-        ct = torch.as_tensor(c, dtype=dtype)
+        skin = pose_fitter.decoder.posed(torch.as_tensor(c, dtype=dtype))
 
         def finish(lo: int, hi: int, x: np.ndarray, w: np.ndarray) -> None:
-            """Blend, skin and measure frames lo:hi (every neighbour's pose is known by now)."""
-            q_s[lo:hi] = self._blend(q_c, lo, hi)
+            """Blend, turn back to the world, skin and measure frames lo:hi (every neighbour's pose is known
+            by now)."""
+            q[lo:hi], root[lo:hi] = self._world(
+                self._blend(q_c, lo, hi), root_c[lo:hi], G[lo:hi], origin[lo:hi]
+            )
             with torch.no_grad():
-                v, j, _, _ = pose_fitter.decoder(
-                    ct.expand(hi - lo, -1),
-                    torch.as_tensor(q_s[lo:hi], dtype=dtype),
-                    torch.as_tensor(root_c[lo:hi], dtype=dtype),
+                v, j = skin.with_joints(
+                    torch.as_tensor(q[lo:hi], dtype=dtype), torch.as_tensor(root[lo:hi], dtype=dtype)
                 )
-            # World = G^T canonical + origin, on row vectors: v @ G + origin.
-            Gk = torch.as_tensor(G[lo:hi], dtype=dtype)
-            o = torch.as_tensor(origin[lo:hi, None], dtype=dtype)
-            v_world = (v @ Gk + o).numpy().astype(np.float32, copy=False)
-            joints[lo:hi] = (j @ Gk + o).double().numpy()
+            v_world = v.numpy()
+            joints[lo:hi] = j.double().numpy()
             if verts is not None:
                 verts[lo:hi] = v_world
             totals.add(x, v_world, w)
@@ -417,11 +418,6 @@ class SequenceFitter:
             finish(*pending)
         iterations = sum(st.iterations for st in cfg.frame_stages)
 
-        # Back to the world: root and pelvis orientation turned back, pelvis angles unwrapped.
-        Gt = np.swapaxes(G, -1, -2)
-        root = np.einsum("tij,tj->ti", Gt, root_c) + origin
-        q = q_s.copy()
-        q[:, self.pelvis_dofs] = zxy_angles(Gt @ _zxy_matrix(q_s[:, self.pelvis_dofs]))
         q = unwrap_pelvis(q, self.model.skeleton)
         seconds = time.perf_counter() - start
 
@@ -455,6 +451,17 @@ class SequenceFitter:
             )
         rotations = decoder.blended_rotations(frames)
         return fit_rest_offsets(rotations, x - shaped.vertices, w, self.model.faces, config)
+
+    def _world(
+        self, q: np.ndarray, root: np.ndarray, G: np.ndarray, origin: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Coordinates q (k, n_dof) and roots (k, 3) of canonical frames (G (k, 3, 3), origin (k, 3)) in the
+        world: the root and the pelvis's orientation turned back (the pelvis angles in range, not yet
+        unwrapped). Skinned, they give the canonical skin turned back."""
+        Gt = np.swapaxes(G, -1, -2)
+        out = q.copy()
+        out[:, self.pelvis_dofs] = zxy_angles(Gt @ _zxy_matrix(q[:, self.pelvis_dofs]))
+        return out, np.einsum("tij,tj->ti", Gt, root) + origin
 
     def _blend(self, q: np.ndarray, lo: int, hi: int) -> np.ndarray:
         """Rows lo:hi of q (T, n_dof) after the centred blend of the joint coordinates (see
