@@ -197,7 +197,7 @@ class _Totals:
         """Input frames x (k, V, 3), fitted skins (k, V, 3), weights (k, V); float32 metres. The jitter is
         summed on a second thread meanwhile (numpy's array operations release the interpreter)."""
         with ThreadPoolExecutor(1) as pool:
-            smooth = pool.submit(lambda: (self.jitter_input.add(x, w), self.jitter_fit.add(fitted, w)))
+            smooth = pool.submit(self._add_jitter, x, fitted, w)
             dist = _lengths(fitted - x)
             seen = w > 0
             used = dist if seen.all() else dist[seen]
@@ -205,6 +205,10 @@ class _Totals:
             self.distance_count += used.size
             self.frames.extend(DistanceStats.of_rows(dist, seen))
             smooth.result()
+
+    def _add_jitter(self, x: np.ndarray, fitted: np.ndarray, w: np.ndarray) -> None:
+        self.jitter_input.add(x, w)
+        self.jitter_fit.add(fitted, w)
 
 
 def jitter(x: np.ndarray, weights: np.ndarray | None = None) -> float:
