@@ -308,6 +308,34 @@ def test_vertices_out_of_the_scans_reach_are_not_pulled_in_the_point_to_plane_ph
     assert pulls[0][~far].max() > 0.0
 
 
+def test_the_point_to_plane_model_to_scan_term_averages_over_a_fixed_vertex_sample(model: BodyModel) -> None:
+    """ScanFitConfig.model_vertices: the model -> scan term of a point-to-plane phase (here alone) pulls
+    exactly the sampled vertices and is their mean Geman-McClure distance to the nearest fit point; None
+    pulls every vertex."""
+    q = model.skeleton.inside(model.bind_coordinates, 0.1)[None]
+    out = model.forward(np.zeros((1, model.n_shape)), q, np.zeros((1, 3)), dtype=torch.float64)
+    v = out.vertices[0].numpy()
+    points, _ = sample_surface(v, model.faces, 20_000, seed=2)
+    phase = dataclasses.replace(next(p for p in DEFAULT_PHASES if p.plane), two_way=False)
+    s2 = phase.sigma_mm**2
+    for n in (None, 3000):
+        fitter = ScanFitter(model, ScanFitConfig(model_vertices=n))
+        hyp = fitter._candidates(points, np.eye(3), None)
+        hyp.points = (points - hyp.centre)[None]
+        body = (v - hyp.centre) * 1000.0
+        verts = torch.tensor(body[None], dtype=torch.float32, requires_grad=True)
+        loss = fitter._chamfer(hyp, phase)(verts)
+        loss.sum().backward()
+        assert verts.grad is not None
+        pulled = np.flatnonzero(verts.grad[0].norm(dim=1).numpy() > 0)
+        sample = np.arange(model.n_vertices) if n is None else fitter._model_sample
+        assert len(sample) == (model.n_vertices if n is None else n)
+        assert set(pulled) <= set(sample) and len(pulled) > 0.99 * len(sample)
+        d2 = cKDTree(hyp.points[0] * 1000.0).query(body[sample])[0] ** 2
+        rho = np.minimum(d2 * s2 / (d2 + s2), REACH_MM**2 * s2 / (REACH_MM**2 + s2))
+        assert float(loss[0]) == pytest.approx(0.5 * rho.mean(), rel=1e-4)
+
+
 def test_a_real_t_posed_body_given_as_bare_points_is_fitted_facing_forward(fitter: ScanFitter) -> None:
     """The CC BY man (SMPL topology, T-pose) as 6,890 bare points turned at random, orientation searched:
     facing him backwards with his legs crossed fits the points nearly as well until his limbs are posed

@@ -1,8 +1,7 @@
 """The scan fit's searches on their own: the head's, hands' and toes' search (``_search_distal``) finds the
 pose of a body sampled from the model, keeps a pose that is already right and leaves a chain the scan lost
 to the bind pose; the limb search (``LimbSearch``) refines an arm its grid cannot hold; the straight-spine
-twins (``_straighten_spine``) keep the chest where it was; the valley twins (``_valley_twin``) turn the
-pelvis alone."""
+twins (``_straighten_spine``) keep the chest where it was."""
 
 from __future__ import annotations
 
@@ -20,7 +19,6 @@ from bodyfit.models.fitting.scan_fit import (
     DEFAULT_BRANCHES,
     DEFAULT_PHASES,
     STRAIGHTENED,
-    VALLEY_TILT,
     ScanFitConfig,
     ScanFitter,
 )
@@ -182,30 +180,6 @@ def test_scapula_twins_move_only_the_scapulae_to_mid_range(model: BodyModel) -> 
     assert np.abs(q[2:, scapula] - q[:2, scapula]).max() > 0.1
 
 
-def test_valley_twins_turn_the_pelvis_alone(model: BodyModel) -> None:
-    skel = model.skeleton
-    fitter = ScanFitter(model)
-    hyp, _ = _twinned(fitter, fitter._valley_twin, seed=2, spread=0.15, margin=0.2)
-    c, q, root = (t.numpy() for t in fitter.fitter.parameters(hyp.state))
-    frames = fitter._frames(c, q, root)
-    names = skel.body_names
-    # the pelvis turns about its lateral (z) axis ...
-    relative = np.swapaxes(frames[:2, 0, :3, :3], 1, 2) @ frames[2:, 0, :3, :3]
-    cos, sin = np.cos(VALLEY_TILT), np.sin(VALLEY_TILT)
-    turn = np.array([[cos, -sin, 0.0], [sin, cos, 0.0], [0.0, 0.0, 1.0]])
-    np.testing.assert_allclose(relative, np.repeat(turn[None], 2, 0), atol=1e-5)
-    # ... and the thighs and the chest keep their orientation
-    for body in ("femur_r", "femur_l", "thorax"):
-        j = names.index(body)
-        assert np.all(_turn_deg(frames[2:, j, :3, :3], frames[:2, j, :3, :3]) < 0.1), body
-    hips = [names.index("femur_r"), names.index("femur_l")]
-    # the hip joints lie on the pelvis's lateral axis: keeping their midpoint keeps both
-    np.testing.assert_allclose(frames[2:, hips][..., :3, 3], frames[:2, hips][..., :3, 3], atol=1e-6)
-    for name in ("hip_flexion_r", "hip_flexion_l", "lumbar_extension"):
-        i = skel.dof_index(name)
-        np.testing.assert_allclose(q[2:, i] - q[:2, i], -VALLEY_TILT, atol=1e-5)
-
-
 def test_orientation_phase_seats_a_body_with_its_legs_more_than_its_spine(model: BodyModel) -> None:
     """A seated body (hips and knees flexed, spine straight) fitted by the orientation phase alone, its
     orientation given. With the legs' flexion free ("core", the default) the hips and knees take most of
@@ -237,8 +211,7 @@ def test_orientation_phase_seats_a_body_with_its_legs_more_than_its_spine(model:
 
 def test_the_last_phase_refines_both_limb_hypotheses_and_keeps_the_better(model: BodyModel) -> None:
     """The limbs phase hands its hypothesis and the scapula twin on together; the score chooses between them
-    only after the all-vertex phase has refined both, and again after the valley phase has refined the
-    chosen one and its valley twin."""
+    only after the all-vertex phase has refined both, and the valley phase refines the chosen one alone."""
     skel = model.skeleton
     q = _start(model)
     for name, deg in {"arm_flex_r": 40, "elbow_flex_r": 60, "hip_flexion_l": 50, "knee_angle_l": 60}.items():
@@ -259,8 +232,9 @@ def test_the_last_phase_refines_both_limb_hypotheses_and_keeps_the_better(model:
     fit = fitter.fit(points, orientation=np.eye(3))
     assert [name for name, _ in scored] == [p.stage.name for p in DEFAULT_PHASES]
     by_name = dict(scored)
-    # the scapula twin and its original, both refined; then the better one and its valley twin
-    assert len(by_name["limbs"]) == len(by_name["fine"]) == len(by_name["valley"]) == 2
+    # the scapula twin and its original, both refined; then the better one alone
+    assert len(by_name["limbs"]) == len(by_name["fine"]) == 2
+    assert len(by_name["valley"]) == 1
     last = by_name["valley"]
     assert fit.report.extra["phase_scores"][DEFAULT_PHASES[-1].stage.name] == round(float(last.min()), 5)
     error = np.linalg.norm(fit.vertices - body.vertices[0].numpy(), axis=1).mean() * 1000
