@@ -328,8 +328,11 @@ def test_the_point_to_plane_model_to_scan_term_averages_over_a_fixed_vertex_samp
         loss.sum().backward()
         assert verts.grad is not None
         pulled = np.flatnonzero(verts.grad[0].norm(dim=1).numpy() > 0)
-        sample = np.arange(model.n_vertices) if n is None else fitter._model_sample
-        assert len(sample) == (model.n_vertices if n is None else n)
+        sample = fitter._model_sample
+        if n is None:
+            assert sample is None
+            sample = np.arange(model.n_vertices)
+        assert sample is not None and len(sample) == (model.n_vertices if n is None else n)
         assert set(pulled) <= set(sample) and len(pulled) > 0.99 * len(sample)
         d2 = cKDTree(hyp.points[0] * 1000.0).query(body[sample])[0] ** 2
         rho = np.minimum(d2 * s2 / (d2 + s2), REACH_MM**2 * s2 / (REACH_MM**2 + s2))
