@@ -517,14 +517,14 @@ class ScanFitter:
             v = verts_mm.detach().double().numpy() / 1000.0
             H = len(v)
             pairs = np.empty(fit_points.shape[:2], np.int64)
-            mine = v if sample is None else v[:, sample]
-            targets = np.empty(mine.shape)
+            model_v = v if sample is None else v[:, sample]
+            targets = np.empty(model_v.shape)
             for h in range(H):
                 if seen_index is None:
                     pairs[h] = PointTree(v[h]).query(fit_points[h])[1]
                 else:  # a single view's points lie on the surface that faced the sensor
                     pairs[h] = seen_index[h][PointTree(v[h, seen_index[h]]).query(fit_points[h])[1]]
-                targets[h] = fit_points[h][point_trees[h].query(mine[h])[1]]
+                targets[h] = fit_points[h][point_trees[h].query(model_v[h])[1]]
             J = torch.as_tensor(pairs).unsqueeze(-1).expand(-1, -1, 3)
             r = torch.gather(verts_mm, 1, J) - P  # (H, N, 3)
             d2 = (r**2).sum(-1)

@@ -400,7 +400,7 @@ class SequenceFitter:
                 v, j = skin.with_joints(
                     torch.as_tensor(q[lo:hi], dtype=dtype), torch.as_tensor(root[lo:hi], dtype=dtype)
                 )
-            v_world = v.numpy()
+            v_world = v.numpy().astype(np.float32, copy=False)  # float32 whatever the fitter's dtype
             joints[lo:hi] = j.double().numpy()
             if verts is not None:
                 verts[lo:hi] = v_world
