@@ -13,31 +13,35 @@
 3. Coarse to fine (DESIGN.md section 6): iterated closest points in both directions (scan point -> nearest
    model vertex, point-to-plane; model vertex -> nearest scan point), Geman-McClure weights with a shrinking
    scale, each round minimised by the staged L-BFGS of :class:`RegisteredFitter` (joint limits kept by the
-   tanh mapping): the limbs, then the identity shape on a vertex subset, then all vertices. The all-vertex
-   (point-to-plane) phases run their L-BFGS in the variables of the loss's Gauss-Newton metric at the
-   phase's start (:meth:`RegisteredFitter.metric`: the Jacobian on the vertex subset, the normal direction
-   weighted fully and the tangential ones by ``tangential``), starting with a Newton step. The surface's
-   sliding modes (a thigh turned about its axis, the pelvis tilted against the lumbar bend) are nearly flat
-   for a Chamfer loss, and L-BFGS scaled per coordinate (:meth:`RegisteredFitter._preconditioner`) had not
-   run them out after 50 iterations: on clean held-out scans the parametric fit then lay 2-3 mm from the scan
-   points and 4-6 mm from the truth, against about 1 and 2 mm in the metric's variables. The limbs are
-   placed first by a grid search whose best few distinct candidates per limb are refined continuously
+   tanh mapping): the limbs, then the identity shape on a vertex subset, then a denser subset (below),
+   point-to-plane. The point-to-plane phases run their L-BFGS in the variables of the loss's Gauss-Newton
+   metric at the phase's start (:meth:`RegisteredFitter.metric`: the Jacobian on the vertex subset, the normal
+   direction weighted fully and the tangential ones by ``tangential``), starting with a Newton step. The
+   surface's sliding modes (a thigh turned about its axis, the pelvis tilted against the lumbar bend) are
+   nearly flat for a Chamfer loss, and L-BFGS scaled per coordinate (:meth:`RegisteredFitter._preconditioner`)
+   had not run them out after 50 iterations: on clean held-out scans the parametric fit then lay 2-3 mm from
+   the scan points and 4-6 mm from the truth, against about 1 and 2 mm in the metric's variables. The limbs
+   are placed first by a grid search whose best few distinct candidates per limb are refined continuously
    (:class:`.limb_search.LimbSearch`), the head, hands and toes later by a grid search of their own. Before
    the limbs are searched a second time the fit also goes on from a twin with the scapulae at mid-range, as
    fits from the bind pose tend to hold the shoulders up with the scapulae at their limits. Both go through
-   the last (all-vertex) phase and the score picks one only then: refined to the end, the better fit scores
+   the first point-to-plane phase and the score picks one only then: refined to the end, the better fit scores
    better (on 36 held-out scans it picked the one with the lower registration error every time the two
-   differed by more than 3 mm), while after the limbs phase near-ties rank no better than chance. The one
-   kept goes through a last, shorter all-vertex phase ("valley": pelvis tilt, lumbar bend and hip flexion
-   trade along a valley of the loss that the all-vertex phase does not run to its end). In the all-vertex
-   phases the model -> scan term averages over a fixed random sample of the vertices
-   (:attr:`ScanFitConfig.model_vertices`), the scan -> model term over every scan point's nearest vertex.
+   differed by more than 3 mm), while after the limbs phase near-ties rank no better than chance. The one kept
+   goes through a last, shorter point-to-plane phase ("valley": pelvis tilt, lumbar bend and hip flexion trade
+   along a valley of the loss that the first point-to-plane phase does not run to its end). The point-to-plane
+   phases fit the "dense" farthest-point subset of 5,000 vertices (:class:`RegisteredFitConfig`), with the
+   normals of a coarse mesh on it (:func:`.surface.coarse_faces`): the template's head, hands and toes carry
+   two thirds of its vertices 2.5 mm apart, its trunk and limbs are 15-20 mm apart, and the subset keeps
+   nearly every vertex of the latter. On the 102 held-out benchmark scans that fit better than all the
+   vertices (registration error 7.75 mm mean and 4.05 median against 8.24 and 5.01; every vertex counted
+   alike weighted the model -> scan term towards the head and hands) at a third of their cost.
 4. Non-rigid refinement (:mod:`.nonrigid`): per-vertex offsets for detail beyond the shape space.
 5. Branches (:data:`DEFAULT_BRANCHES`): from the shape phase up to the valley phase, step 3 runs twice from
    the same state, at once on a thread each: once as above and once with the subset phases in the metric's
-   variables too (more damped). The branch whose hypothesis scores best after the all-vertex phase goes on
-   alone to the valley phase and step 4. Each branch alone ends in a gross error (an arm folded over a hole,
-   a head turned) on scans where the other does not, and the robust score tells which.
+   variables too (more damped). The branch whose hypothesis scores best after the first point-to-plane phase
+   goes on alone to the valley phase and step 4. Each branch alone ends in a gross error (an arm folded over
+   a hole, a head turned) on scans where the other does not, and the robust score tells which.
 
 The fitted parameters are expressed in the scan's own frame when the pelvis angles can hold the scan's
 orientation (an upright-ish body); otherwise they stay in the body frame and ``scan_to_body`` maps between.
@@ -68,7 +72,12 @@ from bodyfit.models.fitting.nonrigid import NonRigidConfig, refine_nonrigid
 from bodyfit.models.fitting.registered import DataTerm, RegisteredFitter, Stage, State
 from bodyfit.models.fitting.report import DistanceStats, FitReport
 from bodyfit.models.fitting.scan_io import MIN_POINTS, Scan, ScanError
-from bodyfit.models.fitting.surface import NormalOperators, point_to_surface, vertex_normals
+from bodyfit.models.fitting.surface import (
+    NormalOperators,
+    coarse_faces,
+    point_to_surface,
+    vertex_normals,
+)
 from bodyfit.models.fitting.view import Silhouette, view_direction
 from bodyfit.models.rotations import zxy_angles
 from bodyfit.models.skeleton.model import PELVIS_ROTATIONS
@@ -136,8 +145,8 @@ DEFAULT_PHASES = (
         search_distal=True,
         scapula_twin=True,
     ),
-    ScanPhase(Stage("fine", "all", "all", "all", 50), 10.0, 1, 4000, plane=True, search_distal=True),
-    ScanPhase(Stage("valley", "all", "all", "all", 25), 10.0, 1, 4000, plane=True),
+    ScanPhase(Stage("fine", "all", "all", "dense", 50), 10.0, 1, 4000, plane=True, search_distal=True),
+    ScanPhase(Stage("valley", "all", "all", "dense", 25), 10.0, 1, 4000, plane=True),
 )
 
 # The small, vertex-dense ends of the body, searched the same way once the limbs are placed: their bodies and
@@ -171,11 +180,11 @@ class ScanBranch:
 
 
 # Two branches from the shape phase to the valley phase, and the one whose hypothesis scores best after the
-# all-vertex phase goes on. The second runs the subset phases in the metric too, with more damping: on their
-# own, either ends in a gross error (an arm or the head placed wrong) on scans where the other does not
-# (102 held-out scans of every condition: 10.9 and 12.0 mm alone). Chosen by the all-vertex phase's robust
-# score, 8.2 mm; by the refined registrations' distance to the scan, after both had run to the end, 9.0 (a
-# non-rigid registration lies close to the scan even where its body does not) at one more valley phase and
+# first point-to-plane phase goes on. The second runs the subset phases in the metric too, with more damping:
+# on their own, either ends in a gross error (an arm or the head placed wrong) on scans where the other does
+# not (102 held-out scans of every condition: 10.9 and 12.0 mm alone). Chosen by the point-to-plane phase's
+# robust score, 8.2 mm; by the refined registrations' distance to the scan, after both had run to the end, 9.0
+# (a non-rigid registration lies close to the scan even where its body does not) at one more valley phase and
 # refinement per scan.
 DEFAULT_BRANCHES = (
     ScanBranch(frozenset({"fine", "valley"}), 1e-3),
@@ -194,11 +203,7 @@ class ScanFitConfig:
     whose hypothesis scores best on the last branched phase goes on alone, the way it says; one branch, or
     no phase named ``branch_from``, fits once; workers: threads the branches run on at once (they are
     independent, so the fit does not depend on it; torch's intra-op threads add little at these sizes:
-    ``torch.set_num_threads(1)`` and 2 workers suit 2 cores); model_vertices: how many of the template's
-    vertices (a fixed random sample, drawn with ``seed``) the point-to-plane phases' model -> scan term
-    averages over (None: all). Half of them cost a third less in nearest-neighbour queries, the term's
-    largest cost, and fit alike: on the 102 held-out benchmark scans 8.24 mm against 8.32 with all, the
-    scans under 15 mm 4.63 against 4.64."""
+    ``torch.set_num_threads(1)`` and 2 workers suit 2 cores)."""
 
     phases: tuple[ScanPhase, ...] = DEFAULT_PHASES
     branches: tuple[ScanBranch, ...] = DEFAULT_BRANCHES
@@ -212,7 +217,6 @@ class ScanFitConfig:
     single_view: bool = True
     seed: int = 0
     workers: int = 2
-    model_vertices: int | None = 6700
 
 
 @dataclass(frozen=True)
@@ -322,9 +326,13 @@ class ScanFitter:
         self._thorax = names.index("thorax")
         self._scapula = [i for i, n in enumerate(model.skeleton.dof_names) if n.startswith("scapula_")]
         self._distal_grid = search_grids(model.skeleton, DISTAL_SEARCH)
-        V, n = model.n_vertices, self.config.model_vertices
-        rng = np.random.default_rng(self.config.seed)
-        self._model_sample = None if n is None or n >= V else np.sort(rng.choice(V, n, replace=False))
+        # the vertex sets a point-to-plane phase can fit, and their surfaces (faces, normal operators)
+        dense = self.fitter.index["dense"]
+        dense_faces = coarse_faces(model.data["vertices_mean"], self.faces, dense)
+        self._surfaces = {
+            "all": (self.faces, self._normals),
+            "dense": (dense_faces, NormalOperators.of(dense_faces, len(dense), loop_float)),
+        }
 
     def fit(
         self,
@@ -490,50 +498,47 @@ class ScanFitter:
 
         with p_i the phase's fit points, j(i) the vertex nearest p_i, s(j) the fit point nearest v_j (both
         found again at every evaluation), and the scan -> model distance point-to-plane when
-        ``phase.plane``; then the second mean runs over the config's sample of the vertices
-        (:attr:`ScanFitConfig.model_vertices`), and a vertex further than :data:`REACH_MM` from every fit
-        point adds a constant."""
+        ``phase.plane`` (the normals of the stage's vertex set's surface, "all" or "dense"); then a vertex
+        further than :data:`REACH_MM` from every fit point adds a constant to the second mean."""
         dtype = self.fitter.config.dtype
-        idx = self.fitter.index[phase.stage.vertices]
         P = torch.as_tensor(hyp.points * 1000.0, dtype=dtype)
         fit_points = hyp.points
         point_trees = [PointTree(p) for p in fit_points]
         s2 = phase.sigma_mm**2
         tangential = self.config.tangential
         plane = phase.plane
-        if plane and len(idx) != self.model.n_vertices:
-            raise ValueError("point-to-plane Chamfer needs the stage to use all vertices")
+        if plane and phase.stage.vertices not in self._surfaces:
+            raise ValueError(
+                f"point-to-plane Chamfer needs a vertex set with a surface ({', '.join(self._surfaces)}); "
+                f"the stage {phase.stage.name!r} fits {phase.stage.vertices!r}"
+            )
+        faces, normal_ops = self._surfaces.get(phase.stage.vertices, self._surfaces["all"])
 
         def rho(d2: torch.Tensor) -> torch.Tensor:
             return d2 * s2 / (d2 + s2)
 
-        sample = self._model_sample if plane else None  # the model -> scan term's vertices (None: all)
-        sampled = None if sample is None else torch.as_tensor(sample)
-        visible = hyp.visible if hyp.visible is None or sample is None else hyp.visible[:, sample]
-        seen = None if visible is None else torch.as_tensor(visible, dtype=dtype)
+        seen = None if hyp.visible is None else torch.as_tensor(hyp.visible, dtype=dtype)
         seen_index = None if hyp.visible is None else [np.flatnonzero(m) for m in hyp.visible]
 
         def term(verts_mm: torch.Tensor) -> torch.Tensor:
             v = verts_mm.detach().double().numpy() / 1000.0
             H = len(v)
             pairs = np.empty(fit_points.shape[:2], np.int64)
-            model_v = v if sample is None else v[:, sample]
-            targets = np.empty(model_v.shape)
+            targets = np.empty(v.shape)
             for h in range(H):
                 if seen_index is None:
                     pairs[h] = PointTree(v[h]).query(fit_points[h])[1]
                 else:  # a single view's points lie on the surface that faced the sensor
                     pairs[h] = seen_index[h][PointTree(v[h, seen_index[h]]).query(fit_points[h])[1]]
-                targets[h] = fit_points[h][point_trees[h].query(model_v[h])[1]]
+                targets[h] = fit_points[h][point_trees[h].query(v[h])[1]]
             J = torch.as_tensor(pairs).unsqueeze(-1).expand(-1, -1, 3)
             r = torch.gather(verts_mm, 1, J) - P  # (H, N, 3)
             d2 = (r**2).sum(-1)
             if plane:
-                n = vertex_normals(verts_mm.detach().numpy(), self.faces, self._normals)  # float32
+                n = vertex_normals(verts_mm.detach().numpy(), faces, normal_ops)  # float32
                 along = (r * torch.as_tensor(np.take_along_axis(n, pairs[..., None], 1), dtype=dtype)).sum(-1)
                 d2 = along**2 + tangential * (d2 - along**2)
-            model_mm = verts_mm if sampled is None else verts_mm[:, sampled]
-            m2s = rho(((model_mm - torch.as_tensor(targets * 1000.0, dtype=dtype)) ** 2).sum(-1))
+            m2s = rho(((verts_mm - torch.as_tensor(targets * 1000.0, dtype=dtype)) ** 2).sum(-1))
             if plane:  # beyond the reach, a constant: no pull towards a hole's rim
                 m2s = m2s.clamp_max(REACH_MM**2 * s2 / (REACH_MM**2 + s2))
             m2s_mean = m2s.mean(1) if seen is None else (m2s * seen).sum(1) / seen.sum(1).clamp_min(1.0)

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 import torch
+from scipy.sparse.csgraph import dijkstra
 
 from bodyfit.models.fitting.nearest import PointTree
 
@@ -63,6 +64,28 @@ def vertex_normals(
     acc = np.moveaxis(summed.reshape(-1, *batch, 3), 0, -2)
     norm = np.linalg.norm(acc, axis=-1, keepdims=True)
     return np.divide(acc, norm, out=np.zeros_like(acc), where=norm > 0)
+
+
+def coarse_faces(vertices: np.ndarray, faces: np.ndarray, subset: np.ndarray) -> np.ndarray:
+    """Faces (F', 3) of a coarser mesh on the vertices ``subset`` (S,) of a mesh (V, 3), (F, 3), numbered as
+    in ``subset``: every vertex goes to the subset vertex nearest along the mesh's edges (its region), and
+    each face whose corners lie in three different regions gives the triangle of those regions, oriented
+    as the face (the dual of the regions, once per triangle). On a subset spread over the surface (a
+    farthest-point sample) the coarse mesh's normals (:func:`vertex_normals`) follow the fine one's, and are
+    a function of the subset's vertices alone."""
+    f = np.asarray(faces, np.int64)
+    V = len(vertices)
+    edges = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0)
+    length = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
+    graph = sp.csr_matrix((length, (edges[:, 0], edges[:, 1])), shape=(V, V))
+    _, _, source = dijkstra(graph, directed=False, indices=subset, min_only=True, return_predecessors=True)
+    position = np.full(V, -1, np.int64)
+    position[subset] = np.arange(len(subset))
+    region = position[source][f]  # (F, 3); -1 on a part of the mesh no subset vertex reaches
+    split = (region[:, 0] != region[:, 1]) & (region[:, 1] != region[:, 2]) & (region[:, 2] != region[:, 0])
+    tri = region[split & (region >= 0).all(1)]
+    _, first = np.unique(np.sort(tri, axis=1), axis=0, return_index=True)
+    return tri[np.sort(first)]
 
 
 def vertex_faces(faces: np.ndarray, n_vertices: int) -> np.ndarray:
