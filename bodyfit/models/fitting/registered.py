@@ -148,9 +148,9 @@ class RegisteredFitter:
         spread = farthest_point_subset(template, max(cfg.dense_size, cfg.subset_size, cfg.coarse_size))
         self.index = {
             "trunk": np.flatnonzero(np.isin(body_of_vertex, trunk_ids)),
-            "dense": np.sort(spread[: self.config.dense_size]),
-            "subset": np.sort(spread[: self.config.subset_size]),
-            "coarse": np.sort(spread[: self.config.coarse_size]),
+            "dense": np.sort(spread[: cfg.dense_size]),
+            "subset": np.sort(spread[: cfg.subset_size]),
+            "coarse": np.sort(spread[: cfg.coarse_size]),
             "all": np.arange(model.n_vertices),
         }
         self.decoders = self._decoders_of(self.decoder)

@@ -81,7 +81,8 @@ def coarse_faces(vertices: np.ndarray, faces: np.ndarray, subset: np.ndarray) ->
     _, _, source = dijkstra(graph, directed=False, indices=subset, min_only=True, return_predecessors=True)
     position = np.full(V, -1, np.int64)
     position[subset] = np.arange(len(subset))
-    region = position[source][f]  # (F, 3); -1 on a part of the mesh no subset vertex reaches
+    # (F, 3); -1 on a part of the mesh no subset vertex reaches (dijkstra marks it with a negative source)
+    region = np.where(source >= 0, position[np.maximum(source, 0)], -1)[f]
     split = (region[:, 0] != region[:, 1]) & (region[:, 1] != region[:, 2]) & (region[:, 2] != region[:, 0])
     tri = region[split & (region >= 0).all(1)]
     _, first = np.unique(np.sort(tri, axis=1), axis=0, return_index=True)
