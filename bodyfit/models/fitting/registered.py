@@ -83,7 +83,7 @@ class RegisteredFitConfig:
     |c|^2 (coefficients are in population standard deviations) against the loss in mm^2."""
 
     stages: tuple[Stage, ...] = DEFAULT_STAGES
-    dense_size: int = 5000
+    dense_size: int = 6500
     subset_size: int = 1000
     coarse_size: int = 200
     shape_prior: float = 1e-2
