@@ -23,11 +23,18 @@ What is measured
 
 Usage::
 
-    python benchmarks/fit_scans.py [--quick] [--json]
+    python benchmarks/fit_scans.py [--quick] [--json] [--rows ROWS.jsonl]
+
+``--rows`` also writes every scan's row (its index ``k``, condition, errors and seconds) as JSON lines, as
+each fit ends: ``benchmarks/compare_scans.py`` compares two such files scan by scan. The gross errors on a
+few scans move with the platform's floating-point rounding, about 1 mm on the 102-scan mean, so compare
+changes in one environment, scan by scan.
 """
 
 from __future__ import annotations
 
+import argparse
+import json
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -99,7 +106,9 @@ def torch_threads(n: int) -> Iterator[None]:
         torch.set_num_threads(before)
 
 
-def run(quick: bool) -> dict[str, Any]:
+def run(quick: bool, rows_path: str | None = None) -> dict[str, Any]:
+    """Fit the scans (12 when ``quick``) and summarise; with ``rows_path``, also write every scan's row to
+    it as a JSON line as each fit ends."""
     model = BodyModel.load()
     n = 12 if quick else 102
     with torch_threads(2):  # the bodies as every earlier run made them (anny's float32 skinning)
@@ -108,33 +117,44 @@ def run(quick: bool) -> dict[str, Any]:
     # keeps to one thread per op (its intra-op threads add about 6% to a scan fit at these sizes).
     fitter = ScanFitter(model)
     parts = vertex_parts(model)
-    rows = []
+    rows: list[dict[str, Any]] = []
     for k, truth in enumerate(bodies.vertices):
-        condition = CONDITIONS[k % len(CONDITIONS)]
-        points = make_scan(truth, model.faces, condition, k)
-        moved, T = corrupt.random_rigid(points, np.random.default_rng(10_000 + k))
-        with torch_threads(1):
-            start = time.perf_counter()
-            fit = fitter.fit(moved)
-            seconds = time.perf_counter() - start
-        truth_moved = truth @ T[:3, :3].T + T[:3, 3]
-        error = np.linalg.norm(fit.registration - truth_moved, axis=1) * 1000
-        rows.append({
-            "condition": condition,
-            "points": len(moved),
-            "scan_mm": fit.report.distances.mean,
-            "inlier_fraction": fit.report.extra["inlier_fraction"],
-            "registration_mm": float(error.mean()),
-            **{f"{p}_mm": float(error[parts == p].mean()) for p in ("trunk", *PARTS)},
-            "seconds": seconds,
-            "confident": fit.report.confident,
-            "violations": fit.report.limit_violations,
-        })  # fmt: skip
+        rows.append(fit_one(fitter, model.faces, parts, truth, k))
+        if rows_path:
+            with open(rows_path, "a" if k else "w") as out:
+                out.write(json.dumps({"k": k, **rows[-1]}) + "\n")
     return {
         **summarise(rows),
         "scan_torch_threads": 1,
         "scan_workers": fitter.config.workers,
     }
+
+
+def fit_one(
+    fitter: ScanFitter, faces: np.ndarray, parts: np.ndarray, truth: np.ndarray, k: int
+) -> dict[str, Any]:
+    """Scan body k (ground truth vertices (V, 3)) under its condition, fit it and measure the fit."""
+    condition = CONDITIONS[k % len(CONDITIONS)]
+    points = make_scan(truth, faces, condition, k)
+    moved, T = corrupt.random_rigid(points, np.random.default_rng(10_000 + k))
+    with torch_threads(1):
+        start, cpu = time.perf_counter(), time.process_time()
+        fit = fitter.fit(moved)
+        seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
+    truth_moved = truth @ T[:3, :3].T + T[:3, 3]
+    error = np.linalg.norm(fit.registration - truth_moved, axis=1) * 1000
+    return {
+        "condition": condition,
+        "points": len(moved),
+        "scan_mm": fit.report.distances.mean,
+        "inlier_fraction": fit.report.extra["inlier_fraction"],
+        "registration_mm": float(error.mean()),
+        **{f"{p}_mm": float(error[parts == p].mean()) for p in ("trunk", *PARTS)},
+        "seconds": seconds,
+        "cpu_seconds": cpu,
+        "confident": fit.report.confident,
+        "violations": fit.report.limit_violations,
+    }  # fmt: skip
 
 
 def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
@@ -171,7 +191,10 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> None:
     from bench_cli import bench_main  # benchmarks/ is on sys.path when this runs as a script
 
-    bench_main(run, __doc__.split("\n")[0], "12 scans instead of 102", argv)
+    parser = argparse.ArgumentParser(add_help=False)
+    parser.add_argument("--rows", metavar="ROWS.jsonl", help="also write every scan's row to this file")
+    known, rest = parser.parse_known_args(argv)
+    bench_main(lambda quick: run(quick, known.rows), __doc__.split("\n")[0], "12 scans instead of 102", rest)
 
 
 if __name__ == "__main__":
