@@ -65,11 +65,12 @@ def batched_lbfgs(
     gamma = torch.ones(N, dtype=z.dtype) if newton_start else 1.0 / g.norm(dim=1).clamp_min(1e-12)
     step = torch.ones(N, dtype=z.dtype)
     slot = 0
-    for _ in range(iterations):
-        # Two-loop recursion, newest pair first; empty or skipped pairs have rho = 0 and do nothing.
+    for it in range(iterations):
+        # Two-loop recursion over the pairs recorded so far, newest first; skipped pairs have rho = 0 and
+        # do nothing.
         q = g.clone()
         alpha = torch.zeros(history, N, dtype=z.dtype)
-        order = [(slot - 1 - k) % history for k in range(history)]
+        order = [(slot - 1 - k) % history for k in range(min(it, history))]
         for i in order:
             alpha[i] = rho[i] * (S[i] * q).sum(1)
             q -= alpha[i, :, None] * Y[i]
