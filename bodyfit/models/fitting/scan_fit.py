@@ -36,9 +36,9 @@
    normals of a coarse mesh on it (:func:`.surface.coarse_faces`): the template's head, hands and toes carry
    two thirds of its vertices 2.5 mm apart, its trunk and limbs are 15-20 mm apart, and the subset keeps
    nearly every vertex of the latter. On the 102 held-out benchmark scans that fit better than all the
-   vertices (registration error 7.41 mm mean and 3.86 median against 8.29 and 4.11 with 5,000 vertices, 50
-   iterations and exact normals; every vertex counted alike weighted the model -> scan term towards the head
-   and hands) at a third of their cost.
+   vertices (with 50 iterations in one metric, registration error 7.41 mm mean and 3.86 median on 6,500
+   vertices and 7.75 and 4.05 on 5,000, against 8.24 and 5.01 on all of them; every vertex counted alike
+   weighted the model -> scan term towards the head and hands) at a third of their cost.
 4. Non-rigid refinement (:mod:`.nonrigid`): per-vertex offsets for detail beyond the shape space.
 5. Branches (:data:`DEFAULT_BRANCHES`): from the shape phase up to the valley phase, step 3 runs twice from
    the same state, at once on a thread each: once as above and once with the subset phases in the metric's
