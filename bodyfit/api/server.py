@@ -20,7 +20,11 @@ def run_server(settings: ServiceSettings) -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     LOG.info("loading the model and fitters from %s", settings.assets or "the built-in assets")
     service = BodyService.load(
-        settings.assets, settings.limits(), settings.threads, smpl_model=settings.smpl_model
+        settings.assets,
+        settings.limits(),
+        settings.threads,
+        smpl_model=settings.smpl_model,
+        scan_processes=settings.scan_processes,
     )
     metrics = Metrics()
     grpc_server = None

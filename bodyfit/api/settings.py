@@ -13,8 +13,10 @@ from bodyfit.service.limits import Limits
 class ServiceSettings(BaseSettings):
     """host / rest_port / grpc_port: where the service listens (gRPC off when grpc_port is 0); assets: the
     asset folder (default the checkout's assets/); smpl_model: an SMPL-family model file for upgrades
-    (BODYFIT_SMPL_MODEL; the operator's own, none ships); threads: ONNX Runtime and torch threads; the
-    rest are request limits (see :class:`bodyfit.service.limits.Limits`)."""
+    (BODYFIT_SMPL_MODEL; the operator's own, none ships); threads: ONNX Runtime and torch threads;
+    scan_processes: 2 runs part of each raw-scan fit in a helper process (faster on two or more cores,
+    0.5 GB more memory), 1 keeps it in the server's process; the rest are request limits (see
+    :class:`bodyfit.service.limits.Limits`)."""
 
     model_config = SettingsConfigDict(env_prefix="BODYFIT_", extra="ignore")
 
@@ -24,6 +26,7 @@ class ServiceSettings(BaseSettings):
     assets: Path | None = None
     smpl_model: Path | None = None
     threads: int | None = Field(default=None, ge=1)
+    scan_processes: int = Field(default=2, ge=1, le=2)
     max_upload_mb: float = Field(default=200.0, gt=0)
     max_points: int = Field(default=2_000_000, ge=300)
     max_frames: int = Field(default=20_000, ge=1)

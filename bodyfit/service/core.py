@@ -28,7 +28,7 @@ from bodyfit.models.body.onnx_export import BODY_ONNX
 from bodyfit.models.errors import BodyfitError
 from bodyfit.models.fitting.registered import BodyFit, RegisteredFitter
 from bodyfit.models.fitting.report import FitReport
-from bodyfit.models.fitting.scan_fit import ScanFitter
+from bodyfit.models.fitting.scan_fit import ScanFitConfig, ScanFitter
 from bodyfit.models.fitting.scan_io import FORMATS as SCAN_FORMATS
 from bodyfit.models.fitting.scan_io import Scan, load_scan
 from bodyfit.models.fitting.sequence import SequenceFit, SequenceFitter
@@ -160,6 +160,7 @@ class BodyService:
     manifest: dict[str, Any] = field(default_factory=dict)
     smpl_model_path: Path | None = None
     assets: Path | None = None
+    scan_processes: int = 1
     _fitters: _Fitters | None = None
     _smpl: SmplModel | None = None
     _slots: threading.BoundedSemaphore = field(init=False)
@@ -179,6 +180,7 @@ class BodyService:
         threads: int | None = None,
         fitters: bool = True,
         smpl_model: Path | None = None,
+        scan_processes: int = 1,
     ) -> BodyService:
         """Load the hash-checked assets, the ONNX session and the fitters.
 
@@ -188,6 +190,8 @@ class BodyService:
             threads: threads of ONNX Runtime and torch (default: their own choice).
             fitters: build the fitters now (a server); otherwise on first use (synthesis only).
             smpl_model: an SMPL-family model file for upgrades (path a); checked now when given.
+            scan_processes: 2 gives the raw-scan fitter a helper process (``ScanFitConfig.processes``:
+                about 25% faster per scan on two cores, 0.5 GB more memory), started with the fitters.
         Raises:
             AssetError: a missing or corrupted asset, with how to rebuild it.
         """
@@ -200,7 +204,9 @@ class BodyService:
         session = ort.InferenceSession(
             str(verified_asset(BODY_ONNX, assets)), options, providers=["CPUExecutionProvider"]
         )
-        service = cls(model, session, limits or Limits(), read_manifest(assets), smpl_model, assets)
+        service = cls(
+            model, session, limits or Limits(), read_manifest(assets), smpl_model, assets, scan_processes
+        )
         if smpl_model is not None:
             service._smpl = load_smpl_model(smpl_model)
         if fitters:
@@ -214,7 +220,7 @@ class BodyService:
             registered = RegisteredFitter(self.model)
             self._fitters = _Fitters(
                 registered,
-                ScanFitter(self.model),
+                ScanFitter(self.model, ScanFitConfig(processes=self.scan_processes)),
                 SequenceFitter(registered),
                 upgrade_fitter(registered),
                 load_proxy(self.assets),

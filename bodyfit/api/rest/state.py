@@ -28,7 +28,9 @@ class AppState:
         """Build the service (runs in a background thread; /readyz turns 200 when done)."""
         try:
             s = self.settings
-            self.service = BodyService.load(s.assets, s.limits(), s.threads, smpl_model=s.smpl_model)
+            self.service = BodyService.load(
+                s.assets, s.limits(), s.threads, smpl_model=s.smpl_model, scan_processes=s.scan_processes
+            )
         except Exception as exc:  # surfaced by /readyz and every request, never raised into the loop
             self.load_error = f"{type(exc).__name__}: {exc}"
         finally:

@@ -111,6 +111,22 @@ class Hypotheses:
             state=(z_u.clone(), z_r.clone(), z_c.clone()),
         )  # fmt: skip
 
+    def take(self, rows: np.ndarray) -> Hypotheses:
+        """An independent copy of the hypotheses ``rows`` (K,)."""
+        part = self.copy()
+        part.keep(rows)
+        return part
+
+    def join(self, parts: list[Hypotheses]) -> None:
+        """Become ``parts`` (from :meth:`take`) one after the other: their frames, points, visible vertices
+        and optimisation states."""
+        self.rotation = np.concatenate([p.rotation for p in parts])
+        self.points = np.concatenate([p.points for p in parts])
+        visible = [p.visible for p in parts if p.visible is not None]
+        self.visible = np.concatenate(visible) if visible else None
+        z_u, z_r, z_c = (torch.cat(z) for z in zip(*(p.state for p in parts), strict=True))
+        self.state = (z_u, z_r, z_c)
+
     def add_twins(self, rows: np.ndarray, state: State) -> None:
         """Append a twin of each hypothesis ``rows`` (K,): same frame and points, optimisation state from
         ``state`` (K rows)."""

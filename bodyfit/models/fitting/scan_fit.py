@@ -74,6 +74,7 @@ from bodyfit.models.fitting.nearest import PointTree
 from bodyfit.models.fitting.nonrigid import NonRigidConfig, refine_nonrigid
 from bodyfit.models.fitting.registered import DataTerm, RegisteredFitter, Stage, State
 from bodyfit.models.fitting.report import DistanceStats, FitReport
+from bodyfit.models.fitting.scan_helper import ScanHelper
 from bodyfit.models.fitting.scan_io import MIN_POINTS, Scan, ScanError
 from bodyfit.models.fitting.surface import (
     NormalOperators,
@@ -212,7 +213,14 @@ class ScanFitConfig:
     whose hypothesis scores best on the last branched phase goes on alone, the way it says; one branch, or
     no phase named ``branch_from``, fits once; workers: threads the branches run on at once (they are
     independent, so the fit does not depend on it; torch's intra-op threads add little at these sizes:
-    ``torch.set_num_threads(1)`` and 2 workers suit 2 cores)."""
+    ``torch.set_num_threads(1)`` and 2 workers suit 2 cores); processes: 2 starts a helper process
+    (:class:`.scan_helper.ScanHelper`, its own copy of the fitter: about 5 s in the background and 0.5 GB)
+    that runs the second branch and half of the hypotheses of the phases before the branches on another
+    core (the fit is bound by the interpreter lock, so threads alone share one core's worth of Python); it
+    suits a long-lived fitter (the service, a batch of scans), not a single fit. Work the helper cannot
+    take (starting, busy with another fit's, or failed) runs in the calling process; the fit is the same
+    either way (the hypotheses are independent problems, and the phases before the branches run them in
+    the same two halves however many processes there are)."""
 
     phases: tuple[ScanPhase, ...] = DEFAULT_PHASES
     branches: tuple[ScanBranch, ...] = DEFAULT_BRANCHES
@@ -226,6 +234,11 @@ class ScanFitConfig:
     single_view: bool = True
     seed: int = 0
     workers: int = 2
+    processes: int = 1
+
+    def __post_init__(self) -> None:
+        if self.processes not in (1, 2):
+            raise ValueError(f"processes must be 1 or 2 (a helper process), not {self.processes}")
 
 
 @dataclass(frozen=True)
@@ -342,6 +355,9 @@ class ScanFitter:
             "all": (self.faces, self._normals),
             "dense": (dense_faces, NormalOperators.of(dense_faces, len(dense), loop_float)),
         }
+        self._helper = None
+        if self.config.processes > 1:
+            self._helper = ScanHelper(ScanFitter, model, replace(self.config, processes=1))
 
     def fit(
         self,
@@ -389,14 +405,34 @@ class ScanFitter:
         split, until, branches = self._branches()
         phases = cfg.phases
         # before and after the branches the pool's threads are free for a phase's own work
-        iterations, losses = self._run_phases(hyp, phases[:split], branches[0], run, "", run.pool.map)
+        iterations, losses = self._run_phases(
+            hyp, phases[:split], branches[0], run, "", run.pool.map, shard=True
+        )
         starts = [hyp] + [hyp.copy() for _ in branches[1:]]
+        labels = [f"branch {b + 1}: " * (len(branches) > 1) for b in range(len(branches))]
 
         def run_branch(b: int) -> tuple[int, dict[str, float]]:
-            label = f"branch {b + 1}: " * (len(branches) > 1)
-            return self._run_phases(starts[b], phases[split:until], branches[b], run, label, map)
+            return self._run_phases(starts[b], phases[split:until], branches[b], run, labels[b], map)
 
-        ran = run.pool.map(run_branch, range(len(branches)))  # at once, on the pool's threads
+        remote = None
+        if self._helper is not None and len(branches) == 2 and split < until:
+            remote = self._helper.submit(
+                "_branch_task", starts[1], phases[split:until], branches[1], run.cleaned, run.order, labels[1]
+            )
+        if remote is None:
+            ran = list(run.pool.map(run_branch, range(len(branches))))  # at once, on the pool's threads
+        else:  # the second branch in the helper process
+            try:
+                ran = [run_branch(0)]
+            finally:
+                theirs = remote()
+            if theirs is None:
+                ran.append(run_branch(1))
+            else:
+                starts[1], n_iter, mine_losses, lines = theirs
+                ran.append((n_iter, mine_losses))
+                for line in lines:
+                    run.report(line)
         branch_losses = []
         for n_iter, mine_losses in ran:
             iterations += n_iter
@@ -444,11 +480,13 @@ class ScanFitter:
         run: _PhaseRun,
         label: str,
         over: Mapper,
+        shard: bool = False,
     ) -> tuple[int, dict[str, float]]:
         """Run ``phases`` on ``hyp`` (updated in place) the way ``branch`` says; returns the iterations run
         and each phase's best robust score. ``over`` maps the limb search over the hypotheses (the run's
         pool where its threads are free: from within a branch, which holds one of them, it would wait on
-        itself with a single worker)."""
+        itself with a single worker); ``shard``: each phase's work runs on two halves of the hypotheses at
+        once (:meth:`_sharded_step`; the run's pool must be free)."""
         iterations, losses = 0, {}
         for phase in phases:
             hyp.points = np.einsum(
@@ -458,24 +496,101 @@ class ScanFitter:
                 self._straighten_spine(hyp)
             if phase.scapula_twin:
                 self._scapula_twin(hyp)
-            if phase.search_limbs:
-                self.limbs(hyp, over)
-            if phase.search_distal:
-                self._search_distal(hyp)
-            for _ in range(phase.rounds):
-                hyp.visible = self._visible(hyp, self.fitter.index[phase.stage.vertices])
-                term = self._chamfer(hyp, phase)
-                metric = None
-                if phase.stage.name in branch.metric_phases:
-                    metric = self._metric(hyp, phase, branch.damping)
-                n_iter, _ = self.fitter.optimise(phase.stage, hyp.state, term, metric)
-                iterations += n_iter
-            score = self._score(hyp, phase, run.tree)
+            if shard and len(hyp.rotation) > 1:
+                n_iter, score = self._sharded_step(hyp, phase, branch, run)
+            else:
+                n_iter, score = self._phase_step(hyp, phase, branch, run.tree, over)
+            iterations += n_iter
             losses[phase.stage.name] = float(score.min())
             if phase.keep < len(hyp.rotation):
                 hyp.keep(self._kept(hyp, phase, score))
             run.report(f"{label}{phase.stage.name}: robust score {score.min():.3f}")
         return iterations, losses
+
+    def _phase_step(
+        self, hyp: Hypotheses, phase: ScanPhase, branch: ScanBranch, tree: PointTree, over: Mapper
+    ) -> tuple[int, np.ndarray]:
+        """One phase's work on ``hyp`` (its fit points and twins in place; updated in place): the searches
+        and the rounds of L-BFGS. Returns the iterations run and each hypothesis's score (H,) against the
+        cleaned scan's ``tree`` (:meth:`_score`). The hypotheses are independent problems."""
+        if phase.search_limbs:
+            self.limbs(hyp, over)
+        if phase.search_distal:
+            self._search_distal(hyp)
+        iterations = 0
+        for _ in range(phase.rounds):
+            hyp.visible = self._visible(hyp, self.fitter.index[phase.stage.vertices])
+            term = self._chamfer(hyp, phase)
+            metric = None
+            if phase.stage.name in branch.metric_phases:
+                metric = self._metric(hyp, phase, branch.damping)
+            n_iter, _ = self.fitter.optimise(phase.stage, hyp.state, term, metric)
+            iterations += n_iter
+        return iterations, self._score(hyp, phase, tree)
+
+    def _sharded_step(
+        self, hyp: Hypotheses, phase: ScanPhase, branch: ScanBranch, run: _PhaseRun
+    ) -> tuple[int, np.ndarray]:
+        """:meth:`_phase_step` on the two halves of ``hyp`` at once: the second in the helper process when
+        there is one and it can take it, else both on the run's threads; ``hyp`` becomes the halves again.
+        Either way each half is the same problem, so the fit does not depend on where it ran."""
+        parts = [hyp.take(rows) for rows in np.array_split(np.arange(len(hyp.rotation)), 2)]
+        remote = None
+        if self._helper is not None:
+            remote = self._helper.submit("_shard_task", parts[1], phase, branch, run.cleaned)
+        if remote is None:
+            steps = run.pool.map(lambda part: self._phase_step(part, phase, branch, run.tree, map), parts)
+            (iterations, score), (_, second) = steps
+        else:
+            try:
+                iterations, score = self._phase_step(parts[0], phase, branch, run.tree, run.pool.map)
+            finally:
+                theirs = remote()
+            if theirs is None:  # the helper failed meanwhile
+                _, second = self._phase_step(parts[1], phase, branch, run.tree, run.pool.map)
+            else:
+                parts[1], second = theirs
+        hyp.join(parts)
+        return iterations, np.concatenate([score, second])
+
+    def _shard_task(
+        self, hyp: Hypotheses, phase: ScanPhase, branch: ScanBranch, cleaned: np.ndarray
+    ) -> tuple[Hypotheses, np.ndarray]:
+        """The helper process's half of :meth:`_sharded_step`: the hypotheses after the step, their scores
+        against the cleaned scan (M, 3)."""
+        return hyp, self._phase_step(hyp, phase, branch, PointTree(cleaned), map)[1]
+
+    def _branch_task(
+        self,
+        hyp: Hypotheses,
+        phases: tuple[ScanPhase, ...],
+        branch: ScanBranch,
+        cleaned: np.ndarray,
+        order: np.ndarray,
+        label: str,
+    ) -> tuple[Hypotheses, int, dict[str, float], list[str]]:
+        """The helper process's branch (:meth:`_fit_branches`): the hypotheses after ``phases``, the
+        iterations run, each phase's score, and the progress lines (in order)."""
+        lines: list[str] = []
+        with ThreadPoolExecutor(1) as pool:
+            run = _PhaseRun(cleaned, order, PointTree(cleaned), lines.append, pool)
+            iterations, losses = self._run_phases(hyp, phases, branch, run, label, map)
+        return hyp, iterations, losses, lines
+
+    @property
+    def helper(self) -> ScanHelper | None:
+        """The helper process (``processes=2``), or None."""
+        return self._helper
+
+    def wait_for_helper(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` seconds for the helper process to start (``processes=2``); whether it runs
+        (False without one)."""
+        return self._helper is not None and self._helper.wait_ready(timeout)
+
+    def close(self) -> None:
+        """Stop the helper process, if any (the fitter still fits, in one process)."""
+        if self._helper is not None:
+            self._helper.close()
 
     # -- steps -----------------------------------------------------------------------------------------
     def _candidates(

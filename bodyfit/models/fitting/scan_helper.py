@@ -1,0 +1,186 @@
+"""A second process for the scan fit (:class:`~bodyfit.models.fitting.scan_fit.ScanFitter` with
+``processes=2``).
+
+The scan fit is bound by Python's per-call overhead under the interpreter lock: its two branches, run at
+once on two threads, took 2.40 s where either alone took 1.9, and the phases before the branches ran on one
+core. A helper process, with its own copy of the fitter, runs the second branch and half of the hypotheses
+of the phases before the branches on the other core.
+
+The helper starts in the background, as ``python -m bodyfit.models.fitting.scan_helper`` (a fresh
+interpreter: it does not import the caller's script, so no ``__main__`` guard is needed there); it builds its
+fitter from the parent's model (about 5 s and 0.5 GB). Work it is asked for while it is starting, busy with
+another fit's work, or after it failed is run by the caller itself (:meth:`ScanHelper.submit` returns None):
+the fit is the same either way, only slower.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import pickle
+import socket
+import subprocess
+import sys
+import weakref
+from collections.abc import Callable
+from multiprocessing.connection import Connection
+from threading import Lock, Thread
+from typing import Any
+
+import torch
+
+log = logging.getLogger(__name__)
+
+STOP_SECONDS = 5.0  # how long a stopping helper may take to exit before it is killed
+
+
+def _send(conn: Connection, message: Any) -> None:
+    """Send ``message`` pickled by value (a tensor's data in the message, not in shared memory that the
+    other process would fetch through multiprocessing's own authenticated channel)."""
+    conn.send_bytes(pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+def _receive(conn: Connection) -> Any:
+    return pickle.loads(conn.recv_bytes())
+
+
+def _serve(conn: Connection) -> None:
+    """The helper's loop: receive ``(make, args)`` and build ``make(*args)``, say so, then run each
+    ``(method name, arguments)`` received on it and send back ``("ok", result)`` or ``("error", message)``,
+    until None or the parent's end closes."""
+    torch.set_num_threads(1)  # one core's worth; the parent's process has the other
+    try:
+        make, args = _receive(conn)
+    except (EOFError, OSError):
+        return
+    worker = make(*args)
+    _send(conn, ("ready", None))
+    while True:
+        try:
+            message = _receive(conn)
+        except (EOFError, OSError):
+            return
+        if message is None:
+            return
+        name, task = message
+        try:
+            reply: tuple[str, Any] = ("ok", getattr(worker, name)(*task))
+        except Exception as error:  # the parent runs the task itself and meets the error there
+            reply = ("error", f"{type(error).__name__}: {error}")
+        _send(conn, reply)
+
+
+def _stop(process: subprocess.Popen[bytes], conn: Connection) -> None:
+    """Ask the helper to exit, then end it."""
+    with contextlib.suppress(OSError, ValueError):
+        _send(conn, None)
+    try:
+        process.wait(STOP_SECONDS)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait(STOP_SECONDS)
+    conn.close()
+
+
+class ScanHelper:
+    """A helper process holding ``make(*args)`` (a fitter), which runs its methods on request, one request
+    at a time. Stopped by :meth:`close`, when the helper object is collected, or when the parent exits."""
+
+    def __init__(self, make: Callable[..., Any], *args: Any) -> None:
+        mine, theirs = socket.socketpair()
+        fd = theirs.fileno()
+        self._process = subprocess.Popen(
+            [sys.executable, "-m", __name__, str(fd)], pass_fds=(fd,), stdin=subprocess.DEVNULL
+        )
+        theirs.close()
+        self._conn = Connection(mine.detach())
+        # the parent's model travels while both go on (the helper reads it once its imports are done)
+        Thread(target=self._send_quietly, args=((make, args),), daemon=True).start()
+        self._lock = Lock()
+        self._ready = False
+        self._failed = False
+        self.completed = 0  # tasks it ran to the end
+        self._stop = weakref.finalize(self, _stop, self._process, self._conn)
+
+    def _send_quietly(self, message: Any) -> None:
+        with contextlib.suppress(OSError, ValueError):  # a helper gone: noticed when it is waited for
+            _send(self._conn, message)
+
+    @property
+    def pid(self) -> int:
+        """The helper's process id."""
+        return self._process.pid
+
+    @property
+    def alive(self) -> bool:
+        """The helper's process runs."""
+        return self._process.poll() is None
+
+    @property
+    def ready(self) -> bool:
+        """The helper has started and has not failed (its start is noticed here, without waiting)."""
+        with self._lock:
+            return self._poll_ready(0.0)
+
+    def wait_ready(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` seconds for the helper to start; whether it is ready."""
+        with self._lock:
+            return self._poll_ready(timeout)
+
+    def _poll_ready(self, timeout: float) -> bool:
+        if self._ready or self._failed:
+            return self._ready
+        try:
+            if self._conn.poll(timeout):
+                self._ready = _receive(self._conn)[0] == "ready"
+                self._failed = not self._ready
+        except (EOFError, OSError):
+            self._fail("it exited while starting")
+        return self._ready
+
+    def submit(self, name: str, *task: Any) -> Callable[[], Any] | None:
+        """Start ``fitter.name(*task)`` in the helper when it is ready and free: returns a function that
+        waits for its result (None when the helper failed meanwhile); None when the helper cannot take it
+        now. The caller then runs the task itself."""
+        if not self._lock.acquire(blocking=False):
+            return None  # another fit's work is running there
+        try:
+            if not self._poll_ready(0.0):
+                self._lock.release()
+                return None
+            _send(self._conn, (name, task))
+        except (OSError, ValueError) as error:
+            self._fail(f"sending work failed ({error})")
+            self._lock.release()
+            return None
+
+        def result() -> Any:
+            try:
+                status, value = _receive(self._conn)
+            except (EOFError, OSError) as error:
+                self._fail(f"it exited during {name} ({type(error).__name__})")
+                return None
+            finally:
+                self._lock.release()
+            if status != "ok":
+                log.warning("scan helper: %s failed there (%s); running it here", name, value)
+                return None
+            self.completed += 1
+            return value
+
+        return result
+
+    def _fail(self, why: str) -> None:
+        if not self._failed:
+            log.warning("scan helper: %s; the fits go on in one process", why)
+        self._failed, self._ready = True, False
+
+    def close(self) -> None:
+        """Stop the helper (idempotent); later work runs in the caller."""
+        with self._lock:
+            self._failed, self._ready = True, False
+        self._stop()
+
+
+if __name__ == "__main__":
+    _serve(Connection(int(sys.argv[1])))

@@ -1,0 +1,82 @@
+"""The scan fit's helper process (``ScanFitConfig.processes=2``): it takes the second branch and half of the
+early phases' hypotheses, the fit is the one a single process gives, and a helper that dies leaves the fits
+to the calling process, which still gives that fit."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import signal
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+import torch
+
+from bodyfit.models.body.anny_posed import random_poses
+from bodyfit.models.body.model import BodyModel
+from bodyfit.models.fitting.scan_fit import DEFAULT_PHASES, ScanFitConfig, ScanFitter
+from bodyfit.models.fitting.scan_io import sample_surface
+
+BRANCHED = ("shape", "limbs", "fine")
+HELPER_START_SECONDS = 180.0  # it starts in about 5 s; the suite's other worker may hold the other core
+SHORT = ScanFitConfig(
+    tuple(dataclasses.replace(p, stage=dataclasses.replace(p.stage, iterations=4)) for p in DEFAULT_PHASES),
+    nonrigid=None,
+)
+
+
+@pytest.fixture(scope="module")
+def model() -> BodyModel:
+    return BodyModel.load()
+
+
+@pytest.fixture()
+def one_thread() -> Iterator[None]:
+    """Torch's ops on one thread, as in the helper (its intra-op threads may round differently)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def test_a_helper_process_gives_the_one_process_fit(model: BodyModel, one_thread: None) -> None:
+    rng = np.random.default_rng(21)
+    q = random_poses(model.skeleton, 1, rng, spread=0.3)
+    body = model.forward(np.zeros((1, model.n_shape)), q, np.zeros((1, 3)), dtype=torch.float64)
+    points, _ = sample_surface(body.vertices[0].numpy(), model.faces, 20_000, seed=21)
+    points = points @ np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]).T  # searched
+    alone = ScanFitter(model, SHORT).fit(points)
+    assert alone.report.extra["branch_scores"]  # two branches, the orientation searched: work to share
+    fitter = ScanFitter(model, dataclasses.replace(SHORT, processes=2))
+    helper = fitter.helper
+    assert helper is not None
+    try:
+        assert fitter.wait_for_helper(HELPER_START_SECONDS)
+        lines: list[str] = []
+        shared = fitter.fit(points, lines.append)
+        # half of the orientation phase's and the pose phase's hypotheses, and the second branch
+        assert helper.completed == 3
+        for fit in (shared, alone):
+            assert len(fit.report.extra["branch_scores"]) == 2
+        assert shared.report.extra["branch_scores"] == alone.report.extra["branch_scores"]
+        np.testing.assert_array_equal(shared.coordinates, alone.coordinates)
+        np.testing.assert_array_equal(shared.registration, alone.registration)
+        names = [line.split(": robust")[0] for line in lines]
+        assert len(names) == fitter.progress_steps() and names[:2] == ["orient", "pose"]
+        assert names[-1] == "valley"
+        # the helper's lines, passed on in order
+        assert [n for n in names if n.startswith("branch 2")] == [f"branch 2: {n}" for n in BRANCHED]
+
+        os.kill(helper.pid, signal.SIGKILL)
+        helper_less = fitter.fit(points)
+        assert not helper.ready and helper.completed == 3
+        np.testing.assert_array_equal(helper_less.registration, alone.registration)
+    finally:
+        fitter.close()
+    assert not helper.alive
+
+
+def test_processes_are_one_or_two() -> None:
+    with pytest.raises(ValueError, match="processes must be 1 or 2"):
+        ScanFitConfig(processes=3)
