@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import pickle
 import socket
 import subprocess
@@ -67,7 +68,10 @@ def _serve(conn: Connection) -> None:
             reply: tuple[str, Any] = ("ok", getattr(worker, name)(*task))
         except Exception as error:  # the parent runs the task itself and meets the error there
             reply = ("error", f"{type(error).__name__}: {error}")
-        _send(conn, reply)
+        try:
+            _send(conn, reply)
+        except OSError:  # the parent is gone
+            return
 
 
 def _stop(process: subprocess.Popen[bytes], conn: Connection) -> None:
@@ -89,8 +93,10 @@ class ScanHelper:
     def __init__(self, make: Callable[..., Any], *args: Any) -> None:
         mine, theirs = socket.socketpair()
         fd = theirs.fileno()
+        # the caller's import path, as multiprocessing's spawn passes it (bodyfit may be on it by hand)
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
         self._process = subprocess.Popen(
-            [sys.executable, "-m", __name__, str(fd)], pass_fds=(fd,), stdin=subprocess.DEVNULL
+            [sys.executable, "-m", __name__, str(fd)], pass_fds=(fd,), stdin=subprocess.DEVNULL, env=env
         )
         theirs.close()
         self._conn = Connection(mine.detach())
