@@ -108,6 +108,31 @@ def test_fit_mesh_routes_and_recovers_the_pose(body_service: BodyService) -> Non
     assert events[0].endswith("points") and events[-1] == "done"
 
 
+def test_a_scan_helper_process_gives_the_services_raw_scan_fit(body_service: BodyService) -> None:
+    """``scan_processes=2`` (BODYFIT_SCAN_PROCESSES) gives the raw-scan fitter a helper process, and a raw
+    scan's fit through the service is the one the service without it gives (torch on one thread in both)."""
+    from bodyfit.models.fitting.scan_io import sample_surface
+    from bodyfit.service.limits import Limits
+
+    q = body_service.model.skeleton.coordinates({"knee_angle_r": 0.8, "elbow_flex_l": 1.0})
+    body = body_service.synthesize(SynthRequest(coordinates=q)).vertices[0]
+    points, _ = sample_surface(body, body_service.model.faces, 20_000, seed=2)
+    buf = io.BytesIO()
+    np.savez(buf, points=points)
+    scan = body_service.read_scan(buf.getvalue(), "npz")
+    helped = BodyService.load(limits=Limits(queue_seconds=5.0), threads=1, scan_processes=2)
+    scanner = helped.fitters.scan
+    try:
+        assert scanner.config.processes == 2 and scanner.wait_for_helper(180.0)
+        fits = [service.fit_mesh(scan) for service in (helped, body_service)]
+        assert scanner.helper is not None and scanner.helper.completed == 3
+    finally:
+        scanner.close()
+    assert [f.fitted_as for f in fits] == ["raw scan"] * 2
+    np.testing.assert_array_equal(fits[0].coordinates, fits[1].coordinates)
+    np.testing.assert_array_equal(fits[0].vertices, fits[1].vertices)
+
+
 def test_cancelled_and_late_jobs_stop(body_service: BodyService) -> None:
     frames = body_service.synthesize(SynthRequest(batch=3)).vertices
     job = Job()
