@@ -33,6 +33,7 @@ import torch
 log = logging.getLogger(__name__)
 
 STOP_SECONDS = 5.0  # how long a stopping helper may take to exit before it is killed
+ANSWER_SECONDS = 300.0  # a task takes seconds; a helper silent this long is stuck and is killed
 
 
 def _send(conn: Connection, message: Any) -> None:
@@ -162,9 +163,12 @@ class ScanHelper:
 
         def result() -> Any:
             try:
+                if not self._conn.poll(ANSWER_SECONDS):
+                    self._process.kill()  # stuck: its answer would come out of turn later
+                    raise TimeoutError(f"no answer in {ANSWER_SECONDS:.0f} s")
                 status, value = _receive(self._conn)
             except (EOFError, OSError) as error:
-                self._fail(f"it exited during {name} ({type(error).__name__})")
+                self._fail(f"it gave no answer to {name} ({type(error).__name__}: {error})")
                 return None
             finally:
                 self._lock.release()
