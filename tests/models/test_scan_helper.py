@@ -1,6 +1,6 @@
 """The scan fit's helper process (``ScanFitConfig.processes=2``): it takes the second branch and half of the
 early phases' hypotheses, the fit is the one a single process gives, and a helper that dies leaves the fits
-to the calling process, which still gives that fit."""
+to the calling process, which still gives that fit, until a new helper is started."""
 
 from __future__ import annotations
 
@@ -69,9 +69,18 @@ def test_a_helper_process_gives_the_one_process_fit(model: BodyModel, one_thread
         assert [n for n in names if n.startswith("branch 2")] == [f"branch 2: {n}" for n in BRANCHED]
 
         os.kill(helper.pid, signal.SIGKILL)
+        helper.restart_after = 3600.0
         helper_less = fitter.fit(points)
-        assert not helper.ready and helper.completed == 3
+        assert not helper.ready and helper.completed == 3 and helper.restarts == 0
         np.testing.assert_array_equal(helper_less.registration, alone.registration)
+
+        # once restart_after has passed, the next fit starts a new helper (and fits without it meanwhile)
+        helper.restart_after = 0.0
+        fitter.fit(points)
+        assert helper.restarts == 1 and fitter.wait_for_helper(HELPER_START_SECONDS)
+        again = fitter.fit(points)
+        assert helper.completed == 6
+        np.testing.assert_array_equal(again.registration, alone.registration)
     finally:
         fitter.close()
     assert not helper.alive

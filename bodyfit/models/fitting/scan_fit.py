@@ -317,7 +317,9 @@ class _PhaseRun:
 
 
 class ScanFitter:
-    """Fits :class:`BodyModel` to raw scans (one at a time; each scan's hypotheses are batched)."""
+    """Fits :class:`BodyModel` to raw scans (one at a time; each scan's hypotheses are batched). With
+    ``config.processes=2`` it starts a helper process (:mod:`.scan_helper`); :meth:`close` stops it, as
+    does the fitter's collection or the interpreter's exit."""
 
     def __init__(self, model: BodyModel, config: ScanFitConfig | None = None) -> None:
         self.model = model

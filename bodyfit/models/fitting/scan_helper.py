@@ -22,6 +22,7 @@ import pickle
 import socket
 import subprocess
 import sys
+import time
 import weakref
 from collections.abc import Callable
 from multiprocessing.connection import Connection
@@ -34,6 +35,8 @@ log = logging.getLogger(__name__)
 
 STOP_SECONDS = 5.0  # how long a stopping helper may take to exit before it is killed
 ANSWER_SECONDS = 300.0  # a task takes seconds; a helper silent this long is stuck and is killed
+RESTART_SECONDS = 60.0  # after a helper failed, work waits this long before it starts a new one
+MAX_RESTARTS = 5  # then the fits stay in the calling process
 
 
 def _send(conn: Connection, message: Any) -> None:
@@ -89,9 +92,21 @@ def _stop(process: subprocess.Popen[bytes], conn: Connection) -> None:
 
 class ScanHelper:
     """A helper process holding ``make(*args)`` (a fitter), which runs its methods on request, one request
-    at a time. Stopped by :meth:`close`, when the helper object is collected, or when the parent exits."""
+    at a time. A helper that failed is started again by the first work asked for ``restart_after`` seconds
+    later (a long-lived service keeps its speed), up to :data:`MAX_RESTARTS` times. Stopped by
+    :meth:`close`, when the helper object is collected, or when the parent exits."""
 
-    def __init__(self, make: Callable[..., Any], *args: Any) -> None:
+    def __init__(self, make: Callable[..., Any], *args: Any, restart_after: float = RESTART_SECONDS) -> None:
+        self._make, self._args = make, args
+        self.restart_after = restart_after  # seconds after a failure before the next work restarts it
+        self.restarts = 0
+        self.completed = 0  # tasks it ran to the end
+        self._lock = Lock()
+        self._closed = False
+        self._start()
+
+    def _start(self) -> None:
+        """Start a helper process (the caller holds the lock, or is the constructor)."""
         mine, theirs = socket.socketpair()
         fd = theirs.fileno()
         # the caller's import path, as multiprocessing's spawn passes it (bodyfit may be on it by hand)
@@ -102,11 +117,10 @@ class ScanHelper:
         theirs.close()
         self._conn = Connection(mine.detach())
         # the parent's model travels while both go on (the helper reads it once its imports are done)
-        Thread(target=self._send_quietly, args=((make, args),), daemon=True).start()
-        self._lock = Lock()
+        Thread(target=self._send_quietly, args=((self._make, self._args),), daemon=True).start()
         self._ready = False
         self._failed = False
-        self.completed = 0  # tasks it ran to the end
+        self._failed_at = 0.0
         self._stop = weakref.finalize(self, _stop, self._process, self._conn)
 
     def _send_quietly(self, message: Any) -> None:
@@ -152,6 +166,8 @@ class ScanHelper:
         if not self._lock.acquire(blocking=False):
             return None  # another fit's work is running there
         try:
+            if self._failed and not self._closed:
+                self._restart()
             if not self._poll_ready(0.0):
                 self._lock.release()
                 return None
@@ -182,12 +198,24 @@ class ScanHelper:
 
     def _fail(self, why: str) -> None:
         if not self._failed:
-            log.warning("scan helper: %s; the fits go on in one process", why)
+            log.warning("scan helper: %s; the fits go on in one process for now", why)
+            self._failed_at = time.monotonic()
         self._failed, self._ready = True, False
 
+    def _restart(self) -> None:
+        """Start a new helper once ``restart_after`` seconds have passed since the last one failed (the
+        caller holds the lock); the old one is stopped."""
+        if self.restarts >= MAX_RESTARTS or time.monotonic() - self._failed_at < self.restart_after:
+            return
+        self._stop()
+        self.restarts += 1
+        log.warning("scan helper: starting it again (restart %d)", self.restarts)
+        self._start()
+
     def close(self) -> None:
-        """Stop the helper (idempotent); later work runs in the caller."""
+        """Stop the helper for good (idempotent); later work runs in the caller."""
         with self._lock:
+            self._closed = True
             self._failed, self._ready = True, False
         self._stop()
 
