@@ -110,7 +110,8 @@ def test_fit_mesh_routes_and_recovers_the_pose(body_service: BodyService) -> Non
 
 def test_a_scan_helper_process_gives_the_services_raw_scan_fit(body_service: BodyService) -> None:
     """``scan_processes=2`` (BODYFIT_SCAN_PROCESSES) gives the raw-scan fitter a helper process, and a raw
-    scan's fit through the service is the one the service without it gives (torch on one thread in both)."""
+    scan's fit through the service is the one the service without it gives: the helper's fit runs with torch
+    on one thread whatever the server's setting, as the one without runs here."""
     from bodyfit.models.fitting.scan_io import sample_surface
     from bodyfit.service.limits import Limits
 
@@ -124,9 +125,14 @@ def test_a_scan_helper_process_gives_the_services_raw_scan_fit(body_service: Bod
     scanner = helped.fitters.scan
     try:
         assert scanner.config.processes == 2 and scanner.wait_for_helper(180.0)
-        fits = [service.fit_mesh(scan) for service in (helped, body_service)]
+        torch.set_num_threads(2)  # torch's default on two cores: the helper's fits run on one
+        fits = [helped.fit_mesh(scan)]
+        assert torch.get_num_threads() == 2  # and the server's setting comes back
+        torch.set_num_threads(1)
+        fits.append(body_service.fit_mesh(scan))
         assert scanner.helper is not None and scanner.helper.completed == 3
     finally:
+        torch.set_num_threads(1)
         scanner.close()
     assert [f.fitted_as for f in fits] == ["raw scan"] * 2
     np.testing.assert_array_equal(fits[0].coordinates, fits[1].coordinates)
