@@ -38,12 +38,9 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
-import torch
 
 from bodyfit.models.body.anny_posed import posed_anny_bodies
 from bodyfit.models.body.anny_source import AnnySource
@@ -52,6 +49,7 @@ from bodyfit.models.build_assets import default_cache_dir
 from bodyfit.models.fitting import corrupt
 from bodyfit.models.fitting.scan_fit import ScanFitConfig, ScanFitter
 from bodyfit.models.fitting.scan_io import sample_surface
+from bodyfit.models.threads import torch_threads
 
 HELD_OUT_SEED = 4243  # the build uses 20261122 (+1, +2); the registered benchmark 4242
 SPREAD = 0.3
@@ -96,17 +94,6 @@ def make_scan(vertices: np.ndarray, faces: np.ndarray, condition: str, seed: int
     elif condition == "outliers":
         points, _ = corrupt.add_outliers(points, 0.05, rng)
     return points
-
-
-@contextmanager
-def torch_threads(n: int) -> Iterator[None]:
-    """torch's intra-op threads set to ``n`` inside the block, restored after it."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 def run(quick: bool, rows_path: str | None = None) -> dict[str, Any]:

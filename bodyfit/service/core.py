@@ -34,6 +34,7 @@ from bodyfit.models.fitting.scan_io import Scan, load_scan
 from bodyfit.models.fitting.sequence import SequenceFit, SequenceFitter
 from bodyfit.models.fitting.smpl_topology import SMPL_VERTICES, fit_smpl_meshes
 from bodyfit.models.skeleton.model import RANGE_TOLERANCE
+from bodyfit.models.threads import torch_threads
 from bodyfit.models.upgrade.proxy import ShapeHintError, ShapeHints, SmplProxy, load_proxy
 from bodyfit.models.upgrade.smpl_io import SmplSequence, read_smpl_npz
 from bodyfit.models.upgrade.smpl_model import SmplModel, load_smpl_model
@@ -435,7 +436,10 @@ class BodyService:
                 def progress(line: str) -> None:
                     job.report("fit", next(done), total, line)
 
-                with _torch_threads(1 if fitters.scan.helper is not None else torch.get_num_threads()):
+                # with the helper, one thread: two crowd the helper's core (3.8-4.0 s per clean scan
+                # instead of 3.2-3.4 on 2 cores, BENCHMARKS.md)
+                threads = 1 if fitters.scan.helper is not None else torch.get_num_threads()
+                with torch_threads(threads):
                     f = fitters.scan.fit(scan, progress=progress)
                 fit = MeshFit("raw scan", f.shape, f.coordinates, f.root, f.registration, f.joints, f.report)
             job.report("fit", total, total, "done")
@@ -554,19 +558,6 @@ def shape_hints(sex: str | None, height_m: float | None, mass_kg: float | None) 
         return ShapeHints.given(sex, height_m, mass_kg)
     except ShapeHintError as exc:
         raise InvalidInputError(str(exc), field=exc.field) from exc
-
-
-@contextmanager
-def _torch_threads(n: int) -> Iterator[None]:
-    """Torch's intra-op threads set to ``n`` for the block (process-wide; fits run one at a time unless
-    ``max_concurrent`` says otherwise). A raw-scan fit with the helper process runs with one: with two, the
-    server's threads crowd the helper's core (3.7-4.0 s per clean scan instead of 3.0-3.4 on 2 cores)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 @contextmanager
