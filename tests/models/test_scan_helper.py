@@ -7,7 +7,10 @@ from __future__ import annotations
 import dataclasses
 import os
 import signal
+import subprocess
+import sys
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -84,6 +87,25 @@ def test_a_helper_process_gives_the_one_process_fit(model: BodyModel, one_thread
     finally:
         fitter.close()
     assert not helper.alive
+
+
+def test_a_script_without_a_main_guard_gets_its_helper(tmp_path: Path) -> None:
+    """The helper is a fresh interpreter, not a multiprocessing child that imports the caller's script: a
+    script that makes a fitter at its top level, with no ``if __name__ == "__main__"`` guard, gets a
+    helper once (spawned children would run the script again and never start)."""
+    script = tmp_path / "unguarded.py"
+    script.write_text(
+        "from bodyfit.models.body.model import BodyModel\n"
+        "from bodyfit.models.fitting.scan_fit import ScanFitConfig, ScanFitter\n"
+        "fitter = ScanFitter(BodyModel.load(), ScanFitConfig(processes=2))\n"
+        "print('ready', fitter.wait_for_helper(120.0), flush=True)\n"
+        "fitter.close()\n"
+    )
+    done = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, timeout=HELPER_START_SECONDS
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.count("ready True") == 1, done.stdout
 
 
 def test_processes_are_one_or_two() -> None:
