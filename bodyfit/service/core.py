@@ -118,11 +118,15 @@ class PendingSynthesis:
     future: Future[Outputs]
 
 
+# how :meth:`BodyService.fit_mesh` fits a mesh (:meth:`BodyService.route`), as ``MeshFit.fitted_as`` says
+REGISTERED, SMPL_TOPOLOGY, RAW_SCAN = "registered", "SMPL topology", "raw scan"
+
+
 @dataclass(frozen=True)
 class MeshFit:
-    """One fitted mesh or scan: how it was fitted ("registered", "SMPL topology" or "raw scan"), the
-    parameters shape (n_shape,), coordinates (n_dof,), root (3,), the registration ``vertices`` (V, 3) in our
-    topology, ``joints`` (J, 3), and the error report."""
+    """One fitted mesh or scan: how it was fitted (:data:`REGISTERED`, :data:`SMPL_TOPOLOGY` or
+    :data:`RAW_SCAN`), the parameters shape (n_shape,), coordinates (n_dof,), root (3,), the registration
+    ``vertices`` (V, 3) in our topology, ``joints`` (J, 3), and the error report."""
 
     fitted_as: str
     shape: np.ndarray
@@ -411,6 +415,15 @@ class BodyService:
             )
         return frames, arrays.get("weights")
 
+    def route(self, scan: Scan) -> str:
+        """How :meth:`fit_mesh` fits ``scan``: :data:`REGISTERED` (our topology's vertex count),
+        :data:`SMPL_TOPOLOGY` (6,890 vertices with faces) or :data:`RAW_SCAN` (anything else)."""
+        if scan.n_points == self.model.n_vertices:
+            return REGISTERED
+        if scan.n_points == SMPL_VERTICES and scan.faces is not None:
+            return SMPL_TOPOLOGY
+        return RAW_SCAN
+
     def fit_mesh(self, scan: Scan, job: Job | None = None) -> MeshFit:
         """Fit one mesh or scan, routed by its topology: 13,348 vertices -> registered fit; 6,890 vertices
         with faces -> SMPL topology; anything else -> raw scan (orientation searched, no landmarks).
@@ -422,14 +435,13 @@ class BodyService:
         job = job or Job(timeout_s=self.limits.max_seconds)
         with self._slot():
             fitters = self.fitters
-            registered = scan.n_points == self.model.n_vertices
-            smpl = scan.n_points == SMPL_VERTICES and scan.faces is not None
-            total = 1 if registered or smpl else fitters.scan.progress_steps()
+            route = self.route(scan)
+            total = fitters.scan.progress_steps() if route == RAW_SCAN else 1
             job.report("fit", 0, total, f"{scan.n_points} points")
-            if registered:
-                fit = _first(fitters.registered.fit(scan.points), "registered")
-            elif smpl:
-                fit = _first(fit_smpl_meshes(fitters.registered, scan.points)[0], "SMPL topology")
+            if route == REGISTERED:
+                fit = _first(fitters.registered.fit(scan.points), REGISTERED)
+            elif route == SMPL_TOPOLOGY:
+                fit = _first(fit_smpl_meshes(fitters.registered, scan.points)[0], SMPL_TOPOLOGY)
             else:
                 done = iter(range(1, total + 1))
 
@@ -441,7 +453,7 @@ class BodyService:
                 threads = 1 if fitters.scan.helper is not None else torch.get_num_threads()
                 with torch_threads(threads):
                     f = fitters.scan.fit(scan, progress=progress)
-                fit = MeshFit("raw scan", f.shape, f.coordinates, f.root, f.registration, f.joints, f.report)
+                fit = MeshFit(RAW_SCAN, f.shape, f.coordinates, f.root, f.registration, f.joints, f.report)
             job.report("fit", total, total, "done")
             return fit
 

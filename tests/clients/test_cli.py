@@ -78,6 +78,44 @@ def test_fit_registered_meshes(tmp_path: Path) -> None:
     assert (out / "registration_001.ply").exists() and (out / "fit.mot").exists()
 
 
+@pytest.mark.parametrize(
+    ("raw", "registered", "option", "expected"),
+    [(4, 0, [], 2), (3, 1, [], 1), (4, 0, ["--processes", "1"], 1), (1, 0, ["--processes", "2"], 2)],
+)
+def test_fit_starts_a_helper_process_for_four_or_more_raw_scans(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    raw: int,
+    registered: int,
+    option: list[str],
+    expected: int,
+) -> None:
+    """`bodyfit fit` fits raw scans with a helper process (``scan_processes=2``) when four or more of its
+    inputs are raw scans, or when told to; meshes in our topology do not count. The service's first fit is
+    stopped here, before any fitter (or helper) starts."""
+    from bodyfit.models.body.model import BodyModel
+    from bodyfit.service.core import BodyService
+
+    seen: list[int] = []
+
+    def first_fit(self: BodyService, scan: object, job: object = None) -> None:
+        seen.append(self.scan_processes)
+        raise OSError("stopped by the test")
+
+    monkeypatch.setattr(BodyService, "fit_mesh", first_fit)
+    rng = np.random.default_rng(0)
+    paths = []
+    for k in range(raw):
+        paths.append(tmp_path / f"scan{k}.npz")
+        np.savez(paths[-1], points=rng.normal(size=(600, 3)) * 0.3)
+    for k in range(registered):
+        paths.append(tmp_path / f"mesh{k}.npz")
+        np.savez(paths[-1], points=BodyModel.load().data["vertices_mean"])
+    result = runner.invoke(app, ["fit", *map(str, paths), "--out", str(tmp_path / "o"), *option])
+    assert result.exit_code == 2 and "stopped by the test" in result.output
+    assert seen == [expected]
+
+
 def test_fit_a_sphere_is_a_low_confidence_scan(tmp_path: Path) -> None:
     """A mesh of another topology is fitted as a raw scan; a sphere is not a body and says so."""
     import trimesh
