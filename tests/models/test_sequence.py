@@ -20,6 +20,7 @@ from bodyfit.models.fitting.registered import RegisteredFitter, Stage
 from bodyfit.models.fitting.report import DistanceStats
 from bodyfit.models.fitting.retarget import Retargeted, retarget, wrap_pelvis
 from bodyfit.models.fitting.sequence import JitterSum, SequenceConfig, SequenceFit, SequenceFitter, jitter
+from bodyfit.models.threads import torch_threads
 
 CLIP = Path(__file__).resolve().parents[1] / "data" / "cmu_bvh" / "cmu_131_01_clip.bvh"
 LEGS_AND_TRUNK = ("pelvis_", "hip_", "knee_", "lumbar_", "thorax_")
@@ -30,10 +31,8 @@ CHUNK = 64
 def _one_thread() -> Iterator[None]:
     """One torch thread here: these tests make many small batched calls, which a second thread slows down
     several times over when the other core is busy (the suite runs two workers)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+    with torch_threads(1):
+        yield
 
 
 @pytest.fixture(scope="module")
