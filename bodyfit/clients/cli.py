@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import os
 import sys
-from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -141,7 +140,7 @@ def fit(
         if processes is None:
             raw = sum(service.route(scan) == RAW_SCAN for scan in scans)
             processes = 2 if raw >= HELPER_SCANS else 1
-        service = replace(service, scan_processes=processes)  # the fitters start on the first fit
+        service.scan_processes = processes  # read when the first fit builds the fitters
         fits = []
         for path, scan in zip(meshes, scans, strict=True):
             typer.echo(f"{path.name}: {scan.n_points} points", err=True)

@@ -157,7 +157,8 @@ class _Fitters:
 
 @dataclass
 class BodyService:
-    """The loaded model and fitters; build with :meth:`load` (once per process)."""
+    """The loaded model and fitters; build with :meth:`load` (once per process). ``scan_processes`` is read
+    when the fitters are built (:attr:`fitters`: at load, or on first use with ``fitters=False``)."""
 
     model: BodyModel
     session: ort.InferenceSession
