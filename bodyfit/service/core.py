@@ -226,7 +226,7 @@ class BodyService:
             registered = RegisteredFitter(self.model)
             self._fitters = _Fitters(
                 registered,
-                ScanFitter(self.model, ScanFitConfig(processes=self.scan_processes)),
+                ScanFitter(self.model, ScanFitConfig(processes=self.scan_processes), registered),
                 SequenceFitter(registered),
                 upgrade_fitter(registered),
                 load_proxy(self.assets),

@@ -51,6 +51,17 @@ def fitter(model: BodyModel) -> ScanFitter:
     return ScanFitter(model)
 
 
+def test_a_scan_fitter_shares_a_registered_fitter_of_its_model_only(
+    model: BodyModel, fitter: ScanFitter
+) -> None:
+    """A ScanFitter can share another's RegisteredFitter (a service's); one of another model object is
+    refused rather than fitted with the wrong template."""
+    shared = ScanFitter(model, fitter=fitter.fitter)
+    assert shared.fitter is fitter.fitter and shared.limbs.fitter is fitter.fitter
+    with pytest.raises(ValueError, match="same BodyModel"):
+        ScanFitter(BodyModel.load(), fitter=fitter.fitter)
+
+
 def test_point_to_surface_matches_brute_force() -> None:
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
     points = np.random.default_rng(0).normal(size=(300, 3)) * 0.4

@@ -125,6 +125,7 @@ def test_a_scan_helper_process_gives_the_services_raw_scan_fit(body_service: Bod
     scanner = helped.fitters.scan
     try:
         assert scanner.config.processes == 2 and scanner.wait_for_helper(180.0)
+        assert scanner.fitter is helped.fitters.registered  # one registered fitter per service
         torch.set_num_threads(2)  # torch's default on two cores: the helper's fits run on one
         fits = [helped.fit_mesh(scan)]
         assert torch.get_num_threads() == 2  # and the server's setting comes back
