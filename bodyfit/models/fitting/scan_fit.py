@@ -370,7 +370,8 @@ class ScanFitter:
         }
         self._helper = None
         if self.config.processes > 1:
-            self._helper = ScanHelper(ScanFitter, model, replace(self.config, processes=1))
+            # the registered fitter travels too: the helper need not build its preconditioner again
+            self._helper = ScanHelper(ScanFitter, model, replace(self.config, processes=1), self.fitter)
 
     def fit(
         self,
