@@ -15,7 +15,7 @@ if TYPE_CHECKING:
 
 
 # raw scans in one `bodyfit fit` from which a helper process pays for its start (BENCHMARKS.md)
-HELPER_SCANS = 4
+HELPER_SCANS = 2
 
 app = typer.Typer(
     no_args_is_help=True, add_completion=False, help="bodyfit: human bodies with a biomechanical skeleton."
