@@ -219,7 +219,7 @@ class ScanFitConfig:
     no phase named ``branch_from``, fits once; workers: threads the branches run on at once (they are
     independent, so the fit does not depend on it; torch's intra-op threads add little at these sizes:
     ``torch.set_num_threads(1)`` and 2 workers suit 2 cores); processes: 2 starts a helper process
-    (:class:`.scan_helper.ScanHelper`, its own copy of the fitter: about 5 s in the background and 0.5 GB)
+    (:class:`.scan_helper.ScanHelper`, its own copy of the fitter: ready about 1.5 s later, 0.5 GB)
     that runs the second branch and half of the hypotheses of the phases before the branches on another
     core (the fit is bound by the interpreter lock, so threads alone share one core's worth of Python); it
     suits a long-lived fitter (the service, a batch of scans), not a single fit. Work the helper cannot
