@@ -54,7 +54,7 @@ from bodyfit.models.threads import torch_threads
 HELD_OUT_SEED = 4243  # the build uses 20261122 (+1, +2); the registered benchmark 4242
 SPREAD = 0.3
 POINTS = 100_000
-HELPER_START_SECONDS = 120.0  # the fitter's helper process starts in about 5 s
+HELPER_START_SECONDS = 120.0  # the fitter's helper process is ready within seconds; a bound, not an estimate
 CONDITIONS = ("clean", "noise", "holes", "depth", "outliers", "clothing")
 # Body parts for the registration error by part: the prefixes of their skeleton bodies (the rest is trunk).
 PARTS = {

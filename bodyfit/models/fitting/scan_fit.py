@@ -335,7 +335,7 @@ class ScanFitter:
             raise ValueError("the shared RegisteredFitter must fit the same BodyModel as the ScanFitter")
         self.model = model
         self.config = config or ScanFitConfig()
-        self.fitter = fitter or RegisteredFitter(model)
+        self.fitter = fitter if fitter is not None else RegisteredFitter(model)
         self.faces = np.asarray(model.data["faces"], np.int64)
         # in the fit loop's float type: the point-to-plane phase takes normals at every evaluation
         loop_float = np.float32 if self.fitter.config.dtype == torch.float32 else np.float64
