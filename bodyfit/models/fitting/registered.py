@@ -366,10 +366,9 @@ class RegisteredFitter:
             u, r, c = p[:, :n_dof], p[:, n_dof : n_dof + 3], p[:, n_dof + 3 :]
             return decoder(c, skel.from_unbounded(u), r)[0] * 1000.0
 
+        # Rows are independent: one forward-mode pass over P copies of p0, row k along parameter k.
         P = p0.shape[1]
-        cols = torch.stack(
-            [torch.func.jvp(f, (p0,), (torch.eye(P, dtype=dtype)[k : k + 1],))[1] for k in range(P)]
-        )
+        cols = torch.func.jvp(f, (p0.repeat(P, 1),), (torch.eye(P, dtype=dtype),))[1]
         rms = cols.reshape(P, -1, 3).norm(dim=-1).pow(2).mean(-1).sqrt().clamp_min(1e-3)  # (P,) mm per unit
         scale = 1.0 / rms
         return scale[:n_dof], scale[n_dof : n_dof + 3], scale[n_dof + 3 :]
