@@ -18,7 +18,10 @@ if TYPE_CHECKING:
 HELPER_SCANS = 2
 
 app = typer.Typer(
-    no_args_is_help=True, add_completion=False, help="bodyfit: human bodies with a biomechanical skeleton."
+    no_args_is_help=True,
+    add_completion=False,
+    rich_markup_mode=None,
+    help="bodyfit: human bodies with a biomechanical skeleton.",
 )
 
 
