@@ -3,6 +3,8 @@ anny bodies the model never saw, and every bad input."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -215,6 +217,21 @@ def test_preconditioner_unit_moves_the_subset_by_one_millimetre(model: BodyModel
         assert moved.norm(dim=-1).pow(2).mean().sqrt().item() == pytest.approx(1.0, rel=1e-3), int(k)
         checked += 1
     assert checked >= 12
+
+
+def test_building_a_fitter_does_not_import_the_compiler() -> None:
+    """The preconditioner's derivatives stay in reverse mode: torch's forward mode imports torch._dynamo,
+    a second on every service start and every command line fit."""
+    code = (
+        "import sys\n"
+        "from bodyfit.models.body.model import BodyModel\n"
+        "from bodyfit.models.fitting.registered import RegisteredFitter\n"
+        "RegisteredFitter(BodyModel.load())\n"
+        "print('torch._dynamo' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "False"
 
 
 def _optimised_errors(
