@@ -108,6 +108,26 @@ def test_a_script_without_a_main_guard_gets_its_helper(tmp_path: Path) -> None:
     assert done.stdout.count("ready True") == 1, done.stdout
 
 
+def test_a_helper_stopped_while_it_starts_exits_quietly(tmp_path: Path) -> None:
+    """A fitter closed at once (a command that ends before its helper has started) stops the helper without
+    waiting for its imports and without a traceback from it."""
+    script = tmp_path / "closed_at_once.py"
+    script.write_text(
+        "from bodyfit.models.body.model import BodyModel\n"
+        "from bodyfit.models.fitting.scan_fit import ScanFitConfig, ScanFitter\n"
+        "fitter = ScanFitter(BodyModel.load(), ScanFitConfig(processes=2))\n"
+        "fitter.close()\n"
+        "assert fitter.helper is not None\n"
+        "print('alive', fitter.helper.alive, flush=True)\n"
+    )
+    done = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, timeout=HELPER_START_SECONDS
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "alive False" in done.stdout
+    assert "Traceback" not in done.stderr, done.stderr[-2000:]
+
+
 def test_processes_are_one_or_two() -> None:
     with pytest.raises(ValueError, match="processes must be 1 or 2"):
         ScanFitConfig(processes=3)

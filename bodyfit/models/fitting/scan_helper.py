@@ -55,9 +55,12 @@ def _serve(conn: Connection) -> None:
     until None or the parent's end closes."""
     torch.set_num_threads(1)  # one core's worth; the parent's process has the other
     try:
-        make, args = _receive(conn)
+        first = _receive(conn)
     except (EOFError, OSError):
         return
+    if first is None:  # stopped before it was given its work
+        return
+    make, args = first
     worker = make(*args)
     _send(conn, ("ready", None))
     while True:
@@ -78,8 +81,11 @@ def _serve(conn: Connection) -> None:
             return
 
 
-def _stop(process: subprocess.Popen[bytes], conn: Connection) -> None:
-    """Ask the helper to exit, then end it."""
+def _stop(process: subprocess.Popen[bytes], conn: Connection, starting: list[bool]) -> None:
+    """Ask the helper to exit, then end it; one still starting (``starting[0]``: its imports take a second
+    and it would read the request only after them) is killed at once: it holds no work yet."""
+    if starting[0]:
+        process.kill()
     with contextlib.suppress(OSError, ValueError):
         _send(conn, None)
     try:
@@ -119,9 +125,10 @@ class ScanHelper:
         # the parent's model travels while both go on (the helper reads it once its imports are done)
         Thread(target=self._send_quietly, args=((self._make, self._args),), daemon=True).start()
         self._ready = False
+        self._starting = [True]  # shared with the finalizer: False once it has said it is ready
         self._failed = False
         self._failed_at = 0.0
-        self._stop = weakref.finalize(self, _stop, self._process, self._conn)
+        self._stop = weakref.finalize(self, _stop, self._process, self._conn, self._starting)
 
     def _send_quietly(self, message: Any) -> None:
         with contextlib.suppress(OSError, ValueError):  # a helper gone: noticed when it is waited for
@@ -155,6 +162,7 @@ class ScanHelper:
             if self._conn.poll(timeout):
                 self._ready = _receive(self._conn)[0] == "ready"
                 self._failed = not self._ready
+                self._starting[0] = False
         except (EOFError, OSError):
             self._fail("it exited while starting")
         return self._ready
@@ -222,3 +230,4 @@ class ScanHelper:
 
 if __name__ == "__main__":
     _serve(Connection(int(sys.argv[1])))
+    os._exit(0)  # nothing to flush; the interpreter's teardown of torch took 0.3 s the parent waited for
