@@ -5,6 +5,7 @@ non-finite values, a shape that is not a body)."""
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -29,7 +30,7 @@ from bodyfit.models.fitting.scan_fit import (
     clean_points,
     orientation_candidates,
 )
-from bodyfit.models.fitting.scan_io import ScanError, sample_surface, scan_from_arrays
+from bodyfit.models.fitting.scan_io import ScanError, load_scan, sample_surface, scan_from_arrays
 from bodyfit.models.fitting.smpl_topology import SMPL_TO_BODY, SOURCE_DIR, read_obj
 from bodyfit.models.fitting.surface import (
     coarse_faces,
@@ -39,6 +40,8 @@ from bodyfit.models.fitting.surface import (
     vertex_faces,
     vertex_normals,
 )
+
+KINECT = Path(__file__).resolve().parents[1] / "data" / "scans" / "pcl_template_alignment_person.pcd"
 
 
 @pytest.fixture(scope="module")
@@ -233,6 +236,7 @@ def test_scan_fit_recovers_a_turned_body(
     assert fit.report.distances.mean < 3.0
     assert fit.report.confident and fit.report.limit_violations == 0
     assert fit.report.extra["inlier_fraction"] > 0.95 and fit.report.extra["coverage"] > 0.9
+    assert fit.report.extra["fitted_part"] == "whole body"
     # every scan point's own distance, in the scan's order (measured in parts on the fit's threads)
     assert np.array_equal(fit.point_distances, point_to_surface(points, fit.registration, model.faces))
 
@@ -348,6 +352,53 @@ def test_a_box_is_not_a_confident_body(model: BodyModel, fitter: ScanFitter) -> 
     assert not fit.report.confident
     assert any("within" in r or "exceeds" in r for r in fit.report.reasons)  # the distances say it too
     assert any("orientation was searched" in r for r in fit.report.reasons)
+
+
+def test_a_head_and_shoulders_is_fitted_as_one(model: BodyModel, fitter: ScanFitter) -> None:
+    """A scan of a body's top 45 cm (turned, moved, orientation searched) is smaller than any body: it is
+    fitted as a head and shoulders, never confidently, with the rest of the body in the start pose, and the
+    head lands on the truth's (measured 1.5 mm; the whole-body phases folded a body into such scans)."""
+    rng = np.random.default_rng(1)
+    q = random_poses(model.skeleton, 1, rng, spread=0.15)
+    shape = rng.normal(size=(1, model.n_shape)) * 0.5
+    truth = model.forward(shape, q, np.zeros((1, 3)), dtype=torch.float64).vertices[0].numpy()
+    points, _ = sample_surface(truth, model.faces, 40_000, seed=1)
+    points = points[points[:, 1] > truth[:, 1].max() - 0.45]
+    R = Rotation.random(random_state=1).as_matrix()
+    t = np.array([0.3, 1.1, -0.4])
+    fit = fitter.fit(points @ R.T + t)
+    report = fit.report
+    assert report.extra["fitted_part"] == "head and shoulders"
+    assert not report.confident and any("head and shoulders" in r for r in report.reasons)
+    assert report.limit_violations == 0 and report.distances.mean < 4.0
+    names = model.skeleton.body_names
+    head = np.argmax(model.data["weights"], 1) == names.index("head")
+    error = np.linalg.norm((fit.registration[head] - t) @ R - truth[head], axis=1) * 1000
+    assert error.mean() < 10.0, error.mean()
+    legs = [model.skeleton.dof_index(n) for n in ("hip_flexion_r", "knee_angle_l", "ankle_angle_r")]
+    start = model.skeleton.inside(model.bind_coordinates, 0.1)
+    np.testing.assert_allclose(fit.coordinates[legs], start[legs], atol=1e-5)
+
+
+def test_the_real_kinect_head_and_shoulders_is_fitted_upright(model: BodyModel, fitter: ScanFitter) -> None:
+    """The real Kinect capture (tests/data/scans), cropped to the person (nearer than 1 m): head and one
+    shoulder in profile, with part of a desk. Fitted as a head and shoulders with the camera's axes given
+    (+Y down, the person facing +X): the head's top meets the scan's and the body stands along the
+    camera's -Y (the whole-body phases folded a whole body into these points)."""
+    scan = load_scan(KINECT, drop_nonfinite=True)
+    person = scan.points[scan.points[:, 2] < 1.0]
+    to_body = np.diag([1.0, -1.0, -1.0])
+    fit = fitter.fit(person, orientation=to_body)
+    assert fit.report.extra["fitted_part"] == "head and shoulders" and not fit.report.confident
+    assert fit.report.distances.mean < 2.5, fit.report.distances.mean
+    up = np.array([0.0, -1.0, 0.0])  # in the camera's frame
+    assert abs((fit.registration @ up).max() - (person @ up).max()) < 0.01
+    names = model.skeleton.body_names
+    head, thorax = names.index("head"), names.index("thorax")
+    joints = model.forward(fit.shape[None], fit.coordinates[None], fit.root[None], dtype=torch.float64)
+    frames = joints.frames[0].numpy()
+    rise = fit.scan_to_body[:3, :3].T @ (frames[head, :3, 3] - frames[thorax, :3, 3])
+    assert rise @ up > 0.9 * np.linalg.norm(rise), rise
 
 
 def test_a_single_view_is_fitted_on_the_side_it_saw(model: BodyModel) -> None:

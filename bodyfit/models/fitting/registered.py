@@ -33,6 +33,10 @@ TRUNK_DOF_PREFIXES = ("pelvis_", "lumbar_", "thorax_")
 # The trunk and the legs' flexion: a seated or crouching body's pose, which the trunk alone can only mimic
 # by bending the spine.
 CORE_DOF_PREFIXES = (*TRUNK_DOF_PREFIXES, "hip_flexion_", "knee_angle_")
+# A head-and-shoulders capture: the mean body's vertices this far below the top of its head (head, neck,
+# shoulders and upper chest), and the DOFs that place them (the trunk's, the neck's and the scapulae's).
+UPPER_BODY_M = 0.55
+UPPER_DOF_PREFIXES = (*TRUNK_DOF_PREFIXES, "neck_", "scapula_")
 CONFIDENT_MEAN_MM = 10.0
 MIN_PART_WEIGHT = 0.7  # a vertex belongs to a body's rigid part above this skinning weight
 MIN_PART_VERTICES = 20
@@ -45,10 +49,10 @@ DataTerm = Callable[[torch.Tensor], torch.Tensor]
 class Stage:
     """One fitting stage.
 
-    coordinates: "trunk" (pelvis, lumbar, thoracic DOFs), "core" (those and the hips' and knees' flexion)
-    or "all"; shape: "none", "bone" or "all";
-    vertices: "trunk", "coarse", "subset" or "dense" (farthest-point subsets of the whole body, nested) or
-    "all";
+    coordinates: "trunk" (pelvis, lumbar, thoracic DOFs), "core" (those and the hips' and knees' flexion),
+    "upper" (the trunk's, the neck's and the scapulae's) or "all"; shape: "none", "bone" or "all";
+    vertices: "trunk", "coarse", "subset" or "dense" (farthest-point subsets of the whole body, nested),
+    "upper" (head, neck, shoulders and upper chest: :data:`UPPER_BODY_M`) or "all";
     iterations: L-BFGS iterations; metric: None, or the vertex set whose Gauss-Newton metric
     (:meth:`RegisteredFitter.metric`, at the stage's start) the stage's L-BFGS runs in.
     """
@@ -151,12 +155,17 @@ class RegisteredFitter:
             "dense": np.sort(spread[: cfg.dense_size]),
             "subset": np.sort(spread[: cfg.subset_size]),
             "coarse": np.sort(spread[: cfg.coarse_size]),
+            "upper": np.flatnonzero(template[:, 1] > template[:, 1].max() - UPPER_BODY_M),
             "all": np.arange(model.n_vertices),
         }
         self.decoders = self._decoders_of(self.decoder)
         self.dof_mask = {
             name: torch.as_tensor([n.startswith(prefixes) for n in skel.dof_names], dtype=dtype)
-            for name, prefixes in (("trunk", TRUNK_DOF_PREFIXES), ("core", CORE_DOF_PREFIXES))
+            for name, prefixes in (
+                ("trunk", TRUNK_DOF_PREFIXES),
+                ("core", CORE_DOF_PREFIXES),
+                ("upper", UPPER_DOF_PREFIXES),
+            )
         }
         self.dof_mask["all"] = torch.ones(skel.n_dof, dtype=dtype)
         nb, ns = model.n_bone, model.n_shape
