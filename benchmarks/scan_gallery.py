@@ -4,7 +4,8 @@ cropped as the points nearer than 1 m to the camera; camera axes: +Y down, the p
 facing the camera's +X).
 
 Writes ``docs/scan_fits.png`` (a row per scan: the input points, the CC BY body's own mesh, our
-registration; the Kinect row as the camera saw it) and prints each fit's report.
+registration; the Kinect row: the points and the fit as the camera saw them, and the fit from ahead; it is
+fitted as a head and shoulders) and prints each fit's report.
 
 Usage::
 
@@ -81,7 +82,7 @@ def main(argv: list[str] | None = None) -> None:
     person = kinect.points[kinect.points[:, 2] < KINECT_CROP_M]
     fit = fitter.fit(person, orientation=KINECT_TO_BODY)
     images += panel(person, fit, model.faces, KINECT_TO_BODY, None, view="side")  # the camera's view
-    images.append(np.full_like(images[0], 255))
+    images += panel(person, fit, model.faces, KINECT_TO_BODY, None, view="front")[1:]  # the fit, from ahead
     print(f"kinect (cropped to {len(person)} points): {fit.report.to_dict()}")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     save_png(tile(images, 3), args.out)
