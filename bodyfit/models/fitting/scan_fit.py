@@ -46,6 +46,11 @@
    goes on alone to the valley phase and step 4. Each branch alone ends in a gross error (an arm folded over
    a hole, a head turned) on scans where the other does not, and the robust score tells which.
 
+A scan smaller than a body (under :attr:`ScanFitConfig.partial_extent` along its principal axes: a head and
+shoulders) skips steps 3 and 5: the "upper" vertex set alone is fitted, two ways, by the trunk's, neck's and
+scapulae's DOFs with the mean shape (:data:`UPPER_BODY_PHASES`); the rest of the body keeps the start pose,
+and the report says so and is never confident.
+
 The fitted parameters are expressed in the scan's own frame when the pelvis angles can hold the scan's
 orientation (an upright-ish body); otherwise they stay in the body frame and ``scan_to_body`` maps between.
 """
