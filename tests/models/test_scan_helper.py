@@ -89,41 +89,41 @@ def test_a_helper_process_gives_the_one_process_fit(model: BodyModel, one_thread
     assert not helper.alive
 
 
-def test_a_script_without_a_main_guard_gets_its_helper(tmp_path: Path) -> None:
-    """The helper is a fresh interpreter, not a multiprocessing child that imports the caller's script: a
-    script that makes a fitter at its top level, with no ``if __name__ == "__main__"`` guard, gets a
-    helper once (spawned children would run the script again and never start)."""
-    script = tmp_path / "unguarded.py"
+def _run_script(tmp_path: Path, *lines: str) -> subprocess.CompletedProcess[str]:
+    """Run a script that makes a two-process fitter at its top level, then ``lines``; it must succeed."""
+    script = tmp_path / "script.py"
     script.write_text(
         "from bodyfit.models.body.model import BodyModel\n"
         "from bodyfit.models.fitting.scan_fit import ScanFitConfig, ScanFitter\n"
         "fitter = ScanFitter(BodyModel.load(), ScanFitConfig(processes=2))\n"
-        "print('ready', fitter.wait_for_helper(120.0), flush=True)\n"
-        "fitter.close()\n"
+        + "".join(f"{x}\n" for x in lines)
     )
     done = subprocess.run(
         [sys.executable, str(script)], capture_output=True, text=True, timeout=HELPER_START_SECONDS
     )
     assert done.returncode == 0, done.stderr[-2000:]
+    return done
+
+
+def test_a_script_without_a_main_guard_gets_its_helper(tmp_path: Path) -> None:
+    """The helper is a fresh interpreter, not a multiprocessing child that imports the caller's script: a
+    script that makes a fitter at its top level, with no ``if __name__ == "__main__"`` guard, gets a
+    helper once (spawned children would run the script again and never start)."""
+    done = _run_script(
+        tmp_path, "print('ready', fitter.wait_for_helper(120.0), flush=True)", "fitter.close()"
+    )
     assert done.stdout.count("ready True") == 1, done.stdout
 
 
 def test_a_helper_stopped_while_it_starts_exits_quietly(tmp_path: Path) -> None:
     """A fitter closed at once (a command that ends before its helper has started) stops the helper without
     waiting for its imports and without a traceback from it."""
-    script = tmp_path / "closed_at_once.py"
-    script.write_text(
-        "from bodyfit.models.body.model import BodyModel\n"
-        "from bodyfit.models.fitting.scan_fit import ScanFitConfig, ScanFitter\n"
-        "fitter = ScanFitter(BodyModel.load(), ScanFitConfig(processes=2))\n"
-        "fitter.close()\n"
-        "assert fitter.helper is not None\n"
-        "print('alive', fitter.helper.alive, flush=True)\n"
+    done = _run_script(
+        tmp_path,
+        "fitter.close()",
+        "assert fitter.helper is not None",
+        "print('alive', fitter.helper.alive, flush=True)",
     )
-    done = subprocess.run(
-        [sys.executable, str(script)], capture_output=True, text=True, timeout=HELPER_START_SECONDS
-    )
-    assert done.returncode == 0, done.stderr[-2000:]
     assert "alive False" in done.stdout
     assert "Traceback" not in done.stderr, done.stderr[-2000:]
 
