@@ -345,13 +345,21 @@ def test_scan_fit_rejects_bad_input(fitter: ScanFitter) -> None:
         fitter.fit(np.zeros((10, 2)))
 
 
-def test_a_box_is_not_a_confident_body(model: BodyModel, fitter: ScanFitter) -> None:
-    box = trimesh.creation.box(extents=(0.3, 1.7, 0.5))
+@pytest.mark.parametrize("extents", [(0.3, 1.7, 0.5), (0.2, 0.35, 0.25)], ids=["body-sized", "bust-sized"])
+def test_a_box_is_not_a_confident_body(
+    model: BodyModel, fitter: ScanFitter, extents: tuple[float, float, float]
+) -> None:
+    """A box of a body's size, or of a head and shoulders' (fitted as one), is never a confident body."""
+    box = trimesh.creation.box(extents=extents)
     points, _ = sample_surface(box.vertices, box.faces, 30_000, seed=0)
     fit = fitter.fit(points)
     assert not fit.report.confident
-    assert any("within" in r or "exceeds" in r for r in fit.report.reasons)  # the distances say it too
     assert any("orientation was searched" in r for r in fit.report.reasons)
+    if extents[1] > 1.0:
+        assert any("within" in r or "exceeds" in r for r in fit.report.reasons)  # the distances say it too
+    else:
+        assert fit.report.extra["fitted_part"] == "head and shoulders"
+        assert any("less than a body" in r for r in fit.report.reasons)
 
 
 def test_a_head_and_shoulders_is_fitted_as_one(model: BodyModel, fitter: ScanFitter) -> None:
