@@ -130,6 +130,26 @@ def test_fit_a_sphere_is_a_low_confidence_scan(tmp_path: Path) -> None:
     assert report["fitted_as"] == "raw scan" and report["confident"] is False and report["reasons"]
 
 
+def test_fit_a_real_head_and_shoulders_scan(tmp_path: Path) -> None:
+    """The real Kinect capture cropped to the person (tests/data/scans) is fitted as a head and shoulders,
+    and the command's summary and fit.json say so."""
+    from bodyfit.models.fitting.scan_io import load_scan
+
+    scan = load_scan(
+        Path(__file__).resolve().parents[1] / "data" / "scans" / "pcl_template_alignment_person.pcd",
+        drop_nonfinite=True,
+    )
+    path = tmp_path / "person.npz"
+    np.savez(path, points=scan.points[scan.points[:, 2] < 1.0])
+    out = tmp_path / "o"
+    result = runner.invoke(app, ["fit", str(path), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "fitted as a head and shoulders" in result.output
+    report = json.loads((out / "fit.json").read_text())[0]
+    assert report["extra"]["fitted_part"] == "head and shoulders" and report["confident"] is False
+    assert report["distances"]["mean"] < 3.0
+
+
 def test_fit_an_smpl_topology_mesh(tmp_path: Path) -> None:
     """A 6,890-vertex mesh goes through the stored SMPL correspondence (the CC BY woman, in millimetres)."""
     import trimesh
