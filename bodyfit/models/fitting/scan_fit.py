@@ -177,7 +177,9 @@ UPPER_BODY_PHASES = (
     ScanPhase(Stage("upper_pose", "upper", "none", "upper", 40), 30.0, 1, 3000),
     ScanPhase(Stage("upper_fine", "upper", "none", "upper", 40), 12.0, 1, 4000),
 )
-PARTIAL_EXTENT_M = 0.7  # a head and shoulders measures 0.4-0.6 m; a whole body, even crouching, 0.9 or more
+# A head and shoulders measures 0.4-0.7 m, up to 0.85 with an arm reaching out (benchmarks/fit_busts.py); the
+# 102 whole bodies of benchmarks/fit_scans.py 1.27 m or more (a depth view), a crouching adult about 0.9.
+PARTIAL_EXTENT_M = 0.85
 
 # The small, vertex-dense ends of the body, searched the same way once the limbs are placed: their bodies and
 # DOFs. Their surfaces are small but carry most of the template's vertices (head 32%, hands 24%, toes 11%).
