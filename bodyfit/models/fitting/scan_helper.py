@@ -82,8 +82,8 @@ def _serve(conn: Connection) -> None:
 
 
 def _stop(process: subprocess.Popen[bytes], conn: Connection, starting: list[bool]) -> None:
-    """Ask the helper to exit, then end it; one still starting (``starting[0]``: its imports take a second
-    and it would read the request only after them) is killed at once: it holds no work yet."""
+    """Ask the helper to exit, then end it; one not yet known to have started (``starting[0]``: its imports
+    take a second and it would read the request only after them) is killed at once: it holds no work."""
     if starting[0]:
         process.kill()
     with contextlib.suppress(OSError, ValueError):
@@ -125,7 +125,7 @@ class ScanHelper:
         # the parent's model travels while both go on (the helper reads it once its imports are done)
         Thread(target=self._send_quietly, args=((self._make, self._args),), daemon=True).start()
         self._ready = False
-        self._starting = [True]  # shared with the finalizer: False once it has said it is ready
+        self._starting = [True]  # shared with the finalizer: False once its "ready" has been read here
         self._failed = False
         self._failed_at = 0.0
         self._stop = weakref.finalize(self, _stop, self._process, self._conn, self._starting)
