@@ -31,6 +31,7 @@ from bodyfit.clients.results import (
     Synthesis,
     UpgradeOutput,
 )
+from bodyfit.clients.uploads import ScanInput, scan_upload
 
 DEFAULT_TARGET = "127.0.0.1:50051"
 DEFAULT_TIMEOUT = 30.0
@@ -115,13 +116,9 @@ def model_info(res: pb.ModelInfo) -> ModelInfo:
     )
 
 
-def scan_request(scan: str | os.PathLike[str] | bytes, format: str | None, units: str) -> pb.FitScanRequest:
-    if isinstance(scan, bytes | bytearray):
-        if format is None:
-            raise ValueError("give format= (ply, obj, stl, pcd or npz) when sending bytes")
-        return pb.FitScanRequest(data=bytes(scan), format=format, units=units)
-    path = Path(scan)
-    return pb.FitScanRequest(data=path.read_bytes(), format=format or path.suffix.lstrip("."), units=units)
+def scan_request(scan: ScanInput, format: str | None, units: str) -> pb.FitScanRequest:
+    name, data = scan_upload(scan, format)
+    return pb.FitScanRequest(data=data, format=Path(name).suffix.lstrip("."), units=units)
 
 
 def sequence_request(frames: np.ndarray, weights: np.ndarray | None, chunk: int) -> pb.FitSequenceRequest:
@@ -303,7 +300,7 @@ class GrpcClient:
 
     def fit_scan(
         self,
-        scan: str | os.PathLike[str] | bytes,
+        scan: ScanInput,
         format: str | None = None,
         units: str = "auto",
         progress: ProgressCallback | None = None,
@@ -398,7 +395,7 @@ class AsyncGrpcClient:
 
     async def fit_scan(
         self,
-        scan: str | os.PathLike[str] | bytes,
+        scan: ScanInput,
         format: str | None = None,
         units: str = "auto",
         progress: ProgressCallback | None = None,

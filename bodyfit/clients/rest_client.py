@@ -35,6 +35,7 @@ from bodyfit.clients.results import (
     Synthesis,
     UpgradeOutput,
 )
+from bodyfit.clients.uploads import ScanInput, scan_upload
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 DEFAULT_TIMEOUT = httpx.Timeout(30.0, read=600.0)
@@ -64,16 +65,6 @@ def synth_body(
     if batch is not None:
         body["batch"] = batch
     return body
-
-
-def scan_upload(scan: str | os.PathLike[str] | bytes, format: str | None) -> tuple[str, bytes]:
-    """(file name, bytes) of a scan given as a path or as bytes plus its format."""
-    if isinstance(scan, bytes | bytearray):
-        if format is None:
-            raise ValueError("give format= (ply, obj, stl, pcd or npz) when sending bytes")
-        return f"scan.{format}", bytes(scan)
-    path = Path(scan)
-    return (f"{path.stem}.{format}" if format else path.name), path.read_bytes()
 
 
 def upgrade_upload(sequence: str | os.PathLike[str] | bytes) -> tuple[str, bytes]:
@@ -205,12 +196,12 @@ class Client:
 
     def fit_scan(
         self,
-        scan: str | os.PathLike[str] | bytes,
+        scan: ScanInput,
         format: str | None = None,
         units: str = "auto",
         progress: ProgressCallback | None = None,
     ) -> MeshFitResult:
-        """Fit a mesh or point cloud file (path, or bytes with ``format``)."""
+        """Fit a mesh or point cloud: a file (path, or bytes with ``format``) or (N, 3) points."""
         name, data = scan_upload(scan, format)
         files = {"file": (name, data)}
         return MeshFitResult.from_event(self._stream("/v1/fit/scan", files, {"units": units}, progress)[1])
@@ -327,7 +318,7 @@ class AsyncClient:
 
     async def fit_scan(
         self,
-        scan: str | os.PathLike[str] | bytes,
+        scan: ScanInput,
         format: str | None = None,
         units: str = "auto",
         progress: ProgressCallback | None = None,

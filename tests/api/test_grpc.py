@@ -110,6 +110,12 @@ def test_fit_scan_streams_progress_then_the_result(client: GrpcClient, body_serv
     assert abs(fit.coordinates[hip] - 0.6) < 0.05 and events[-1]["message"] == "done"
 
 
+def test_fit_scan_takes_points(client: GrpcClient, body_service: BodyService) -> None:
+    verts = body_service.synthesize(SynthRequest(coordinates={"hip_flexion_r": 0.6})).vertices[0]
+    fit = client.fit_scan(verts)
+    assert fit.fitted_as == "registered" and fit.report["distances"]["mean"] < 2.0
+
+
 def test_fit_sequence_reassembles_chunks(client: GrpcClient, body_service: BodyService) -> None:
     knee = np.linspace(0.1, 1.0, 5)
     frames = body_service.synthesize(SynthRequest(coordinates={"knee_angle_l": knee})).vertices

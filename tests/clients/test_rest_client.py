@@ -72,6 +72,20 @@ def test_fit_scan_and_sequence_with_progress(client: Client) -> None:
     assert seq.error_mm.shape == (5,) and seq.error_mm.max() < 3.0 and seq.limit_violations == 0
 
 
+def test_fit_scan_takes_points_and_says_what_it_cannot_send(client: Client) -> None:
+    """An (N, 3) array goes as an .npz of points; a wrong shape, a format other than npz with an array, and
+    an object that is no scan are refused before anything is sent."""
+    target = client.synthesize(coordinates={"arm_flex_r": 0.6})
+    fit = client.fit_scan(target.vertices[0])
+    assert fit.fitted_as == "registered" and fit.report["distances"]["mean"] < 2.0
+    with pytest.raises(ValueError, match=r"\(N, 3\) array; got shape \(13348, 2\)"):
+        client.fit_scan(target.vertices[0][:, :2])
+    with pytest.raises(ValueError, match="sent as npz"):
+        client.fit_scan(target.vertices[0], format="ply")
+    with pytest.raises(TypeError, match="file path, bytes with format=, or an \\(N, 3\\) array"):
+        client.fit_scan(target.vertices[0].tolist())
+
+
 def test_async_client(app: Any) -> None:
     async def run() -> tuple[int, np.ndarray]:
         transport = httpx.ASGITransport(app=app)

@@ -1,0 +1,41 @@
+"""What the clients send for a scan fit: a file, the bytes of one, or points (shared by REST and gRPC)."""
+
+from __future__ import annotations
+
+import io
+import os
+from pathlib import Path
+
+import numpy as np
+
+ScanInput = str | os.PathLike[str] | bytes | np.ndarray
+
+
+def scan_upload(scan: ScanInput, format: str | None) -> tuple[str, bytes]:
+    """(file name, bytes) of a scan given as a path, as bytes with its ``format`` (ply, obj, stl, pcd or
+    npz), or as an (N, 3) array of points (sent as an .npz with ``points``; metres or millimetres, as the
+    fit's ``units`` say).
+
+    Raises:
+        ValueError: bytes without a format, or an array that is not (N, 3) or is sent with another format;
+        TypeError: anything else.
+    """
+    if isinstance(scan, np.ndarray):
+        if scan.ndim != 2 or scan.shape[1] != 3:
+            raise ValueError(f"scan points must be an (N, 3) array; got shape {scan.shape}")
+        if format not in (None, "npz"):
+            raise ValueError(f"an array of points is sent as npz; leave format out (got {format!r})")
+        buffer = io.BytesIO()
+        np.savez(buffer, points=np.asarray(scan, np.float64))
+        return "scan.npz", buffer.getvalue()
+    if isinstance(scan, bytes | bytearray):
+        if format is None:
+            raise ValueError("give format= (ply, obj, stl, pcd or npz) when sending bytes")
+        return f"scan.{format}", bytes(scan)
+    if not isinstance(scan, str | os.PathLike):
+        raise TypeError(
+            f"scan must be a file path, bytes with format=, or an (N, 3) array of points; got "
+            f"{type(scan).__name__}"
+        )
+    path = Path(scan)
+    return (f"{path.stem}.{format}" if format else path.name), path.read_bytes()
