@@ -48,7 +48,7 @@
 
 A scan smaller than a body (under :attr:`ScanFitConfig.partial_extent` along its principal axes: a head and
 shoulders) skips steps 3 and 5: the "upper" vertex set alone is fitted, two ways, by the trunk's, neck's and
-scapulae's DOFs with the mean shape (:data:`UPPER_BODY_PHASES`); the rest of the body keeps the start pose,
+scapulae's DOFs, then the shape (:data:`UPPER_BODY_PHASES`); the rest of the body keeps the start pose,
 and the report says so and is never confident.
 
 The fitted parameters are expressed in the scan's own frame when the pelvis angles can hold the scan's
@@ -165,17 +165,18 @@ DEFAULT_PHASES = (
 )
 
 # A scan smaller than a body (:attr:`ScanFitConfig.partial_extent`) is fitted as a head and shoulders: the
-# "upper" vertex set (RegisteredFitter.index) placed by the trunk's, neck's and scapulae's DOFs, the mean
-# shape (a bust does not say how tall the rest is, and the shape space let it grow into it), the rest of
-# the body in the start pose, and the whole scan fitted two ways in three phases. The Kinect head and
-# shoulders of tests/data/scans, fitted so from three random turns, gave the same bust each time (1.69-1.73
-# mm mean, the orientation searched); the full-body phases had folded the whole body into it. The first
-# phase's 40 mm scale (against 80) kept forearms in the crop from tilting the trunk: benchmarks/fit_busts.py
-# 74% of busts with the head within 10 mm against 68%.
+# "upper" vertex set (RegisteredFitter.index) placed by the trunk's, neck's and scapulae's DOFs, the rest of
+# the body in the start pose, and the whole scan fitted two ways in three phases; the shape is fitted in the
+# last one only, once the bust is in place (fitted from the first, before the placement was right, it grew
+# giant shoulders into the scan). The Kinect head and shoulders of tests/data/scans, fitted so from three
+# random turns, gave the same bust each time (1.7 mm mean, the orientation searched); the full-body phases
+# had folded the whole body into it. benchmarks/fit_busts.py, heads within 10 mm: 68% with the first phase's
+# scale at 80 mm, 74% at 40 (forearms in the crop tilt the trunk less), 75% with the shape fitted (median
+# head error 5.3 -> 4.0 mm).
 UPPER_BODY_PHASES = (
     ScanPhase(Stage("upper_orient", "upper", "none", "upper", 30), 40.0, 3, 1500),
     ScanPhase(Stage("upper_pose", "upper", "none", "upper", 40), 30.0, 1, 3000),
-    ScanPhase(Stage("upper_fine", "upper", "none", "upper", 40), 12.0, 1, 4000),
+    ScanPhase(Stage("upper_fine", "upper", "all", "upper", 40), 12.0, 1, 4000),
 )
 # A head and shoulders measures 0.4-0.7 m, up to 0.85 with an arm reaching out (benchmarks/fit_busts.py); the
 # 102 whole bodies of benchmarks/fit_scans.py 1.27 m or more (a depth view), a crouching adult about 0.9.
@@ -955,7 +956,7 @@ class ScanFitter:
         if partial_extent is not None:
             reasons.append(
                 f"the scan is {partial_extent:.2f} m across, less than a body: it was fitted as a head and "
-                "shoulders, with the mean shape; the rest of the body is the model's, in the start pose"
+                "shoulders; the rest of the body is the shape space's guess, in the start pose"
             )
         if view is not None:
             reasons.append(
