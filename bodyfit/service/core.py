@@ -449,10 +449,10 @@ class BodyService:
                 def progress(line: str) -> None:
                     job.report("fit", next(done), total, line)
 
-                # with the helper, one thread: two crowd the helper's core (3.8-4.0 s per clean scan
-                # instead of 3.2-3.4 on 2 cores, BENCHMARKS.md)
-                threads = 1 if fitters.scan.helper is not None else torch.get_num_threads()
-                with torch_threads(threads):
+                # One torch thread: the fit's own two workers (and the helper) use the cores, and more
+                # threads crowd them (with the helper 3.8-4.0 s per clean scan instead of 3.2-3.4; in one
+                # process 2.8-3.0 instead of 2.6, BENCHMARKS.md); the fit is then the same either way.
+                with torch_threads(1):
                     f = fitters.scan.fit(scan, progress=progress)
                 fit = MeshFit(RAW_SCAN, f.shape, f.coordinates, f.root, f.registration, f.joints, f.report)
             job.report("fit", total, total, "done")

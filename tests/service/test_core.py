@@ -110,8 +110,8 @@ def test_fit_mesh_routes_and_recovers_the_pose(body_service: BodyService) -> Non
 
 def test_a_scan_helper_process_gives_the_services_raw_scan_fit(body_service: BodyService) -> None:
     """``scan_processes=2`` (BODYFIT_SCAN_PROCESSES) gives the raw-scan fitter a helper process, and a raw
-    scan's fit through the service is the one the service without it gives: the helper's fit runs with torch
-    on one thread whatever the server's setting, as the one without runs here."""
+    scan's fit through the service is the one the service without it gives: both run with torch on one
+    thread whatever the server's setting (here torch's default on two cores), which then comes back."""
     from bodyfit.models.fitting.scan_io import sample_surface
     from bodyfit.service.limits import Limits
 
@@ -129,8 +129,8 @@ def test_a_scan_helper_process_gives_the_services_raw_scan_fit(body_service: Bod
         torch.set_num_threads(2)  # torch's default on two cores: the helper's fits run on one
         fits = [helped.fit_mesh(scan)]
         assert torch.get_num_threads() == 2  # and the server's setting comes back
-        torch.set_num_threads(1)
         fits.append(body_service.fit_mesh(scan))
+        assert torch.get_num_threads() == 2
         assert scanner.helper is not None and scanner.helper.completed == 3
     finally:
         torch.set_num_threads(1)
