@@ -14,8 +14,10 @@ if TYPE_CHECKING:
     import numpy as np
 
 
-# raw scans in one `bodyfit fit` from which a helper process pays for its start (BENCHMARKS.md)
-HELPER_SCANS = 2
+# raw scans in one `bodyfit fit` from which a helper process pays for its start: with the fits on one torch
+# thread either way, two clean scans took 7.8-7.9 s with it and without, three 10.1-10.4 against 10.7
+# (BENCHMARKS.md)
+HELPER_SCANS = 3
 
 app = typer.Typer(
     no_args_is_help=True,
@@ -107,7 +109,7 @@ def fit(
         typer.Option(
             min=1,
             max=2,
-            help=f"1 or 2: 2 fits raw scans with a helper process on a second core (about 25% faster per "
+            help=f"1 or 2: 2 fits raw scans with a helper process on a second core (about 20% faster per "
             f"scan once it has started, 0.5 GB more memory). Default: 2 when {HELPER_SCANS} or more inputs "
             "are raw scans.",
         ),

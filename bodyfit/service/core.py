@@ -197,7 +197,7 @@ class BodyService:
             fitters: build the fitters now (a server); otherwise on first use (synthesis only).
             smpl_model: an SMPL-family model file for upgrades (path a); checked now when given.
             scan_processes: 2 gives the raw-scan fitter a helper process (``ScanFitConfig.processes``:
-                about 25% faster per scan on two cores, 0.5 GB more memory), started with the fitters.
+                about 20% faster per scan on two cores, 0.5 GB more memory), started with the fitters.
         Raises:
             AssetError: a missing or corrupted asset, with how to rebuild it.
         """

@@ -80,9 +80,15 @@ def test_fit_registered_meshes(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize(
     ("raw", "registered", "option", "expected"),
-    [(2, 0, [], 2), (1, 1, [], 1), (2, 0, ["--processes", "1"], 1), (1, 0, ["--processes", "2"], 2)],
+    [
+        (3, 0, [], 2),
+        (2, 0, [], 1),
+        (2, 1, [], 1),
+        (3, 0, ["--processes", "1"], 1),
+        (1, 0, ["--processes", "2"], 2),
+    ],
 )
-def test_fit_starts_a_helper_process_for_two_or_more_raw_scans(
+def test_fit_starts_a_helper_process_for_three_or_more_raw_scans(
     tmp_path: Path,
     monkeypatch: pytest.MonkeyPatch,
     raw: int,
@@ -90,7 +96,7 @@ def test_fit_starts_a_helper_process_for_two_or_more_raw_scans(
     option: list[str],
     expected: int,
 ) -> None:
-    """`bodyfit fit` fits raw scans with a helper process (``scan_processes=2``) when two or more of its
+    """`bodyfit fit` fits raw scans with a helper process (``scan_processes=2``) when three or more of its
     inputs are raw scans, or when told to; meshes in our topology do not count. The service's first fit is
     stopped here, before any fitter (or helper) starts."""
     from bodyfit.models.body.model import BodyModel
