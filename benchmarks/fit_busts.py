@@ -88,7 +88,7 @@ def run(quick: bool) -> dict[str, Any]:
     partial = np.array([r["partial"] for r in rows])
     return {
         "bust_scans": n,
-        "bust_partial_fraction": round(float(np.mean([r["partial"] for r in rows])), 3),
+        "bust_partial_fraction": round(float(partial.mean()), 3),
         "bust_head_mm_median": round(float(np.median(head)), 2),
         "bust_head_within_10mm": round(float(np.mean(head <= HEAD_WITHIN_MM)), 3),
         "bust_partial_head_within_10mm": round(float(np.mean(head[partial] <= HEAD_WITHIN_MM)), 3),
