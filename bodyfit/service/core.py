@@ -437,6 +437,7 @@ class BodyService:
         with self._slot():
             fitters = self.fitters
             route = self.route(scan)
+            # a raw scan's fit says how many steps it takes once it knows what it fits (a whole body here)
             total = fitters.scan.progress_steps() if route == RAW_SCAN else 1
             job.report("fit", 0, total, f"{scan.n_points} points")
             if route == REGISTERED:
@@ -444,10 +445,11 @@ class BodyService:
             elif route == SMPL_TOPOLOGY:
                 fit = _first(fit_smpl_meshes(fitters.registered, scan.points)[0], SMPL_TOPOLOGY)
             else:
-                done = iter(range(1, total + 1))
 
-                def progress(line: str) -> None:
-                    job.report("fit", next(done), total, line)
+                def progress(done: int, steps: int, line: str) -> None:
+                    nonlocal total
+                    total = steps
+                    job.report("fit", done, steps, line)
 
                 # One torch thread: the fit's own two workers (and the helper) use the cores, and more
                 # threads crowd them (with the helper 3.8-4.0 s per clean scan instead of 3.2-3.4; in one

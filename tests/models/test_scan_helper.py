@@ -57,7 +57,7 @@ def test_a_helper_process_gives_the_one_process_fit(model: BodyModel, one_thread
     try:
         assert fitter.wait_for_helper(HELPER_START_SECONDS)
         lines: list[str] = []
-        shared = fitter.fit(points, lines.append)
+        shared = fitter.fit(points, lambda done, total, line: lines.append(line) if done else None)
         # half of the orientation phase's and the pose phase's hypotheses, and the second branch
         assert helper.completed == 3
         for fit in (shared, alone):

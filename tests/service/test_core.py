@@ -17,7 +17,7 @@ from bodyfit.service.errors import (
     LimitExceededError,
 )
 from bodyfit.service.formats import encode_bodies
-from bodyfit.service.jobs import Job
+from bodyfit.service.jobs import Job, Progress
 
 
 def test_info_lists_every_dof_with_range_and_unit(body_service: BodyService) -> None:
@@ -129,15 +129,37 @@ def test_a_scan_helper_process_gives_the_services_raw_scan_fit(body_service: Bod
         torch.set_num_threads(2)  # torch's default on two cores: the helper's fits run on one
         fits = [helped.fit_mesh(scan)]
         assert torch.get_num_threads() == 2  # and the server's setting comes back
-        fits.append(body_service.fit_mesh(scan))
+        events: list[Progress] = []
+        fits.append(body_service.fit_mesh(scan, Job(on_progress=events.append)))
         assert torch.get_num_threads() == 2
         assert scanner.helper is not None and scanner.helper.completed == 3
     finally:
         torch.set_num_threads(1)
         scanner.close()
     assert [f.fitted_as for f in fits] == ["raw scan"] * 2
+    # the service's start, the fit's own steps (the first says what it fits), then done
+    assert [(p.done, p.total) for p in events] == [(0, 9), *((k, 9) for k in range(10)), (9, 9)]
+    assert events[1].message.endswith("fitting a whole body") and events[-1].message == "done"
     np.testing.assert_array_equal(fits[0].coordinates, fits[1].coordinates)
     np.testing.assert_array_equal(fits[0].vertices, fits[1].vertices)
+
+
+def test_a_head_and_shoulders_scan_reports_its_own_steps(body_service: BodyService) -> None:
+    """A raw scan smaller than a body is fitted as a head and shoulders, in fewer steps than a whole body:
+    the progress says so as soon as the fit knows and counts to that total (it used to jump to done)."""
+    from bodyfit.models.fitting.scan_io import sample_surface
+
+    body = body_service.synthesize(SynthRequest()).vertices[0]
+    points, _ = sample_surface(body, body_service.model.faces, 30_000, seed=4)
+    points = points[points[:, 1] > body[:, 1].max() - 0.45]
+    buf = io.BytesIO()
+    np.savez(buf, points=points)
+    events: list[Progress] = []
+    fit = body_service.fit_mesh(body_service.read_scan(buf.getvalue(), "npz"), Job(on_progress=events.append))
+    assert fit.report.extra["fitted_part"] == "head and shoulders"
+    n = len(body_service.fitters.scan.config.partial_phases)
+    assert [(p.done, p.total) for p in events[1:]] == [*((k, n) for k in range(n + 1)), (n, n)]
+    assert events[1].message.endswith("fitting a head and shoulders")
 
 
 def test_cancelled_and_late_jobs_stop(body_service: BodyService) -> None:

@@ -91,6 +91,9 @@ from bodyfit.models.fitting.view import Silhouette, view_direction
 from bodyfit.models.rotations import zxy_angles
 from bodyfit.models.skeleton.model import PELVIS_ROTATIONS
 
+# A scan fit's progress: called with the steps done, the steps in all and a line saying what was done.
+Progress = Callable[[int, int, str], None]
+
 CONFIDENT_MEAN_MM = 10.0
 MIN_INLIER_FRACTION = 0.85
 MIN_COVERAGE = 0.5
@@ -178,6 +181,8 @@ UPPER_BODY_PHASES = (
     ScanPhase(Stage("upper_pose", "upper", "none", "upper", 40), 30.0, 1, 3000),
     ScanPhase(Stage("upper_fine", "upper", "all", "upper", 40), 12.0, 1, 4000),
 )
+# What the vertex set a scan is fitted with ("all" or "upper") is called in reports.
+PART_NAMES = {"all": "whole body", "upper": "head and shoulders"}
 # A head and shoulders measures 0.4-0.7 m, up to 0.85 with an arm reaching out (benchmarks/fit_busts.py); the
 # 102 whole bodies of benchmarks/fit_scans.py 1.27 m or more (a depth view), a crouching adult about 0.9.
 PARTIAL_EXTENT_M = 0.85
@@ -333,20 +338,23 @@ def orientation_candidates(points: np.ndarray) -> np.ndarray:
 @dataclass
 class _PhaseRun:
     """What one scan's phases share: the cleaned points (M, 3), their random order (M,), their tree, the
-    progress callback and the threads the branches run on."""
+    progress callback with the number of steps it will be told of, and the threads the branches run on."""
 
     cleaned: np.ndarray
     order: np.ndarray
     tree: PointTree
-    progress: Callable[[str], None] | None
+    progress: Progress | None
+    total: int
     pool: ThreadPoolExecutor
     lock: Lock = field(default_factory=Lock)
+    done: int = 0
 
     def report(self, line: str) -> None:
-        """Pass ``line`` to the progress callback, one branch's thread at a time."""
-        if self.progress is not None:
-            with self.lock:
-                self.progress(line)
+        """Count a step done and pass it on with ``line``, one branch's thread at a time."""
+        with self.lock:
+            self.done += 1
+            if self.progress is not None:
+                self.progress(self.done, self.total, line)
 
 
 class ScanFitter:
@@ -404,7 +412,7 @@ class ScanFitter:
     def fit(
         self,
         scan: Scan | np.ndarray,
-        progress: Callable[[str], None] | None = None,
+        progress: Progress | None = None,
         orientation: np.ndarray | None = None,
         start: np.ndarray | None = None,
     ) -> ScanFit:
@@ -412,7 +420,8 @@ class ScanFitter:
 
         Args:
             scan: a :class:`Scan` from ``load_scan``, or (N, 3) points in metres.
-            progress: called with a line after each phase of each branch (:meth:`progress_steps` times).
+            progress: called with (steps done, steps in all, a line) once the scan is cleaned (0 done),
+                then after each phase of each branch (:meth:`progress_steps` steps in all).
             orientation: (3, 3) rotation from the scan's axes to the body's (+X forward, +Y up, +Z right)
                 when it is known (e.g. a dataset's convention); default: searched.
             start: (n_dof,) coordinates to start from (e.g. a T-pose); default: the bind pose.
@@ -433,14 +442,17 @@ class ScanFitter:
         _, _, axes = np.linalg.svd(cleaned - cleaned.mean(0), full_matrices=False)
         extent = largest_extent(cleaned @ axes.T)  # along its principal axes: however it is turned
         partial = extent < cfg.partial_extent
-        hyp = self._candidates(cleaned, orientation, start, "upper" if partial else "all")
+        part = "upper" if partial else "all"
+        hyp = self._candidates(cleaned, orientation, start, part)
         if cfg.single_view:
             hyp.view = view_direction(cleaned)
             if hyp.view is not None:
                 hyp.silhouette = Silhouette.of(cleaned, hyp.view)
         tree = PointTree(cleaned)
         with ThreadPoolExecutor(cfg.workers) as pool:
-            run = _PhaseRun(cleaned, order, tree, progress, pool)
+            run = _PhaseRun(cleaned, order, tree, progress, self.progress_steps(partial), pool)
+            if progress is not None:
+                progress(0, run.total, f"{len(cleaned):,} points cleaned; fitting a {PART_NAMES[part]}")
             if not partial:
                 return self._fit_branches(hyp, points, run, began)
             iterations, losses = self._run_phases(
@@ -501,9 +513,11 @@ class ScanFitter:
         }
         return replace(fit, report=replace(fit.report, extra=extra))
 
-    def progress_steps(self) -> int:
-        """How many times :meth:`fit` calls its ``progress`` on a whole body: once per phase, the branched
-        ones once per branch (a head and shoulders: once per partial phase, fewer)."""
+    def progress_steps(self, partial: bool = False) -> int:
+        """How many steps :meth:`fit` reports on a whole body: one per phase, the branched ones once per
+        branch; on a head and shoulders (``partial``), one per partial phase."""
+        if partial:
+            return len(self.config.partial_phases)
         split, until, branches = self._branches()
         return len(self.config.phases) + (len(branches) - 1) * (until - split)
 
@@ -623,7 +637,7 @@ class ScanFitter:
         iterations run, each phase's score, and the progress lines (in order)."""
         lines: list[str] = []
         with ThreadPoolExecutor(1) as pool:
-            run = _PhaseRun(cleaned, order, PointTree(cleaned), lines.append, pool)
+            run = _PhaseRun(cleaned, order, PointTree(cleaned), lambda _d, _t, x: lines.append(x), 0, pool)
             iterations, losses = self._run_phases(hyp, phases, branch, run, label, map)
         return hyp, iterations, losses, lines
 
@@ -975,6 +989,6 @@ class ScanFitter:
             "single_view": None if view is None else [round(float(x), 4) for x in view],
             "nonrigid_offset_mm": round(offset * 1000, 2),
             "phase_scores": {k: round(v, 5) for k, v in losses.items()},
-            "fitted_part": "whole body" if partial_extent is None else "head and shoulders",
+            "fitted_part": PART_NAMES["all" if partial_extent is None else "upper"],
         }
         return FitReport.judged(stats, q, self.model.skeleton.ranges, iterations, seconds, reasons, extra)
