@@ -47,7 +47,8 @@ from bodyfit.models.body.anny_source import AnnySource
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.build_assets import default_cache_dir
 from bodyfit.models.fitting import corrupt
-from bodyfit.models.fitting.scan_fit import ScanFitConfig, ScanFitter
+from bodyfit.models.fitting.scan_config import ScanFitConfig
+from bodyfit.models.fitting.scan_fit import ScanFitter
 from bodyfit.models.fitting.scan_io import sample_surface
 from bodyfit.models.threads import torch_threads
 

@@ -28,7 +28,8 @@ from bodyfit.models.body.onnx_export import BODY_ONNX
 from bodyfit.models.errors import BodyfitError
 from bodyfit.models.fitting.registered import BodyFit, RegisteredFitter
 from bodyfit.models.fitting.report import FitReport
-from bodyfit.models.fitting.scan_fit import ScanFitConfig, ScanFitter
+from bodyfit.models.fitting.scan_config import ScanFitConfig
+from bodyfit.models.fitting.scan_fit import ScanFitter
 from bodyfit.models.fitting.scan_io import FORMATS as SCAN_FORMATS
 from bodyfit.models.fitting.scan_io import Scan, load_scan
 from bodyfit.models.fitting.sequence import SequenceFit, SequenceFitter

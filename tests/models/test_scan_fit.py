@@ -20,12 +20,10 @@ from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting import corrupt
 from bodyfit.models.fitting.nonrigid import NonRigidConfig, refine_nonrigid
 from bodyfit.models.fitting.registered import RegisteredFitter, Stage, farthest_point_subset
+from bodyfit.models.fitting.scan_config import DEFAULT_BRANCHES, DEFAULT_PHASES, ScanFitConfig
 from bodyfit.models.fitting.scan_fit import (
-    DEFAULT_BRANCHES,
-    DEFAULT_PHASES,
     REACH_MM,
     ScanFit,
-    ScanFitConfig,
     ScanFitter,
     clean_points,
     orientation_candidates,

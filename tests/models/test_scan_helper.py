@@ -18,7 +18,8 @@ import torch
 
 from bodyfit.models.body.anny_posed import random_poses
 from bodyfit.models.body.model import BodyModel
-from bodyfit.models.fitting.scan_fit import DEFAULT_PHASES, ScanFitConfig, ScanFitter
+from bodyfit.models.fitting.scan_config import DEFAULT_PHASES, ScanFitConfig
+from bodyfit.models.fitting.scan_fit import ScanFitter
 from bodyfit.models.fitting.scan_io import sample_surface
 
 BRANCHED = ("shape", "limbs", "fine")
@@ -94,7 +95,8 @@ def _run_script(tmp_path: Path, *lines: str) -> subprocess.CompletedProcess[str]
     script = tmp_path / "script.py"
     script.write_text(
         "from bodyfit.models.body.model import BodyModel\n"
-        "from bodyfit.models.fitting.scan_fit import ScanFitConfig, ScanFitter\n"
+        "from bodyfit.models.fitting.scan_config import ScanFitConfig\n"
+        "from bodyfit.models.fitting.scan_fit import ScanFitter\n"
         "fitter = ScanFitter(BodyModel.load(), ScanFitConfig(processes=2))\n"
         + "".join(f"{x}\n" for x in lines)
     )

@@ -15,13 +15,8 @@ import torch
 
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting.limb_search import Hypotheses, distinct
-from bodyfit.models.fitting.scan_fit import (
-    DEFAULT_BRANCHES,
-    DEFAULT_PHASES,
-    STRAIGHTENED,
-    ScanFitConfig,
-    ScanFitter,
-)
+from bodyfit.models.fitting.scan_config import DEFAULT_BRANCHES, DEFAULT_PHASES, ScanFitConfig
+from bodyfit.models.fitting.scan_fit import STRAIGHTENED, ScanFitter
 from bodyfit.models.fitting.scan_io import sample_surface
 from bodyfit.models.rotations import rotation_angle_between
 
