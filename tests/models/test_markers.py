@@ -11,7 +11,8 @@ import pytest
 import torch
 
 from bodyfit.models.body.model import BodyModel
-from bodyfit.models.fitting.calibration import DofPlan, virtual_markers
+from bodyfit.models.errors import UnknownCoordinateError
+from bodyfit.models.fitting.calibration import DofPlan, moved_bodies, virtual_markers
 from bodyfit.models.fitting.marker_ik import (
     MarkerChain,
     levenberg_marquardt,
@@ -253,10 +254,20 @@ def test_gait2392_walk_matches_opensim_within_5_degrees(gait_fit, body: BodyMode
     assert gait_fit.marker_set == "gait2392" and gait_fit.static_coordinates is not None
 
 
-def test_running_without_static_trial(body: BodyModel) -> None:
+# The Hamner pipeline's scale setup (Setup_Scale.xml) holds the ankles at 0.5 degrees in the static pose.
+HAMNER_ANKLES = {"ankle_angle_r": np.radians(0.5), "ankle_angle_l": np.radians(0.5)}
+
+
+@pytest.fixture(scope="module")
+def running_fit(body: BodyModel):
+    """The Hamner running copy calibrated from 16 frames of its motion."""
+    return fit_markers(read_trc(GAIT / "hamner_subject02_running.trc"), model=body, calibration_frames=16)
+
+
+def test_running_without_static_trial(running_fit, body: BodyModel) -> None:
     run = read_trc(GAIT / "hamner_subject02_running.trc")
     assert np.isnan(run.marker("L.Bicep")).all()  # written as 0 0 0 in the file
-    fit = fit_markers(run, model=body, calibration_frames=16)
+    fit = running_fit
     rmse = rmse_against_reference(
         fit.times, fit.coordinates, body.skeleton, GAIT / "hamner_subject02_running_ik.mot"
     )
@@ -271,6 +282,65 @@ def test_running_without_static_trial(body: BodyModel) -> None:
         diff = ours - data[:, cols.index(f"ankle_angle_{s}")]
         assert diff.std() < 3.0 and 3.0 < diff.mean() < 12.0
     assert fit.report.limit_violations == 0 and "motion" in fit.report.extra["calibration"]
+
+
+def test_running_with_the_ankles_zeroed_by_the_static_trial(running_fit, body: BodyModel) -> None:
+    """Calibrated from the motion, then the feet's markers placed from the static trial in its pose with the
+    ankles held where the lab's scale setup holds them: every flexion within 5 degrees of OpenSim's
+    reference, the ankle's constant offset gone (without the static trial it reads 3-12 degrees more,
+    above), and every other marker where the motion's calibration put it."""
+    run = read_trc(GAIT / "hamner_subject02_running.trc")
+    static = read_trc(GAIT / "hamner_subject02_static.trc")
+    fit = fit_markers(
+        run, static, model=body, calibration="motion", static_pose=HAMNER_ANKLES, calibration_frames=16
+    )
+    rmse = rmse_against_reference(
+        fit.times, fit.coordinates, body.skeleton, GAIT / "hamner_subject02_running_ik.mot"
+    )
+    assert max(rmse.values()) <= 5.0 and max(rmse[f"ankle_angle_{s}"] for s in "rl") <= 3.0, rmse
+    assert fit.static_coordinates is not None and fit.report.limit_violations == 0
+    for name, value in HAMNER_ANKLES.items():
+        assert fit.static_coordinates[body.skeleton.dof_index(name)] == pytest.approx(value)
+    feet = np.array([b.startswith(("calcn", "toes")) for b in fit.markers.bodies])
+    assert feet.sum() == 12 and fit.markers.names == running_fit.markers.names
+    np.testing.assert_array_equal(fit.markers.local[~feet], running_fit.markers.local[~feet])
+    assert np.linalg.norm(fit.markers.local[feet] - running_fit.markers.local[feet], axis=1).max() > 0.01
+    assert "calcn_r" in fit.report.extra["calibration"]
+
+
+def test_static_pose_and_calibration_errors(body: BodyModel) -> None:
+    run = read_trc(GAIT / "hamner_subject02_running.trc").between(0.0, 0.5)
+    static = read_trc(GAIT / "hamner_subject02_static.trc")
+    with pytest.raises(ValueError, match="pass the static trial"):
+        fit_markers(run, model=body, static_pose=HAMNER_ANKLES)
+    with pytest.raises(ValueError, match="static_pose"):
+        fit_markers(run, static, model=body, calibration="motion")
+    with pytest.raises(ValueError, match="'auto', 'static' or 'motion'"):
+        fit_markers(run, static, model=body, calibration="static trial")
+    with pytest.raises(ValueError, match="needs the static trial"):
+        fit_markers(run, model=body, calibration="static")
+    with pytest.raises(UnknownCoordinateError, match="ankle_angle_r"):
+        fit_markers(run, static, model=body, calibration="motion", static_pose={"ankle_r": 0.0})
+    with pytest.raises(ValueError, match=r"ankle_angle_r = 1\.5 is outside its range"):
+        fit_markers(run, static, model=body, calibration="motion", static_pose={"ankle_angle_r": 1.5})
+
+
+def test_a_held_coordinate_moves_its_joints_child_and_the_bodies_below(body: BodyModel) -> None:
+    skel = body.skeleton
+    names = skel.body_names
+    assert [names[b] for b in np.flatnonzero(moved_bodies(skel, ["ankle_angle_r"]))] == [
+        "talus_r",
+        "calcn_r",
+        "toes_r",
+    ]
+    legs = {names[b] for b in np.flatnonzero(moved_bodies(skel, ["knee_angle_l", "hip_flexion_r"]))}
+    assert {"femur_r", "tibia_r", "toes_r", "tibia_l", "toes_l"} <= legs
+    assert not legs & {"femur_l", "pelvis", "torso"}
+    plan = DofPlan.build(skel, GAIT2392)
+    held = plan.holding(skel, {"knee_angle_r": 0.3})
+    knee = skel.dof_index("knee_angle_r")
+    assert knee in plan.free and knee not in held.free and held.locked[knee] == 0.3
+    assert len(held.free) == len(plan.free) - 1 and np.array_equal(held.soft, plan.soft)
 
 
 def test_write_outputs(gait_fit, body: BodyModel, tmp_path: Path) -> None:

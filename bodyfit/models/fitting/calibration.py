@@ -10,6 +10,7 @@ The solvers that use these pieces are in :mod:`.subject` (calibration) and :mod:
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -140,6 +141,37 @@ class DofPlan:
         for name in defn.soft:
             soft[skel.dof_index(name)] = (MARKER_SIGMA / SOFT_SIGMA) ** 2
         return DofPlan(np.flatnonzero(~fixed), locked, soft)
+
+    def holding(self, skel: Skeleton, values: Mapping[str, float]) -> DofPlan:
+        """This plan with the coordinates ``values`` (name -> rad or m) locked at those values.
+
+        Raises:
+            KeyError: a name that is not one of ``skel``'s coordinates.
+            ValueError: a value that is not finite or lies outside the coordinate's range.
+        """
+        locked = self.locked.copy()
+        free = np.ones(skel.n_dof, bool)
+        free[np.setdiff1d(np.arange(skel.n_dof), self.free)] = False
+        for name, value in values.items():
+            i = skel.dof_index(name)
+            low, high = skel.ranges[i]
+            if not (np.isfinite(value) and low <= value <= high):
+                raise ValueError(f"{name} = {value!r} is outside its range [{low:.4g}, {high:.4g}]")
+            locked[i], free[i] = float(value), False
+        return DofPlan(np.flatnonzero(free), locked, self.soft)
+
+
+def moved_bodies(skel: Skeleton, coordinates: Iterable[str]) -> np.ndarray:
+    """(n_bodies,) bool: the bodies any of ``coordinates`` moves against its joint's parent (the joint's
+    child and every body below it)."""
+    spec = skel.spec
+    parents = spec.body_parent_index
+    out = np.zeros(len(parents), bool)
+    for name in coordinates:
+        out[spec.body_index(spec.joint(spec.coordinate(name).joint).child)] = True
+    for b, p in enumerate(parents):  # a parent comes before its children
+        out[b] |= p >= 0 and bool(out[p])
+    return out
 
 
 def pelvis_start(

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -28,6 +28,7 @@ from bodyfit.models.fitting.calibration import (
     DofPlan,
     ScaleModel,
     VirtualMarkers,
+    moved_bodies,
     place_markers,
     virtual_markers,
 )
@@ -108,6 +109,8 @@ def fit_markers(
     model: BodyModel | None = None,
     weights: Mapping[str, float] | None = None,
     static_window: tuple[float, float] | None = None,
+    static_pose: Mapping[str, float] | None = None,
+    calibration: str = "auto",
     calibration_frames: int = CALIBRATION_FRAMES,
     max_iterations: int = 50,
 ) -> MarkerFit:
@@ -121,16 +124,27 @@ def fit_markers(
         model: the body model (loaded when None).
         weights: IK weight overrides by marker name (0 drops a marker).
         static_window: (start, stop) seconds of the static trial to average (default: all of it).
+        static_pose: coordinates (name -> rad or m) held at these values in the static trial's standing
+            pose, as a lab's OpenSim ScaleTool setup holds them with its coordinate tasks (e.g. the ankles
+            at 0 for a subject standing in shoes): the markers placed in that pose set the zero of those
+            coordinates in the motion. Default: the pose fitted to the markers.
+        calibration: ``"static"``: from the static trial (scales, standing pose and every marker it shows);
+            ``"motion"``: from frames of the motion (scales and technical marker locations; needs no
+            static trial, and with one and ``static_pose`` the markers on the bodies the held
+            coordinates move are then placed where the static trial saw them); ``"auto"``: "static"
+            when a static trial is given, else "motion".
         calibration_frames: frames of the motion used for calibration when ``static`` is None.
         max_iterations: Levenberg-Marquardt iterations per frame and pass.
     Returns:
         :class:`MarkerFit`.
     Raises:
         MarkerSetError: unknown set or too few shared markers. ShapeError/ValueError: bad inputs.
+        UnknownCoordinateError: a ``static_pose`` name that is not a coordinate.
     """
     t0 = time.perf_counter()
     if trial.n_frames == 0:
         raise MarkerSetError("the trial has no frames")
+    mode = _calibration_mode(calibration, static, static_pose)
     model = model or BodyModel.load()
     skel = model.skeleton
     names_all = [*trial.names, *(static.names if static is not None else ())]
@@ -145,17 +159,22 @@ def fit_markers(
             w[vm.names.index(n)] = float(v)
         vm = replace(vm, weights=w)
     in_trial = {normalise_name(n) for n in trial.names}
-    in_static = {normalise_name(n) for n in static.names} if static is not None else set()
+    window = None if static is None else static if static_window is None else static.between(*static_window)
+    in_static: set[str] = set()
+    if window is not None and mode == "static":  # every marker it shows is placed
+        in_static = {normalise_name(n) for n in window.names}
     used = [n for n, wt in zip(vm.names, vm.weights) if wt > 0 and (n in in_trial or n in in_static)]
     vm = vm.subset(used)
     plan = DofPlan.build(skel, defn)
+    standing_plan = plan.holding(skel, static_pose) if static_pose else plan  # the static trial's pose
     scale_model = ScaleModel(model)
     notes: list[str] = []
-    if static is not None:
-        window = static if static_window is None else static.between(*static_window)
-        cal, markers = _calibrate_static(
-            skel, scale_model, vm, observed_positions(window, used), plan, defn.name
-        )
+    standing: np.ndarray | None = None
+    if mode == "static":
+        assert window is not None
+        static_frames = observed_positions(window, used)
+        cal, markers = _calibrate_static(skel, scale_model, vm, static_frames, standing_plan, defn.name)
+        standing, described = cal.q[0], "static"
         missing = [
             n for n in used if n in in_trial and not np.isfinite(observed_positions(window, [n])).any()
         ]
@@ -168,7 +187,16 @@ def fit_markers(
         cal = calibrate(
             skel, scale_model, vm, obs[frames], trial.times[frames], plan, ~vm.anatomical, start=first.q
         )
-        markers = cal.markers
+        markers, described = cal.markers, f"motion ({len(cal.q)} frames)"
+        if window is not None and static_pose:
+            static_frames = observed_positions(window, list(markers.names))
+            markers, standing, bodies = _place_from_static(
+                skel, markers, cal.scales, static_frames, standing_plan, static_pose
+            )
+            described += (
+                f"; the markers on {', '.join(bodies)} placed from the static trial with "
+                f"{', '.join(static_pose)} held"
+            )
     t_cal = time.perf_counter()
 
     ik_names = [n for n in markers.names if n in in_trial]
@@ -179,7 +207,7 @@ def fit_markers(
     report = _report(sol.q, sol.errors, observed, skel.ranges, cal.iterations + sol.iterations, t_end - t0)
     extra = {
         "marker_set": defn.name,
-        "calibration": "static" if static is not None else f"motion ({len(cal.q)} frames)",
+        "calibration": described,
         "calibration_seconds": t_cal - t0,
         "ik_seconds": t_end - t_cal,
         "calibration_error_mm": DistanceStats.of(cal.errors).mean,
@@ -193,7 +221,7 @@ def fit_markers(
     }
     return MarkerFit(
         sol.q, sol.root, trial.times.copy(), cal.scales, markers, sol.errors,
-        cal.q[0] if static is not None else None, defn.name, list(skel.dof_names),
+        standing, defn.name, list(skel.dof_names),
         replace(report, extra=extra),
     )  # fmt: skip
 
@@ -208,9 +236,7 @@ def _calibrate_static(
 ) -> tuple[Calibration, VirtualMarkers]:
     """Scales and standing pose from the anatomical markers of a static trial (frames (K, M, 3), averaged),
     then every marker it shows placed where it was seen (OpenSim's ScaleTool + MarkerPlacer)."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # markers absent from the static trial
-        mean = np.nanmean(frames, axis=0)  # (M, 3)
+    mean = _frame_mean(frames)
     seen = np.isfinite(mean).all(-1)
     anat = markers.anatomical & seen
     if anat.sum() < MIN_VISIBLE:
@@ -222,6 +248,59 @@ def _calibrate_static(
     cal = calibrate(skel, scale_model, fit_markers_, mean[None], np.zeros(1), plan, np.zeros(len(seen), bool))
     placed = place_markers(skel, markers, mean, cal.q[0], cal.root[0], cal.scales, seen)
     return cal, placed
+
+
+def _calibration_mode(
+    calibration: str, static: MarkerTrial | None, static_pose: Mapping[str, float] | None
+) -> str:
+    """ "static" or "motion": how :func:`fit_markers` calibrates (see there); ValueError on a combination
+    that would leave an argument unused."""
+    if calibration not in ("auto", "static", "motion"):
+        raise ValueError(f"calibration must be 'auto', 'static' or 'motion', not {calibration!r}")
+    if static is None:
+        if calibration == "static":
+            raise ValueError("calibration='static' needs the static trial: pass it, or use 'motion'")
+        if static_pose:
+            raise ValueError("static_pose holds coordinates in a static trial's pose: pass the static trial")
+        return "motion"
+    if calibration == "motion" and not static_pose:
+        raise ValueError(
+            "with calibration='motion' a static trial only places the markers of the coordinates static_pose "
+            "holds: pass static_pose, or calibrate from the static trial (calibration='static')"
+        )
+    return "motion" if calibration == "motion" else "static"
+
+
+def _frame_mean(frames: np.ndarray) -> np.ndarray:
+    """(M, 3) the mean of frames (K, M, 3) over K, NaN for a marker no frame shows."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # markers absent from the static trial
+        return np.nanmean(frames, axis=0)
+
+
+def _place_from_static(
+    skel: Skeleton,
+    markers: VirtualMarkers,
+    scales: np.ndarray,
+    frames: np.ndarray,
+    holding: DofPlan,
+    held: Iterable[str],
+) -> tuple[VirtualMarkers, np.ndarray, list[str]]:
+    """The markers on the bodies the coordinates ``held`` move, placed where a static trial (frames
+    (K, M, 3) of ``markers``, averaged) saw them in its pose: solved from all the markers where they are,
+    by the plan ``holding`` that holds those coordinates (scales (n_seg, 3): the subject's), as OpenSim's
+    MarkerPlacer solves it before it moves them. Returns the markers, that pose (n_dof,) and the names of
+    the bodies whose markers were placed."""
+    held = list(held)
+    mean = _frame_mean(frames)
+    on = moved_bodies(skel, held)[markers.body_indices(skel)] & np.isfinite(mean).all(-1)
+    if not on.any():
+        raise MarkerSetError(
+            f"the static trial shows no marker on the bodies that {', '.join(held)} move: nothing to place"
+        )
+    pose = solve_ik(skel, markers, scales, mean[None], np.zeros(1), holding, stride=1)
+    placed = place_markers(skel, markers, mean, pose.q[0], pose.root[0], scales, on)
+    return placed, pose.q[0], sorted({markers.bodies[i] for i in np.flatnonzero(on)})
 
 
 def _report(
