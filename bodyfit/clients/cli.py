@@ -100,10 +100,14 @@ def export_onnx(
 @app.command()
 def fit(
     meshes: Annotated[
-        list[Path], typer.Argument(help="Meshes or point clouds (.ply, .obj, .stl, .pcd, .npz).")
+        list[Path],
+        typer.Argument(
+            help="Meshes or point clouds (.ply, .obj, .stl, .pcd, .npz), or motion-capture marker trials "
+            "(.trc, .c3d) of one subject."
+        ),
     ],
     out: Annotated[Path, typer.Option(help="Output folder.")] = Path("out/fit"),
-    units: Annotated[str, typer.Option(help="auto, m or mm.")] = "auto",
+    units: Annotated[str, typer.Option(help="Meshes: auto, m or mm.")] = "auto",
     processes: Annotated[
         int | None,
         typer.Option(
@@ -114,8 +118,30 @@ def fit(
             "are raw scans.",
         ),
     ] = None,
+    static: Annotated[
+        Path | None,
+        typer.Option(help="Marker trials: the subject's static (standing) trial, .trc or .c3d."),
+    ] = None,
+    static_pose: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Marker trials: NAME=DEGREES, a coordinate held in the static trial's pose, as a lab's "
+            "OpenSim scale setup holds it (e.g. ankle_angle_r=0; repeat for more)."
+        ),
+    ] = None,
+    calibration: Annotated[
+        str,
+        typer.Option(
+            help="Marker trials: static (from the static trial), motion (from the trial itself; with "
+            "--static and --static-pose the static trial then places the markers of the held coordinates' "
+            "bodies) or auto (static when --static is given)."
+        ),
+    ] = "auto",
+    marker_set: Annotated[str, typer.Option(help="Marker trials: auto, gait2392 or rajagopal.")] = "auto",
+    up: Annotated[str, typer.Option(help="Marker trials: the lab's up axis (y, z, -z, ...).")] = "y",
+    forward: Annotated[str, typer.Option(help="Marker trials: the lab's forward axis.")] = "x",
 ) -> None:
-    """Fit the body model to meshes and scans, any placement.
+    """Fit the body model to meshes and scans, any placement, or to motion-capture marker trials.
 
     Meshes in our 13,348-vertex topology are fitted vertex to vertex (batched); meshes in SMPL's 6,890-vertex
     topology through the stored correspondence; anything else as a raw scan (any topology or a bare point
@@ -123,11 +149,31 @@ def fit(
     in our topology, joints), fit.json (one error report per input: distances in mm, joint-limit
     violations, iterations, time, confidence), the registrations as .ply and the coordinates as an OpenSim
     .mot.
+
+    Marker trials (.trc, .c3d; OpenSim gait2392 or Rajagopal marker names) give the skeleton's coordinates
+    per frame: the subject is calibrated from the static trial (--static) or from the motion, then every
+    frame is solved. Writes <trial>.mot, <trial>.osim (the scaled subject with its markers, for OpenSim) and
+    fit.json (one error report per trial: marker distances in mm, joint-limit violations, confidence).
     """
+    from bodyfit.clients.marker_cli import MarkerOptions, fit_marker_trials, is_marker_file
+    from bodyfit.models.errors import BodyfitError
+
+    trials = [path for path in meshes if is_marker_file(path)]
+    if trials:
+        if len(trials) < len(meshes):
+            typer.echo("error: fit marker trials (.trc, .c3d) and meshes in separate runs", err=True)
+            raise typer.Exit(2)
+        options = MarkerOptions(static, tuple(static_pose or ()), calibration, marker_set, up, forward)
+        try:
+            fit_marker_trials(trials, out, options, typer.echo)
+        except (BodyfitError, ValueError, OSError) as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(2) from exc
+        typer.echo(f"wrote {len(trials)} marker fits to {out}/ (fit.json, <trial>.mot, <trial>.osim)")
+        return
     import numpy as np
     import trimesh
 
-    from bodyfit.models.errors import BodyfitError
     from bodyfit.models.fitting.scan_io import load_scan
     from bodyfit.models.skeleton.opensim_export import write_mot
     from bodyfit.service.core import RAW_SCAN, BodyService

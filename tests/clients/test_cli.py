@@ -14,6 +14,7 @@ from bodyfit.models.skeleton import Skeleton
 from bodyfit.models.skeleton.opensim_export import mot_columns, read_mot
 
 runner = CliRunner()
+DATA = Path(__file__).resolve().parents[1] / "data"
 
 
 def test_demo_writes_posed_skeleton(tmp_path: Path) -> None:
@@ -142,7 +143,7 @@ def test_fit_a_real_head_and_shoulders_scan(tmp_path: Path) -> None:
     from bodyfit.models.fitting.scan_io import load_scan
 
     scan = load_scan(
-        Path(__file__).resolve().parents[1] / "data" / "scans" / "pcl_template_alignment_person.pcd",
+        DATA / "scans" / "pcl_template_alignment_person.pcd",
         drop_nonfinite=True,
     )
     path = tmp_path / "person.npz"
@@ -181,6 +182,55 @@ def test_fit_reports_an_unreadable_file(tmp_path: Path) -> None:
     assert "error:" in result.output and "Traceback" not in result.output
 
 
+def test_fit_a_marker_trial_with_its_static_trial(tmp_path: Path) -> None:
+    """A real running trial (TRC), its feet's markers placed from the static trial with the ankles held:
+    the .mot's flexion angles lie within 5 degrees of OpenSim's reference IK, and the .osim carries the
+    calibrated markers."""
+    gait = DATA / "opensim_gait"
+    args = [
+        "fit", str(gait / "hamner_subject02_running.trc"),
+        "--static", str(gait / "hamner_subject02_static.trc"), "--calibration", "motion",
+        "--static-pose", "ankle_angle_r=0.5", "--static-pose", "ankle_angle_l=0.5", "--out", str(tmp_path),
+    ]  # fmt: skip
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert "hamner_subject02_running.trc (gait2392, 181 frames" in result.output
+    (record,) = json.loads((tmp_path / "fit.json").read_text())
+    assert record["confident"] and record["limit_violations"] == 0 and record["distances"]["mean"] < 15.0
+    assert "ankle_angle_r, ankle_angle_l held" in record["extra"]["calibration"]
+    cols, ours, _ = read_mot(tmp_path / "hamner_subject02_running.mot")
+    ref_cols, ref, _ = read_mot(gait / "hamner_subject02_running_ik.mot")
+    for name in ("hip_flexion_r", "knee_angle_l", "ankle_angle_r", "ankle_angle_l"):
+        sign = -1.0 if name.startswith("knee") else 1.0  # the reference's model flexes its knee negative
+        mine = np.interp(ref[:, 0], ours[:, 0], ours[:, cols.index(name)])
+        assert np.sqrt(np.mean((mine - sign * ref[:, ref_cols.index(name)]) ** 2)) < 5.0, name
+    osim = (tmp_path / "hamner_subject02_running.osim").read_text()
+    assert osim.count("<Marker ") == 41 and 'name="R.Toe.Tip"' in osim
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--static-pose", "ankle_angle_r"], "NAME=DEGREES"),
+        (["--static-pose", "ankle_angle_r=0"], "pass the static trial"),
+        (["--calibration", "static"], "needs the static trial"),
+        (["--up", "q"], "axis must be one of x, y, z"),
+        (["--marker-set", "vicon"], "unknown marker set 'vicon'"),
+    ],
+)
+def test_fit_a_marker_trial_reports_bad_options(tmp_path: Path, extra: list[str], message: str) -> None:
+    trial = DATA / "opensim_gait" / "hamner_subject02_running.trc"
+    result = runner.invoke(app, ["fit", str(trial), "--out", str(tmp_path), *extra])
+    assert result.exit_code == 2 and message in result.output and "Traceback" not in result.output
+    assert not (tmp_path / "fit.json").exists()
+
+
+def test_fit_refuses_marker_trials_mixed_with_meshes(tmp_path: Path) -> None:
+    trial = DATA / "opensim_gait" / "hamner_subject02_running.trc"
+    result = runner.invoke(app, ["fit", str(trial), str(tmp_path / "scan.ply"), "--out", str(tmp_path)])
+    assert result.exit_code == 2 and "separate runs" in result.output
+
+
 def test_synth_writes_the_requested_format(tmp_path: Path) -> None:
     out = tmp_path / "body.npz"
     result = runner.invoke(app, ["synth", str(out), "-c", "knee_angle_r=1.2", "--root", "0,1,0"])
@@ -195,7 +245,7 @@ def test_synth_writes_the_requested_format(tmp_path: Path) -> None:
 
 
 def test_upgrade_writes_opensim_files(tmp_path: Path) -> None:
-    data = Path(__file__).resolve().parents[1] / "data" / "smpl_format"
+    data = DATA / "smpl_format"
     args = ["upgrade", str(data / "cmu_131_smpl.npz"), "--smpl-model", str(data / "smpl_like_model.npz")]
     result = runner.invoke(app, [*args, "--out", str(tmp_path)])
     assert result.exit_code == 0, result.output

@@ -321,7 +321,7 @@ def test_static_pose_and_calibration_errors(body: BodyModel) -> None:
         fit_markers(run, model=body, calibration="static")
     with pytest.raises(UnknownCoordinateError, match="ankle_angle_r"):
         fit_markers(run, static, model=body, calibration="motion", static_pose={"ankle_r": 0.0})
-    with pytest.raises(ValueError, match=r"ankle_angle_r = 1\.5 is outside its range"):
+    with pytest.raises(ValueError, match=r"ankle_angle_r = 1\.5 rad \(85\.9 degrees\) is outside"):
         fit_markers(run, static, model=body, calibration="motion", static_pose={"ankle_angle_r": 1.5})
 
 

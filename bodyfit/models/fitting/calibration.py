@@ -156,7 +156,14 @@ class DofPlan:
             i = skel.dof_index(name)
             low, high = skel.ranges[i]
             if not (np.isfinite(value) and low <= value <= high):
-                raise ValueError(f"{name} = {value!r} is outside its range [{low:.4g}, {high:.4g}]")
+                span = f"{value:.4g} is outside its range [{low:.4g}, {high:.4g}]"
+                if skel.spec.coordinate(name).motion == "rotational":
+                    low_deg, high_deg, value_deg = np.degrees([low, high, value])
+                    span = (
+                        f"{value:.4g} rad ({value_deg:.1f} degrees) is outside its range "
+                        f"[{low:.4g}, {high:.4g}] rad ({low_deg:.1f} to {high_deg:.1f} degrees)"
+                    )
+                raise ValueError(f"{name} = {span}")
             locked[i], free[i] = float(value), False
         return DofPlan(np.flatnonzero(free), locked, self.soft)
 
