@@ -102,8 +102,8 @@ def fit(
     meshes: Annotated[
         list[Path],
         typer.Argument(
-            help="Meshes or point clouds (.ply, .obj, .stl, .pcd, .npz), or motion-capture marker trials "
-            "(.trc, .c3d) of one subject."
+            help="Meshes or point clouds (.ply, .obj, .stl, .pcd, .npz); registered mesh sequences (.npz "
+            "holding frames (T, 13348, 3)); or motion-capture marker trials (.trc, .c3d) of one subject."
         ),
     ],
     out: Annotated[Path, typer.Option(help="Output folder.")] = Path("out/fit"),
@@ -140,6 +140,9 @@ def fit(
     marker_set: Annotated[str, typer.Option(help="Marker trials: auto, gait2392 or rajagopal.")] = "auto",
     up: Annotated[str, typer.Option(help="Marker trials: the lab's up axis (y, z, -z, ...).")] = "y",
     forward: Annotated[str, typer.Option(help="Marker trials: the lab's forward axis.")] = "x",
+    fps: Annotated[
+        float, typer.Option(min=0.001, help="Sequences: frames per second, for the .mot's times.")
+    ] = 30.0,
 ) -> None:
     """Fit the body model to meshes and scans, any placement, or to motion-capture marker trials.
 
@@ -150,19 +153,38 @@ def fit(
     violations, iterations, time, confidence), the registrations as .ply and the coordinates as an OpenSim
     .mot.
 
+    A registered sequence (an .npz holding frames (T, 13348, 3), optionally weights (T, 13348), one person
+    in time order) gets one shape and a pose per frame: writes <name>.npz (shape, coordinates, root,
+    vertices, joints, per-frame error_mm), <name>.mot and fit.json (frames per second, error, jitter).
+
     Marker trials (.trc, .c3d; OpenSim gait2392 or Rajagopal marker names) give the skeleton's coordinates
     per frame: the subject is calibrated from the static trial (--static) or from the motion, then every
     frame is solved. Writes <trial>.mot, <trial>.osim (the scaled subject with its markers, for OpenSim) and
     fit.json (one error report per trial: marker distances in mm, joint-limit violations, confidence).
     """
     from bodyfit.clients.marker_cli import MarkerOptions, fit_marker_trials, is_marker_file
+    from bodyfit.clients.sequence_cli import fit_sequence_files, is_sequence_file
     from bodyfit.models.errors import BodyfitError
+    from bodyfit.service.core import RAW_SCAN, BodyService
+    from bodyfit.service.errors import ServiceError
 
     trials = [path for path in meshes if is_marker_file(path)]
+    sequences = [path for path in meshes if is_sequence_file(path)]
+    if 0 < len(trials) + len(sequences) < len(meshes) or (trials and sequences):
+        typer.echo(
+            "error: fit marker trials (.trc, .c3d), sequences (.npz with frames) and meshes in separate runs",
+            err=True,
+        )
+        raise typer.Exit(2)
+    if sequences:
+        try:
+            fit_sequence_files(BodyService.load(fitters=False), sequences, out, fps, typer.echo)
+        except (BodyfitError, ServiceError, OSError) as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(2) from exc
+        typer.echo(f"wrote {len(sequences)} sequence fits to {out}/ (fit.json, <name>.npz, <name>.mot)")
+        return
     if trials:
-        if len(trials) < len(meshes):
-            typer.echo("error: fit marker trials (.trc, .c3d) and meshes in separate runs", err=True)
-            raise typer.Exit(2)
         options = MarkerOptions(static, tuple(static_pose or ()), calibration, marker_set, up, forward)
         try:
             fit_marker_trials(trials, out, options, typer.echo)
@@ -176,8 +198,6 @@ def fit(
 
     from bodyfit.models.fitting.scan_io import load_scan
     from bodyfit.models.skeleton.opensim_export import write_mot
-    from bodyfit.service.core import RAW_SCAN, BodyService
-    from bodyfit.service.errors import ServiceError
     from bodyfit.service.jobs import Job, Progress
 
     def show(p: Progress) -> None:

@@ -10,6 +10,7 @@ import pytest
 from typer.testing import CliRunner
 
 from bodyfit.clients.cli import app
+from bodyfit.models.body.model import BodyModel
 from bodyfit.models.skeleton import Skeleton
 from bodyfit.models.skeleton.opensim_export import mot_columns, read_mot
 
@@ -225,10 +226,43 @@ def test_fit_a_marker_trial_reports_bad_options(tmp_path: Path, extra: list[str]
     assert not (tmp_path / "fit.json").exists()
 
 
-def test_fit_refuses_marker_trials_mixed_with_meshes(tmp_path: Path) -> None:
+def test_fit_refuses_marker_trials_or_sequences_mixed_with_meshes(tmp_path: Path) -> None:
     trial = DATA / "opensim_gait" / "hamner_subject02_running.trc"
-    result = runner.invoke(app, ["fit", str(trial), str(tmp_path / "scan.ply"), "--out", str(tmp_path)])
-    assert result.exit_code == 2 and "separate runs" in result.output
+    np.savez(tmp_path / "seq.npz", frames=np.zeros((2, 13348, 3), np.float32))
+    for inputs in ([trial, tmp_path / "scan.ply"], [tmp_path / "seq.npz", trial]):
+        result = runner.invoke(app, ["fit", *map(str, inputs), "--out", str(tmp_path / "o")])
+        assert result.exit_code == 2 and "separate runs" in result.output
+
+
+def test_fit_a_registered_sequence(tmp_path: Path) -> None:
+    """An .npz of frames (T, 13348, 3) is one person over time: one shape, a pose per frame, written as
+    .npz, .mot (at --fps) and fit.json; the knee's motion comes back."""
+    model = BodyModel.load()
+    T = 12
+    q = np.tile(model.skeleton.inside(model.bind_coordinates, 0.1), (T, 1))
+    knee = model.skeleton.dof_index("knee_angle_r")
+    q[:, knee] = np.linspace(0.2, 1.2, T)
+    frames = model.forward(np.zeros((T, model.n_shape)), q, np.zeros((T, 3))).vertices.numpy()
+    np.savez(tmp_path / "walk.npz", frames=frames)
+    out = tmp_path / "o"
+    result = runner.invoke(app, ["fit", str(tmp_path / "walk.npz"), "--out", str(out), "--fps", "50"])
+    assert result.exit_code == 0, result.output
+    assert "walk.npz (sequence, 12 frames)" in result.output
+    fit = np.load(out / "walk.npz")
+    assert fit["coordinates"].shape == (T, model.skeleton.n_dof) and fit["vertices"].shape == (T, 13348, 3)
+    assert np.abs(fit["coordinates"][:, knee] - q[:, knee]).max() < 0.05 and fit["error_mm"].max() < 2.0
+    (record,) = json.loads((out / "fit.json").read_text())
+    assert record["frames"] == T and record["limit_violations"] == 0 and record["confident_frames"] == T
+    cols, mot, _ = read_mot(out / "walk.mot")
+    np.testing.assert_allclose(mot[:, 0], np.arange(T) / 50.0, atol=1e-6)
+    knee_mot = np.radians(mot[:, cols.index("knee_angle_r")])
+    np.testing.assert_allclose(knee_mot, fit["coordinates"][:, knee], atol=1e-6)
+
+
+def test_fit_reports_a_malformed_sequence(tmp_path: Path) -> None:
+    np.savez(tmp_path / "seq.npz", frames=np.zeros((3, 100, 3), np.float32))
+    result = runner.invoke(app, ["fit", str(tmp_path / "seq.npz"), "--out", str(tmp_path / "o")])
+    assert result.exit_code == 2 and "(T, 13348, 3)" in result.output and "Traceback" not in result.output
 
 
 def test_synth_writes_the_requested_format(tmp_path: Path) -> None:
