@@ -30,8 +30,6 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import platform
 import statistics
@@ -246,12 +244,8 @@ def _machine() -> dict[str, Any]:
     }
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0] if __doc__ else None)
-    parser.add_argument("--quick", action="store_true", help="the 3 s running copy, 1 s of walking timed")
-    parser.add_argument("--json", action="store_true", help="print the figures as one JSON object last")
-    args = parser.parse_args(argv)
-    res = run(args.quick)
+def show(res: dict[str, Any]) -> None:
+    """The figures as tables, one per trial."""
     for trial, table in res["ik_rmse_deg"].items():
         print(f"\n{trial}: RMSE vs OpenSim reference IK (deg)   [mean difference, RMSE offset removed]")
         for coord, value in table.items():
@@ -275,8 +269,18 @@ def main(argv: list[str] | None = None) -> None:
         )
     if "lower_body_agreement_rmse_deg" in res:
         print(f"lower body, OpenSim IK vs ours (deg RMSE): {res['lower_body_agreement_rmse_deg']}")
-    if args.json:
-        print(json.dumps(res))
+
+
+def main(argv: list[str] | None = None) -> None:
+    from bench_cli import bench_main  # benchmarks/ is on sys.path when this runs as a script
+
+    bench_main(
+        run,
+        "mocap markers -> coordinates against OpenSim's reference IK and its InverseKinematicsTool",
+        "the 3 s running copy, 1 s of walking timed",
+        argv,
+        show,
+    )
 
 
 if __name__ == "__main__":
