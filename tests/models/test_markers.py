@@ -308,6 +308,22 @@ def test_running_with_the_ankles_zeroed_by_the_static_trial(running_fit, body: B
     assert "calcn_r" in fit.report.extra["calibration"]
 
 
+def test_a_static_calibration_holds_the_static_pose_it_is_given(body: BodyModel) -> None:
+    """With ``static_pose`` a static calibration solves the standing pose with those coordinates held (the
+    gait2392 pipeline's scale setup holds the lumbar extension at 0): the pose has them exactly, and the
+    rest moves to make up for them."""
+    walk = read_trc(GAIT / "gait2392_subject01_walk1.trc").between(0.5, 1.0)
+    static = read_trc(GAIT / "gait2392_subject01_static.trc")
+    free = fit_markers(walk, static, model=body)
+    held = fit_markers(walk, static, model=body, static_pose={"lumbar_extension": 0.0})
+    lumbar = body.skeleton.dof_index("lumbar_extension")
+    assert free.static_coordinates is not None and held.static_coordinates is not None
+    assert abs(free.static_coordinates[lumbar]) > np.radians(1.0) and held.static_coordinates[lumbar] == 0.0
+    tilt = body.skeleton.dof_index("pelvis_tilt")
+    assert abs(held.static_coordinates[tilt] - free.static_coordinates[tilt]) > np.radians(0.2)
+    assert held.report.extra["calibration"] == "static" and held.report.limit_violations == 0
+
+
 def test_static_pose_and_calibration_errors(body: BodyModel) -> None:
     run = read_trc(GAIT / "hamner_subject02_running.trc").between(0.0, 0.5)
     static = read_trc(GAIT / "hamner_subject02_static.trc")
