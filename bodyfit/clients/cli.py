@@ -10,14 +10,11 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
+from bodyfit.clients.mesh_cli import HELPER_SCANS
+
 if TYPE_CHECKING:
-    import numpy as np
+    pass
 
-
-# raw scans in one `bodyfit fit` from which a helper process pays for its start: with the fits on one torch
-# thread either way, two clean scans took 7.8-7.9 s with it and without, three 10.1-10.4 against 10.7
-# (BENCHMARKS.md)
-HELPER_SCANS = 3
 
 app = typer.Typer(
     no_args_is_help=True,
@@ -163,9 +160,10 @@ def fit(
     fit.json (one error report per trial: marker distances in mm, joint-limit violations, confidence).
     """
     from bodyfit.clients.marker_cli import MarkerOptions, fit_marker_trials, is_marker_file
+    from bodyfit.clients.mesh_cli import fit_mesh_files
     from bodyfit.clients.sequence_cli import fit_sequence_files, is_sequence_file
     from bodyfit.models.errors import BodyfitError
-    from bodyfit.service.core import RAW_SCAN, BodyService
+    from bodyfit.service.core import BodyService
     from bodyfit.service.errors import ServiceError
 
     trials = [path for path in meshes if is_marker_file(path)]
@@ -176,70 +174,26 @@ def fit(
             err=True,
         )
         raise typer.Exit(2)
-    if sequences:
-        try:
-            fit_sequence_files(BodyService.load(fitters=False), sequences, out, fps, typer.echo)
-        except (BodyfitError, ServiceError, OSError) as exc:
-            typer.echo(f"error: {exc}", err=True)
-            raise typer.Exit(2) from exc
-        typer.echo(f"wrote {len(sequences)} sequence fits to {out}/ (fit.json, <name>.npz, <name>.mot)")
-        return
-    if trials:
-        options = MarkerOptions(static, tuple(static_pose or ()), calibration, marker_set, up, forward)
-        try:
-            fit_marker_trials(trials, out, options, typer.echo)
-        except (BodyfitError, ValueError, OSError) as exc:
-            typer.echo(f"error: {exc}", err=True)
-            raise typer.Exit(2) from exc
-        typer.echo(f"wrote {len(trials)} marker fits to {out}/ (fit.json, <trial>.mot, <trial>.osim)")
-        return
-    import numpy as np
-    import trimesh
-
-    from bodyfit.models.fitting.scan_io import load_scan
-    from bodyfit.models.skeleton.opensim_export import write_mot
-    from bodyfit.service.jobs import Job, Progress
-
-    def show(p: Progress) -> None:
-        if p.message not in ("", "done"):
-            typer.echo(f"  {p.message}", err=True)
-
     try:
-        service = BodyService.load(fitters=False)
-        model = service.model
-        scans = [load_scan(path, units=units) for path in meshes]
-        if processes is None:
-            raw = sum(service.route(scan) == RAW_SCAN for scan in scans)
-            processes = 2 if raw >= HELPER_SCANS else 1
-        service.scan_processes = processes  # read when the first fit builds the fitters
-        fits = []
-        for path, scan in zip(meshes, scans, strict=True):
-            typer.echo(f"{path.name}: {scan.n_points} points", err=True)
-            fits.append(service.fit_mesh(scan, Job(on_progress=show)))
-    except (BodyfitError, ServiceError, OSError) as exc:
+        if trials:
+            options = MarkerOptions(static, tuple(static_pose or ()), calibration, marker_set, up, forward)
+            fit_marker_trials(trials, out, options, typer.echo)
+            wrote = f"{len(trials)} marker fits to {out}/ (fit.json, <trial>.mot, <trial>.osim)"
+        elif sequences:
+            fit_sequence_files(BodyService.load(fitters=False), sequences, out, fps, typer.echo)
+            wrote = f"{len(sequences)} sequence fits to {out}/ (fit.json, <name>.npz, <name>.mot)"
+        else:
+            service = BodyService.load(fitters=False)
+            fit_mesh_files(service, meshes, out, units, processes, typer.echo, _to_stderr)
+            wrote = f"{len(meshes)} fits to {out}/ (fit.npz, fit.json, registration_*.ply, fit.mot)"
+    except (BodyfitError, ServiceError, ValueError, OSError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
-    out.mkdir(parents=True, exist_ok=True)
-    arrays: dict[str, np.ndarray] = {
-        key: np.stack([f.arrays()[key] for f in fits]) for key in fits[0].arrays()
-    }
-    arrays["dof_names"], arrays["joint_names"] = np.array(model.dof_names), np.array(model.joint_names)
-    np.savez_compressed(out / "fit.npz", allow_pickle=False, **arrays)
-    records = [
-        {"mesh": str(p), "fitted_as": f.fitted_as, **f.report.to_dict()}
-        for p, f in zip(meshes, fits, strict=True)
-    ]
-    (out / "fit.json").write_text(json.dumps(records, indent=1) + "\n")
-    for k, f in enumerate(fits):
-        trimesh.Trimesh(f.vertices, model.faces, process=False).export(out / f"registration_{k:03d}.ply")
-    write_mot(out / "fit.mot", model.skeleton.spec, arrays["coordinates"], arrays["root"], fps=1.0)
-    for p, f in zip(meshes, fits, strict=True):
-        r = f.report
-        flag = "ok" if r.confident else "LOW CONFIDENCE: " + "; ".join(r.reasons)
-        typer.echo(
-            f"{p.name} ({f.fitted_as}): mean {r.distances.mean:.2f} mm, p95 {r.distances.p95:.2f} mm, {flag}"
-        )
-    typer.echo(f"wrote {len(meshes)} fits to {out}/ (fit.npz, fit.json, registration_*.ply, fit.mot)")
+    typer.echo(f"wrote {wrote}")
+
+
+def _to_stderr(line: str) -> None:
+    typer.echo(line, err=True)
 
 
 @app.command()
