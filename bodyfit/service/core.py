@@ -33,7 +33,7 @@ from bodyfit.models.fitting.scan_fit import ScanFitter
 from bodyfit.models.fitting.scan_io import FORMATS as SCAN_FORMATS
 from bodyfit.models.fitting.scan_io import Scan, load_scan
 from bodyfit.models.fitting.sequence import SequenceFit, SequenceFitter
-from bodyfit.models.fitting.smpl_topology import SMPL_VERTICES, fit_smpl_meshes
+from bodyfit.models.fitting.smpl_topology import SMPL_VERTICES, fit_smpl_meshes, refine_smpl_fit
 from bodyfit.models.skeleton.model import RANGE_TOLERANCE
 from bodyfit.models.threads import torch_threads
 from bodyfit.models.upgrade.proxy import ShapeHintError, ShapeHints, SmplProxy, load_proxy
@@ -428,7 +428,8 @@ class BodyService:
 
     def fit_mesh(self, scan: Scan, job: Job | None = None) -> MeshFit:
         """Fit one mesh or scan, routed by its topology: 13,348 vertices -> registered fit; 6,890 vertices
-        with faces -> SMPL topology; anything else -> raw scan (orientation searched, no landmarks).
+        with faces -> SMPL topology (placed through the stored map, then refined on the mesh's surface);
+        anything else -> raw scan (orientation searched, no landmarks).
 
         Raises:
             BusyError: no worker slot within ``limits.queue_seconds``; JobCancelledError /
@@ -438,26 +439,29 @@ class BodyService:
         with self._slot():
             fitters = self.fitters
             route = self.route(scan)
-            # a raw scan's fit says how many steps it takes once it knows what it fits (a whole body here)
+            # a scan fit says how many steps it takes once it knows what it fits (a whole body here)
             total = fitters.scan.progress_steps() if route == RAW_SCAN else 1
             job.report("fit", 0, total, f"{scan.n_points} points")
+
+            def progress(done: int, steps: int, line: str) -> None:
+                nonlocal total
+                total = steps
+                job.report("fit", done, steps, line)
+
             if route == REGISTERED:
                 fit = _first(fitters.registered.fit(scan.points), REGISTERED)
-            elif route == SMPL_TOPOLOGY:
-                fit = _first(fit_smpl_meshes(fitters.registered, scan.points)[0], SMPL_TOPOLOGY)
             else:
-
-                def progress(done: int, steps: int, line: str) -> None:
-                    nonlocal total
-                    total = steps
-                    job.report("fit", done, steps, line)
-
                 # One torch thread: the fit's own two workers (and the helper) use the cores, and more
                 # threads crowd them (with the helper 3.8-4.0 s per clean scan instead of 3.2-3.4; in one
                 # process 2.8-3.0 instead of 2.6, BENCHMARKS.md); the fit is then the same either way.
                 with torch_threads(1):
-                    f = fitters.scan.fit(scan, progress=progress)
-                fit = MeshFit(RAW_SCAN, f.shape, f.coordinates, f.root, f.registration, f.joints, f.report)
+                    if route == SMPL_TOPOLOGY:  # placed through the map, then refined on the mesh's surface
+                        placed = fit_smpl_meshes(fitters.registered, scan.points)[0]
+                        assert scan.faces is not None  # the route needs them
+                        f = refine_smpl_fit(fitters.scan, placed, scan.points, scan.faces, progress=progress)
+                    else:
+                        f = fitters.scan.fit(scan, progress=progress)
+                fit = MeshFit(route, f.shape, f.coordinates, f.root, f.registration, f.joints, f.report)
             job.report("fit", total, total, "done")
             return fit
 

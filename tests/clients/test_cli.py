@@ -159,7 +159,8 @@ def test_fit_a_real_head_and_shoulders_scan(tmp_path: Path) -> None:
 
 
 def test_fit_an_smpl_topology_mesh(tmp_path: Path) -> None:
-    """A 6,890-vertex mesh goes through the stored SMPL correspondence (the CC BY woman, in millimetres)."""
+    """A 6,890-vertex mesh goes through the stored SMPL correspondence, then is refined on its surface (the
+    CC BY woman, in millimetres)."""
     import trimesh
 
     from bodyfit.models.fitting.smpl_topology import SOURCE_DIR, read_obj
@@ -172,6 +173,7 @@ def test_fit_an_smpl_topology_mesh(tmp_path: Path) -> None:
     assert result.exit_code == 0, result.output
     report = json.loads((out / "fit.json").read_text())[0]
     assert report["fitted_as"] == "SMPL topology" and report["limit_violations"] == 0
+    assert report["distances"]["mean"] < 3.0  # the mesh's surface to the registration (10 mm before)
     assert np.load(out / "fit.npz")["vertices"].shape == (1, 13348, 3)
 
 

@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.errors import NonFiniteError, ShapeError
 from bodyfit.models.fitting.registered import RegisteredFitter
+from bodyfit.models.fitting.scan_fit import ScanFitter
 from bodyfit.models.fitting.smpl_topology import (
     SMPL_TO_BODY,
     SMPL_VERTICES,
@@ -17,8 +18,10 @@ from bodyfit.models.fitting.smpl_topology import (
     SOURCES,
     fit_smpl_meshes,
     read_obj,
+    refine_smpl_fit,
     smpl_map,
 )
+from bodyfit.models.fitting.surface import point_to_surface
 
 # Measured when the asset was built (BENCHMARKS.md): 10.4 / 9.4 mm mean SMPL-vertex-to-surface distance.
 MEAN_MM = 12.0
@@ -60,6 +63,42 @@ def test_the_cc_by_bodies_fit_through_the_map(
     assert all(r.limit_violations == 0 for r in fit.reports)
     # parameters in our frame (+Y up): the highest joint is above the pelvis
     assert (fit.joints[:, :, 1].max(axis=1) > fit.root[:, 1]).all()
+
+
+def test_a_fit_refined_on_the_mesh_surface_follows_its_hands_and_feet(
+    model: BodyModel, bodies: list[tuple[np.ndarray, np.ndarray]]
+) -> None:
+    """The CC BY woman placed through the map, then refined on her mesh's surface: her vertices lie within
+    4 mm of the registration on average (10 mm from the registered fit, whose hands and feet the map's
+    correspondences hold off the surface), the parametric body itself is closer too, in our frame, within
+    the limits, and the steps are reported."""
+    fitter = RegisteredFitter(model)
+    verts, faces = bodies[1]
+    placed, before = fit_smpl_meshes(fitter, verts)
+    steps: list[tuple[int, int, str]] = []
+    refined = refine_smpl_fit(
+        ScanFitter(model, fitter=fitter), placed, verts, faces, progress=lambda *s: steps.append(s)
+    )
+    body = verts @ SMPL_TO_BODY.T
+    after = point_to_surface(body, refined.registration, model.faces)
+    parametric = point_to_surface(body, refined.vertices, model.faces)
+    assert after.mean() < 4e-3 and np.percentile(after, 95) < 20e-3, (after.mean(), before.mean())
+    assert parametric.mean() < 0.75 * before.mean() and refined.report.limit_violations == 0
+    np.testing.assert_array_equal(refined.scan_to_body, np.eye(4))  # the points were in our frame
+    assert [(d, t) for d, t, _ in steps] == [(0, 2), (1, 2), (2, 2)] and "refining" in steps[0][2]
+    assert "orientation was searched" not in " ".join(refined.report.reasons)
+
+
+def test_refine_checks_the_body_it_starts_from(
+    model: BodyModel, bodies: list[tuple[np.ndarray, np.ndarray]]
+) -> None:
+    scanner = ScanFitter(model)
+    points = bodies[0][0] @ SMPL_TO_BODY.T
+    c, q, r = np.zeros(model.n_shape), model.bind_coordinates, np.zeros(3)
+    with pytest.raises(ValueError, match=r"coordinates must be a finite \(46,\) array"):
+        scanner.refine(points, c, q[:10], r)
+    with pytest.raises(ValueError, match=r"root must be a finite \(3,\) array"):
+        scanner.refine(points, c, q, np.array([0.0, np.nan, 0.0]))
 
 
 def test_a_moved_smpl_mesh_fits_the_same(

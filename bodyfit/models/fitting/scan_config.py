@@ -139,7 +139,8 @@ class ScanFitConfig:
     the same two halves however many processes there are); partial_extent: a cleaned scan whose largest
     extent along its principal axes (:func:`.scan_io.largest_extent`) is below this (m) is fitted as a
     head and shoulders by ``partial_phases`` (:data:`UPPER_BODY_PHASES`), never confidently; 0 turns that
-    off."""
+    off; refine_from: the phase from which :meth:`.scan_fit.ScanFitter.refine` runs (a body already in
+    place: the point-to-plane phases)."""
 
     phases: tuple[ScanPhase, ...] = DEFAULT_PHASES
     branches: tuple[ScanBranch, ...] = DEFAULT_BRANCHES
@@ -156,6 +157,7 @@ class ScanFitConfig:
     processes: int = 1
     partial_phases: tuple[ScanPhase, ...] = UPPER_BODY_PHASES
     partial_extent: float = PARTIAL_EXTENT_M
+    refine_from: str = "fine"
 
     def __post_init__(self) -> None:
         if self.processes not in (1, 2):

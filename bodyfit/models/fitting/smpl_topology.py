@@ -24,7 +24,7 @@ from scipy import sparse
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.errors import ShapeError
 from bodyfit.models.fitting.registered import BodyFit, RegisteredFitter
-from bodyfit.models.fitting.scan_fit import ScanFitter
+from bodyfit.models.fitting.scan_fit import Progress, ScanFit, ScanFitter
 from bodyfit.models.fitting.scan_io import load_scan, sample_surface
 from bodyfit.models.fitting.surface import closest_on_surface, point_to_surface
 from bodyfit.models.skeleton.model import check_finite
@@ -128,6 +128,26 @@ def smpl_map(folder: Path | None = None) -> TopologyMap:
     from bodyfit.models.assets import assets_dir
 
     return TopologyMap.load((folder or assets_dir()) / ASSET)
+
+
+def refine_smpl_fit(
+    scanner: ScanFitter,
+    fit: BodyFit,
+    mesh: np.ndarray,
+    faces: np.ndarray,
+    index: int = 0,
+    progress: Progress | None = None,
+) -> ScanFit:
+    """Body ``index`` of a :func:`fit_smpl_meshes` fit refined on its mesh's surface (vertices (6890, 3) in
+    SMPL's frame, faces (F, 3)) by :meth:`ScanFitter.refine`: point-to-plane phases from the fitted body,
+    then the non-rigid registration; parameters and registration in our frame, as the fit's. The map's
+    correspondences hold the body where the map is wrong (hands, feet); the surface does not: on the two
+    CC BY bodies the mesh's vertices lie 2.6 / 2.9 mm from the refined registration against 10.6 / 9.5 mm
+    from the registered fit, for about 1 s more per mesh."""
+    body = np.asarray(mesh, np.float64) @ SMPL_TO_BODY.T
+    surface, _ = sample_surface(body, faces, SCAN_SAMPLES, seed=index)
+    points = np.concatenate([body, surface])
+    return scanner.refine(points, fit.shape[index], fit.coordinates[index], fit.root[index], progress)
 
 
 def fit_smpl_meshes(
