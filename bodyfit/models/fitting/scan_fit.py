@@ -211,6 +211,11 @@ class _PhaseRun:
     lock: Lock = field(default_factory=Lock)
     done: int = 0
 
+    def begin(self, what: str) -> None:
+        """Report step 0: the cleaned scan and ``what`` is fitted."""
+        if self.progress is not None:
+            self.progress(0, self.total, f"{len(self.cleaned):,} points cleaned; {what}")
+
     def report(self, line: str) -> None:
         """Count a step done and pass it on with ``line``, one branch's thread at a time."""
         with self.lock:
@@ -303,8 +308,7 @@ class ScanFitter:
         tree = PointTree(cleaned)
         with ThreadPoolExecutor(cfg.workers) as pool:
             run = _PhaseRun(cleaned, order, tree, progress, self.progress_steps(partial), pool)
-            if progress is not None:
-                progress(0, run.total, f"{len(cleaned):,} points cleaned; fitting a {PART_NAMES[part]}")
+            run.begin(f"fitting a {PART_NAMES[part]}")
             if not partial:
                 return self._fit_branches(hyp, points, run, began)
             iterations, losses = self._run_phases(
@@ -330,22 +334,21 @@ class ScanFitter:
             progress: as for :meth:`fit` (one step per phase).
         """
         began = time.perf_counter()
-        points, cleaned, order = self._prepare(scan)
-        names = [phase.stage.name for phase in self.config.phases]
-        if self.config.refine_from not in names:
-            raise ValueError(f"refine_from names no phase: {self.config.refine_from!r} is not in {names}")
-        phases = self.config.phases[names.index(self.config.refine_from) :]
         sizes = {"shape": self.model.n_shape, "coordinates": self.model.skeleton.n_dof, "root": 3}
         c, q, r = (np.asarray(value, np.float64) for value in (shape, coordinates, root))
         for (name, size), value in zip(sizes.items(), (c, q, r), strict=True):
             if value.shape != (size,) or not np.isfinite(value).all():
                 raise ValueError(f"{name} must be a finite ({size},) array; got shape {value.shape}")
+        names = [phase.stage.name for phase in self.config.phases]
+        if self.config.refine_from not in names:
+            raise ValueError(f"refine_from names no phase: {self.config.refine_from!r} is not in {names}")
+        phases = self.config.phases[names.index(self.config.refine_from) :]
+        points, cleaned, order = self._prepare(scan)
         state = self.fitter.start_state(q[None], r[None], c[None])
         hyp = Hypotheses(np.eye(3)[None], np.zeros(3), np.zeros((1, 0, 3)), state, False)
         with ThreadPoolExecutor(self.config.workers) as pool:
             run = _PhaseRun(cleaned, order, PointTree(cleaned), progress, len(phases), pool)
-            if progress is not None:
-                progress(0, run.total, f"{len(cleaned):,} points cleaned; refining the body")
+            run.begin("refining the body")
             iterations, losses = self._run_phases(hyp, phases, self.config.branches[0], run, "", map)
             return self._result(hyp, points, run, iterations, losses, began)
 
