@@ -18,7 +18,6 @@ def run_server(settings: ServiceSettings) -> None:
     from bodyfit.service.core import BodyService
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    LOG.info("loading the model and fitters from %s", settings.assets or "the built-in assets")
     service = BodyService.load(
         settings.assets,
         settings.limits(),

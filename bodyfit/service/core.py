@@ -8,8 +8,10 @@ session and a semaphore bounding concurrent heavy work; one instance serves conc
 from __future__ import annotations
 
 import io
+import logging
 import tempfile
 import threading
+import time
 from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import Future
 from contextlib import contextmanager
@@ -35,7 +37,6 @@ from bodyfit.models.fitting.scan_io import Scan, load_scan
 from bodyfit.models.fitting.sequence import SequenceFit, SequenceFitter
 from bodyfit.models.fitting.smpl_topology import SMPL_VERTICES, fit_smpl_meshes, refine_smpl_fit
 from bodyfit.models.skeleton.model import RANGE_TOLERANCE
-from bodyfit.models.threads import torch_threads
 from bodyfit.models.upgrade.proxy import ShapeHintError, ShapeHints, SmplProxy, load_proxy
 from bodyfit.models.upgrade.smpl_io import SmplSequence, read_smpl_npz
 from bodyfit.models.upgrade.smpl_model import SmplModel, load_smpl_model
@@ -51,6 +52,8 @@ from bodyfit.service.errors import BusyError, InvalidInputError, LimitExceededEr
 from bodyfit.service.formats import Bodies
 from bodyfit.service.jobs import Job
 from bodyfit.service.limits import Limits
+
+LOG = logging.getLogger("bodyfit.service")
 
 Coordinates = np.ndarray | Mapping[str, float | Sequence[float] | np.ndarray] | None
 
@@ -194,7 +197,8 @@ class BodyService:
         Args:
             assets: asset folder (default: the checkout's assets/ or $BODYFIT_ASSETS).
             limits: request limits.
-            threads: threads of ONNX Runtime and torch (default: their own choice).
+            threads: threads of ONNX Runtime (default: its own choice) and torch (default 1), set once for
+                the process.
             fitters: build the fitters now (a server); otherwise on first use (synthesis only).
             smpl_model: an SMPL-family model file for upgrades (path a); checked now when given.
             scan_processes: 2 gives the raw-scan fitter a helper process (``ScanFitConfig.processes``:
@@ -202,12 +206,18 @@ class BodyService:
         Raises:
             AssetError: a missing or corrupted asset, with how to rebuild it.
         """
+        began = time.perf_counter()
+        LOG.info("loading the body model from %s", assets or "the built-in assets")
         model = BodyModel.load(assets)
         options = ort.SessionOptions()
         if threads:
             options.intra_op_num_threads = threads
             options.inter_op_num_threads = 1
-            torch.set_num_threads(threads)
+        # Set once for the process, never per request: the fits' own workers, the scan helper process and
+        # concurrent requests use the cores, and more intra-op threads crowd them (a clean raw scan took
+        # 3.8-4.0 s with two torch threads and the helper against 3.2-3.4 s with one, BENCHMARKS.md).
+        torch.set_num_threads(threads or 1)
+        LOG.info("body model loaded (%.1f s); starting the ONNX Runtime session", time.perf_counter() - began)
         session = ort.InferenceSession(
             str(verified_asset(BODY_ONNX, assets)), options, providers=["CPUExecutionProvider"]
         )
@@ -215,9 +225,16 @@ class BodyService:
             model, session, limits or Limits(), read_manifest(assets), smpl_model, assets, scan_processes
         )
         if smpl_model is not None:
+            LOG.info("loading the SMPL-family model %s for upgrades", smpl_model)
             service._smpl = load_smpl_model(smpl_model)
         if fitters:
+            LOG.info(
+                "building the fitters (%.1f s so far; %s)",
+                time.perf_counter() - began,
+                "starting the scan helper process" if scan_processes > 1 else "no scan helper process",
+            )
             _ = service.fitters
+        LOG.info("ready to serve (%.1f s)", time.perf_counter() - began)
         return service
 
     @property
@@ -451,16 +468,12 @@ class BodyService:
             if route == REGISTERED:
                 fit = _first(fitters.registered.fit(scan.points), REGISTERED)
             else:
-                # One torch thread: the fit's own two workers (and the helper) use the cores, and more
-                # threads crowd them (with the helper 3.8-4.0 s per clean scan instead of 3.2-3.4; in one
-                # process 2.8-3.0 instead of 2.6, BENCHMARKS.md); the fit is then the same either way.
-                with torch_threads(1):
-                    if route == SMPL_TOPOLOGY:  # placed through the map, then refined on the mesh's surface
-                        placed = fit_smpl_meshes(fitters.registered, scan.points)[0]
-                        assert scan.faces is not None  # the route needs them
-                        f = refine_smpl_fit(fitters.scan, placed, scan.points, scan.faces, progress=progress)
-                    else:
-                        f = fitters.scan.fit(scan, progress=progress)
+                if route == SMPL_TOPOLOGY:  # placed through the map, then refined on the mesh's surface
+                    placed = fit_smpl_meshes(fitters.registered, scan.points)[0]
+                    assert scan.faces is not None  # the route needs them
+                    f = refine_smpl_fit(fitters.scan, placed, scan.points, scan.faces, progress=progress)
+                else:
+                    f = fitters.scan.fit(scan, progress=progress)
                 fit = MeshFit(route, f.shape, f.coordinates, f.root, f.registration, f.joints, f.report)
             job.report("fit", total, total, "done")
             return fit

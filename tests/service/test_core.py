@@ -110,8 +110,8 @@ def test_fit_mesh_routes_and_recovers_the_pose(body_service: BodyService) -> Non
 
 def test_a_scan_helper_process_gives_the_services_raw_scan_fit(body_service: BodyService) -> None:
     """``scan_processes=2`` (BODYFIT_SCAN_PROCESSES) gives the raw-scan fitter a helper process, and a raw
-    scan's fit through the service is the one the service without it gives: both run with torch on one
-    thread whatever the server's setting (here torch's default on two cores), which then comes back."""
+    scan's fit through the service is the one the service without it gives: both run with torch on the one
+    thread the service set once at load, and no fit changes that setting."""
     from bodyfit.models.fitting.scan_io import sample_surface
     from bodyfit.service.limits import Limits
 
@@ -126,15 +126,13 @@ def test_a_scan_helper_process_gives_the_services_raw_scan_fit(body_service: Bod
     try:
         assert scanner.config.processes == 2 and scanner.wait_for_helper(180.0)
         assert scanner.fitter is helped.fitters.registered  # one registered fitter per service
-        torch.set_num_threads(2)  # torch's default on two cores: the helper's fits run on one
+        assert torch.get_num_threads() == 1  # set by the load, for the process
         fits = [helped.fit_mesh(scan)]
-        assert torch.get_num_threads() == 2  # and the server's setting comes back
         events: list[Progress] = []
         fits.append(body_service.fit_mesh(scan, Job(on_progress=events.append)))
-        assert torch.get_num_threads() == 2
+        assert torch.get_num_threads() == 1
         assert scanner.helper is not None and scanner.helper.completed == 3
     finally:
-        torch.set_num_threads(1)
         scanner.close()
     assert [f.fitted_as for f in fits] == ["raw scan"] * 2
     # the service's start, the fit's own steps (the first says what it fits), then done
