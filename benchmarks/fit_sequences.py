@@ -149,6 +149,8 @@ def run(quick: bool) -> dict[str, Any]:
     peer_err = np.array([r.distances.mean for r in peer.reports])
     ours_err = np.array([r.distances.mean for r in fit.reports])
     s = fit.stats
+    # a moving sequence of many frames: its jitter is defined (None only for < 3 frames or a still input)
+    assert s.jitter_input_mm is not None and s.jitter_fit_mm is not None and s.jitter_ratio is not None
     return {
         "seq_frames": s.frames,
         "seq_torch_threads": 1,

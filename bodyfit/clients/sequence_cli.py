@@ -80,10 +80,12 @@ def fit_sequence_files(
                 "confident_frames": sum(r.confident for r in fit.reports),
             }
         )
+        ratio = stats.jitter_ratio
+        smooth = f"jitter {ratio:.2f}x the input's" if ratio is not None else f"jitter: {stats.jitter_note}"
         echo(
             f"{path.name} (sequence, {len(frames)} frames): mean {errors.mean():.2f} mm, worst frame "
-            f"{errors.max():.2f} mm, {stats.fps:.0f} frames/s, jitter {stats.jitter_ratio:.2f}x the "
-            f"input's, {records[-1]['confident_frames']} of {len(frames)} frames confident"
+            f"{errors.max():.2f} mm, {stats.fps:.0f} frames/s, {smooth}, "
+            f"{records[-1]['confident_frames']} of {len(frames)} frames confident"
         )
     (out / "fit.json").write_text(json.dumps(records, indent=1) + "\n")
     return records

@@ -19,7 +19,14 @@ from bodyfit.models.fitting.mocap_io import MocapFormatError
 from bodyfit.models.fitting.registered import RegisteredFitter, Stage
 from bodyfit.models.fitting.report import DistanceStats
 from bodyfit.models.fitting.retarget import Retargeted, retarget, wrap_pelvis
-from bodyfit.models.fitting.sequence import JitterSum, SequenceConfig, SequenceFit, SequenceFitter, jitter
+from bodyfit.models.fitting.sequence import (
+    JitterSum,
+    SequenceConfig,
+    SequenceFit,
+    SequenceFitter,
+    SequenceStats,
+    jitter,
+)
 from bodyfit.models.threads import torch_threads
 
 CLIP = Path(__file__).resolve().parents[1] / "data" / "cmu_bvh" / "cmu_131_01_clip.bvh"
@@ -128,7 +135,7 @@ def test_held_out_sequence_fits_within_three_millimetres(
     assert all(r.limit_violations == 0 for r in fit.reports)
     # Frame-to-frame jitter no larger than the input's (within 10%), and no lag: each fitted frame is
     # closest to its own input frame, not to a neighbour.
-    assert fit.stats.jitter_ratio < 1.1, fit.stats
+    assert fit.stats.jitter_ratio is not None and fit.stats.jitter_ratio < 1.1, fit.stats
     d0 = np.linalg.norm(fit.registration(1, -1) - x[1:-1], axis=-1).mean()
     for shift in (-1, 1):
         assert d0 < np.linalg.norm(fit.registration(1, -1) - x[1 + shift : T - 1 + shift], axis=-1).mean()
@@ -198,7 +205,7 @@ def test_model_sequence_and_progress(model: BodyModel, moved: Retargeted, seq_fi
     fit = seq_fitter.fit(x, progress=lambda done, total: calls.append((done, total)))
     assert calls == [(64, T), (T, T)]
     assert fit.stats.mean_mm < 1.5, fit.stats
-    assert fit.stats.jitter_ratio < 1.1
+    assert fit.stats.jitter_ratio is not None and fit.stats.jitter_ratio < 1.1
     assert fit.stats.fps > 0 and fit.stats.frames == T and len(fit.stats.shape_keyframes) == 8
     assert np.degrees(np.abs(fit.coordinates - moved.coordinates[:T])[:, :3]).max() < 3.0
 
@@ -275,6 +282,21 @@ def test_jitter_definition() -> None:
     for part in np.array_split(np.arange(11), [1, 2, 6]):  # chunks of 1, 1, 4 and 5 frames
         running.add(y[part], w[part])
     assert running.mm() == pytest.approx(jitter(y, w))
+
+
+def test_undefined_jitter_is_none_with_the_reason_never_nan() -> None:
+    """Two frames have no second difference and a still input no ratio: None (JSON null) and a note saying
+    why, never NaN (which no JSON parser reads)."""
+    short = SequenceStats.measured(2, 1.0, 0.5, float("nan"), float("nan"), (0, 1))
+    assert (short.jitter_input_mm, short.jitter_fit_mm, short.jitter_ratio) == (None, None, None)
+    assert short.jitter_note is not None and "three consecutive frames" in short.jitter_note
+    still = SequenceStats.measured(3, 1.0, 0.5, 0.0, 0.02, (0, 1, 2))
+    assert still.jitter_input_mm == 0.0 and still.jitter_fit_mm == 0.02 and still.jitter_ratio is None
+    assert still.jitter_note is not None and "does not move" in still.jitter_note
+    moving = SequenceStats.measured(10, 2.0, 0.5, 2.0, 1.0, (0,))
+    assert moving.jitter_ratio == 0.5 and moving.jitter_note is None and moving.fps == 5.0
+    for stats in (short, still, moving):
+        assert not any(isinstance(v, float) and np.isnan(v) for v in stats.to_dict().values())
 
 
 def test_per_frame_statistics_at_once_are_each_frame_s() -> None:

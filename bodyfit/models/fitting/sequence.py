@@ -90,17 +90,51 @@ class SequenceStats:
     frames; seconds (wall, whole fit); fps = frames / seconds; mean_mm: mean per-vertex distance over all
     frames; jitter_input_mm / jitter_fit_mm: mean over frames and vertices of the second difference in
     time ``|x[t+1] - 2 x[t] + x[t-1]|`` (mm); jitter_ratio: fit over input (1 = as smooth as the input);
-    shape_keyframes: the frames the shape was fitted on.
+    shape_keyframes: the frames the shape was fitted on. Where jitter is undefined it is None, never NaN,
+    and ``jitter_note`` says why: the second difference needs three frames (no vertex seen, weight > 0, in
+    three consecutive frames: both None), and the ratio needs an input that moves (a still input has
+    jitter 0: the ratio is None, the fit's own jitter is kept).
     """
 
     frames: int
     seconds: float
     fps: float
     mean_mm: float
-    jitter_input_mm: float
-    jitter_fit_mm: float
-    jitter_ratio: float
+    jitter_input_mm: float | None
+    jitter_fit_mm: float | None
+    jitter_ratio: float | None
     shape_keyframes: tuple[int, ...]
+    jitter_note: str | None = None
+
+    @classmethod
+    def measured(
+        cls,
+        frames: int,
+        seconds: float,
+        mean_mm: float,
+        jitter_input_mm: float,
+        jitter_fit_mm: float,
+        shape_keyframes: tuple[int, ...],
+    ) -> SequenceStats:
+        """The stats of a fit from its raw jitter means (NaN where :class:`JitterSum` saw no second
+        difference), with the undefined ones as None and the note saying why."""
+        note = None
+        j_in: float | None = jitter_input_mm
+        j_fit: float | None = jitter_fit_mm
+        ratio: float | None = None
+        if not (np.isfinite(jitter_input_mm) and np.isfinite(jitter_fit_mm)):
+            j_in = j_fit = None
+            note = (
+                f"jitter needs three consecutive frames (a second difference in time); the sequence has "
+                f"{frames}"
+                if frames < 3
+                else "jitter needs a vertex seen (weight > 0) in three consecutive frames; none is"
+            )
+        elif jitter_input_mm > 0:
+            ratio = jitter_fit_mm / jitter_input_mm
+        else:
+            note = "the input does not move (jitter 0): jitter_ratio is undefined; jitter_fit_mm is the fit's"
+        return cls(frames, seconds, frames / seconds, mean_mm, j_in, j_fit, ratio, shape_keyframes, note)
 
     def to_dict(self) -> dict[str, object]:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
@@ -429,15 +463,12 @@ class SequenceFitter:
         reports = [
             self._report(st, q_range[t], iterations, seconds / T) for t, st in enumerate(totals.frames)
         ]
-        j_in, j_fit = totals.jitter_input.mm(), totals.jitter_fit.mm()
-        stats = SequenceStats(
+        stats = SequenceStats.measured(
             frames=T,
             seconds=seconds,
-            fps=T / seconds,
             mean_mm=totals.distance_sum / max(totals.distance_count, 1) * 1000.0,
-            jitter_input_mm=j_in,
-            jitter_fit_mm=j_fit,
-            jitter_ratio=j_fit / j_in if j_in > 0 else float("nan"),
+            jitter_input_mm=totals.jitter_input.mm(),
+            jitter_fit_mm=totals.jitter_fit.mm(),
             shape_keyframes=tuple(int(k) for k in shape_keys),
         )
         return SequenceFit(
