@@ -9,7 +9,6 @@ its work.
 
 from __future__ import annotations
 
-import json
 import logging
 import queue
 import threading
@@ -27,12 +26,12 @@ from grpc_reflection.v1alpha import reflection
 
 from bodyfit.api import bodyfit_pb2 as pb
 from bodyfit.api import bodyfit_pb2_grpc as pb_grpc
-from bodyfit.api.grpc_wire import WireError, from_proto, optional, to_proto
+from bodyfit.api.grpc_wire import FLOATS, WireError, from_proto, optional, to_proto
 from bodyfit.api.metrics import Metrics
 from bodyfit.api.settings import ServiceSettings
 from bodyfit.service.core import BodyService, MeshFit, SynthRequest, shape_hints
-from bodyfit.service.errors import InvalidInputError, ServiceError
-from bodyfit.service.formats import MEDIA_TYPES, encode_bodies
+from bodyfit.service.errors import InvalidInputError, ServiceError, as_service_error
+from bodyfit.service.formats import MEDIA_TYPES, encode_bodies, json_bytes
 from bodyfit.service.jobs import Job, Progress
 
 LOG = logging.getLogger("bodyfit.grpc")
@@ -54,6 +53,11 @@ def message_limit(settings: ServiceSettings) -> int:
     return min(settings.limits().max_upload_bytes + (1 << 20), (1 << 31) - 1)
 
 
+def _json(doc: Any) -> str:
+    """``doc`` as JSON text, NaN and infinities as null (:func:`json_bytes`)."""
+    return json_bytes(doc).decode()
+
+
 def _progress(p: Progress) -> pb.Progress:
     return pb.Progress(stage=p.stage, done=p.done, total=p.total, message=p.message)
 
@@ -64,7 +68,7 @@ def _mesh_fit(fit: MeshFit, dof_names: list[str], joint_names: list[str]) -> pb.
         fitted_as=fit.fitted_as,
         dof_names=dof_names,
         joint_names=joint_names,
-        report_json=json.dumps(fit.report.to_dict()),
+        report_json=_json(fit.report.to_dict()),
         **arrays,
     )
 
@@ -107,15 +111,15 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
     def _synthesize(self, request: pb.SynthesizeRequest) -> pb.SynthesizeResponse:
         if request.format not in (pb.ARRAYS, *FORMATS):
             raise InvalidInputError(f"unknown format {request.format}; use a Format value", "format")
-        coordinates: Any = optional(request, "coordinates")
+        coordinates: Any = optional(request, "coordinates", FLOATS)
         if request.named_coordinates:
             if coordinates is not None:
                 raise InvalidInputError("give coordinates or named_coordinates, not both", "coordinates")
             coordinates = {k: np.asarray(v.values) for k, v in request.named_coordinates.items()}
         synth = SynthRequest(
-            shape=optional(request, "shape"),
+            shape=optional(request, "shape", FLOATS),
             coordinates=coordinates,
-            root=optional(request, "root"),
+            root=optional(request, "root", FLOATS),
             skeleton=request.skeleton,
             batch=request.batch or None,
         )
@@ -156,7 +160,7 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
 
         def work(job: Job) -> list[pb.FitSequenceEvent]:
             try:
-                frames = from_proto(request.frames, "frames")
+                frames = from_proto(request.frames, "frames", FLOATS)
                 weights = optional(request, "weights")
             except WireError as exc:
                 raise InvalidInputError(exc.detail, exc.field) from None
@@ -183,7 +187,7 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
                 shape=to_proto(fit.shape),
                 dof_names=list(fit.dof_names),
                 joint_names=joint_names,
-                stats_json=json.dumps(fit.stats.to_dict()),
+                stats_json=_json(fit.stats.to_dict()),
                 limit_violations=sum(r.limit_violations for r in fit.reports),
             )
             return [*events, pb.FitSequenceEvent(result=summary)]
@@ -225,7 +229,7 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
                 joint_names=list(result.joint_names),
                 shape=to_proto(result.shape),
                 scales=to_proto(result.scales),
-                summary_json=json.dumps(result.summary()),
+                summary_json=_json(result.summary()),
                 files=files,
             )
             return [*events, pb.UpgradeEvent(result=summary)]
@@ -244,13 +248,15 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
                 yield
             except WireError as exc:
                 raise InvalidInputError(exc.detail, exc.field) from None
-        except ServiceError as exc:
-            outcome = STATUS.get(exc.kind, grpc.StatusCode.INTERNAL).name
-            self._abort(context, exc)
-        except Exception:
-            outcome = "INTERNAL"
-            LOG.exception("unhandled error in %s", name)
-            context.abort(grpc.StatusCode.INTERNAL, _BUG)
+        except Exception as exc:
+            error = as_service_error(exc)  # the model layer's input errors are the client's too
+            if error is None:
+                outcome = "INTERNAL"
+                LOG.exception("unhandled error in %s", name)
+                context.abort(grpc.StatusCode.INTERNAL, _BUG)
+            else:
+                outcome = STATUS.get(error.kind, grpc.StatusCode.INTERNAL).name
+                self._abort(context, error)
         finally:
             m = self.metrics
             m.in_flight.labels("grpc").dec()

@@ -10,7 +10,8 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException
 
-from bodyfit.service.errors import ServiceError
+from bodyfit.models.errors import BodyfitError
+from bodyfit.service.errors import ServiceError, as_service_error
 
 LOG = logging.getLogger("bodyfit.api")
 MEDIA_TYPE = "application/problem+json"
@@ -55,6 +56,14 @@ def install(app: FastAPI) -> None:
     async def on_service_error(_: Request, exc: ServiceError) -> JSONResponse:
         headers = {"Retry-After": "5"} if exc.kind == "unavailable" else None
         return response(service_problem(exc), headers)
+
+    @app.exception_handler(BodyfitError)
+    async def on_model_error(request: Request, exc: BodyfitError) -> JSONResponse:
+        # the model layer's input errors are the client's (422); a broken asset is the server's (500)
+        error = as_service_error(exc)
+        if error is None:
+            return await on_bug(request, exc)
+        return response(service_problem(error))
 
     @app.exception_handler(RequestValidationError)
     async def on_validation(_: Request, exc: RequestValidationError) -> JSONResponse:

@@ -1,4 +1,7 @@
-"""Request bodies of the REST API (pydantic). Unknown keys are refused, so a typo never passes silently."""
+"""Request bodies of the REST API (pydantic). Unknown keys are refused, so a typo never passes silently, and
+types are strict: a number must be a JSON number (an integer is a number; "2" is not), a flag true or
+false ("yes" and 1 are not), the batch an integer (2.0 is not). Values and their ranges are checked by
+the service core, the same for every transport."""
 
 from __future__ import annotations
 
@@ -15,6 +18,7 @@ class SynthesizeRequest(BaseModel):
 
     model_config = ConfigDict(
         extra="forbid",
+        strict=True,
         json_schema_extra={
             "examples": [
                 {"coordinates": {"knee_angle_r": 1.0, "hip_flexion_r": 0.5}, "format": "npz"},

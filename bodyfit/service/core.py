@@ -7,12 +7,11 @@ session and a semaphore bounding concurrent heavy work; one instance serves conc
 
 from __future__ import annotations
 
-import io
 import logging
 import tempfile
 import threading
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import Future
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
@@ -24,6 +23,8 @@ import numpy as np
 import onnxruntime as ort
 import torch
 
+from bodyfit.io.errors import FileFormatError, FileLimitError
+from bodyfit.io.npz import FLOAT, ArraySpec, Dim, read_npz
 from bodyfit.models.assets import read_manifest, verified_asset
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.body.onnx_export import BODY_ONNX
@@ -124,6 +125,25 @@ class PendingSynthesis:
 
 # how :meth:`BodyService.fit_mesh` fits a mesh (:meth:`BodyService.route`), as ``MeshFit.fitted_as`` says
 REGISTERED, SMPL_TOPOLOGY, RAW_SCAN = "registered", "SMPL topology", "raw scan"
+
+SHAPE_LIMIT_SD = 10.0
+"""Largest accepted |shape coefficient|. Coefficients are in population standard deviations (a standard
+normal draw is a plausible body). On the first bone coefficient (stature) -10 and +10 give bodies 0.72 m
+and 2.72 m tall, the shortest and tallest adults on record; beyond that the linear basis only extrapolates
+to no human (1e6 gives a body 100 km tall), so a larger value is a mistake (another model's betas, wrong
+units), never a person."""
+ROOT_LIMIT_M = 100.0
+"""Largest accepted |root| (pelvis position) per axis, metres: a capture volume spans metres to tens of
+metres, and float32, which synthesis runs in, still resolves 0.01 mm there. Farther is a unit mistake or an
+unset value (1e308 overflows float32)."""
+BODY_MIN_EXTENT_M, BODY_MAX_EXTENT_M = 0.3, 4.0
+"""The longest side of the bounding box of a whole body in our topology (a registered frame or mesh), metres:
+the shortest body the shape limits allow (0.72 m) curled up spans more than 0.3 m; the tallest (2.72 m) with
+its arms raised less than 4 m. Millimetres (about 1,700) and centimetres (about 170) fall outside."""
+_FLAT = 1e-3  # a frame whose smallest spread is below this fraction of its largest is flat (as for scans)
+SCAN_MIN_EXTENT_M = 0.1
+"""The smallest scan the raw-scan fit can use (a head and shoulders), metres: the fit thins scans to a 1 cm
+grid, so anything smaller leaves too few points (a scan in metres read as millimetres spans 2 mm)."""
 
 
 @dataclass(frozen=True)
@@ -304,6 +324,12 @@ class BodyService:
             assert out.bones is not None
             bones = out.bones.numpy().astype(np.float32)
             bone_faces = np.asarray(self.model.skeleton.bone_mesh().faces, np.int32)
+        check_finite_result(
+            "synthesized bodies",
+            {"vertices": vertices, "joints": joints, "bones": bones},
+            "send shape coefficients and coordinates within their ranges (GET /v1/model)",
+            "shape",
+        )
         return Bodies(
             vertices=vertices,
             faces=self._faces,
@@ -314,7 +340,9 @@ class BodyService:
         )
 
     def _parameters(self, request: SynthRequest) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Validated float32 (B, n_dof), (B, 3), (B, n_shape)."""
+        """Validated float32 (B, n_dof), (B, 3), (B, n_shape): shapes, dtypes (an array must hold floats),
+        finite values (after the cast to float32), DOF ranges, and plausible shape coefficients
+        (:data:`SHAPE_LIMIT_SD`) and root (:data:`ROOT_LIMIT_M`)."""
         skel = self.model.skeleton
         batch = _batch_of(request)
         if batch > self.limits.max_batch:
@@ -329,29 +357,39 @@ class BodyService:
             elif isinstance(coords, Mapping):
                 q = skel.coordinates({k: np.asarray(v) for k, v in coords.items()}, batch=batch)
             else:
-                q = np.asarray(coords, np.float64)
-        root = None if request.root is None else np.asarray(request.root, np.float64)
-        shape = None if request.shape is None else np.asarray(request.shape, np.float64)
-        fast = self._plainly_valid(q, root, shape)
-        if fast is not None:
-            return fast
-        # Something is off: the model's own checks raise with the detailed message.
-        with invalid_input("coordinates"):
-            qt, _, _ = skel.validate(q, None, dtype=torch.float32)
-        with invalid_input("root"):
-            _, rt, _ = skel.validate(
-                qt, np.zeros((len(qt), 3)) if root is None else root, dtype=torch.float32
-            )
-        with invalid_input("shape"):
-            ct = self.model.validate_shape(shape, len(qt), torch.float32)
-        assert rt is not None
-        return qt.numpy(), rt.numpy(), ct.numpy()
+                q = _float_array(coords, "coordinates")
+        root = None if request.root is None else _float_array(request.root, "root")
+        shape = None if request.shape is None else _float_array(request.shape, "shape")
+        check_plausible(shape, root)
+        out = self._plainly_valid(q, root, shape)
+        if out is None:
+            # Something is off: the model's own checks raise with the detailed message. In float64: the
+            # values are checked as sent, and every value that passes is small enough for float32.
+            with invalid_input("coordinates"):
+                qt, _, _ = skel.validate(q, None, dtype=torch.float64)
+            with invalid_input("root"):
+                _, rt, _ = skel.validate(
+                    qt, np.zeros((len(qt), 3)) if root is None else root, dtype=torch.float64
+                )
+            with invalid_input("shape"):
+                ct = self.model.validate_shape(shape, len(qt), torch.float64)
+            assert rt is not None
+            out = qt.numpy().astype(np.float32), rt.numpy().astype(np.float32), ct.numpy().astype(np.float32)
+        for name, value in zip(("coordinates", "root", "shape"), out, strict=True):
+            if not np.isfinite(value).all():  # after the cast: float32 overflows where float64 does not
+                raise InvalidInputError(
+                    f"{name} holds values beyond float32's range (about 3.4e38); send values within their "
+                    "ranges (GET /v1/model)",
+                    field=name,
+                )
+        return out
 
     def _plainly_valid(
         self, q: np.ndarray, root: np.ndarray | None, shape: np.ndarray | None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """float32 (q, root, shape) when the inputs pass every check, else None (a numpy fast path: the
-        model's checks go through torch and cost a quarter of a millisecond per request)."""
+        model's checks go through torch and cost a quarter of a millisecond per request). Finiteness is
+        checked after the cast to float32, so that a value float64 holds but float32 does not fails."""
         skel = self.model.skeleton
         if q.ndim != 2 or q.shape[1] != skel.n_dof:
             return None
@@ -360,12 +398,14 @@ class BodyService:
         c = np.zeros((B, self.model.n_shape)) if shape is None else shape
         if r.shape != (B, 3) or c.shape != (B, self.model.n_shape):
             return None
-        if not (np.isfinite(q).all() and np.isfinite(r).all() and np.isfinite(c).all()):
-            return None
         lo, hi = skel.ranges[:, 0] - RANGE_TOLERANCE, skel.ranges[:, 1] + RANGE_TOLERANCE
-        if ((q < lo) | (q > hi)).any():
+        if not ((q >= lo) & (q <= hi)).all():  # NaN fails too
             return None
-        return q.astype(np.float32), r.astype(np.float32), c.astype(np.float32)
+        with np.errstate(over="ignore"):
+            out = q.astype(np.float32), r.astype(np.float32), c.astype(np.float32)
+        if not all(np.isfinite(a).all() for a in out):
+            return None
+        return out
 
     # -- fitting ---------------------------------------------------------------------------------------
     def read_scan(self, data: bytes, format: str, units: str = "auto") -> Scan:
@@ -383,8 +423,20 @@ class BodyService:
                 field="format",
             )
         self._check_upload(len(data))
-        with invalid_input("file"):
-            scan = load_scan(data, format=fmt, units=units, drop_nonfinite=True)
+        limits = self.limits
+        try:  # counts and sizes are checked from the file's header before anything is allocated
+            scan = load_scan(
+                data,
+                format=fmt,
+                units=units,
+                drop_nonfinite=True,
+                max_points=limits.max_points,
+                max_bytes=limits.max_decompressed_bytes,
+            )
+        except FileLimitError as exc:
+            raise LimitExceededError(str(exc), field="file") from exc
+        except BodyfitError as exc:
+            raise InvalidInputError(str(exc), field="file") from exc
         if scan.n_points > self.limits.max_points:
             raise LimitExceededError(
                 f"the scan has {scan.n_points:,} points; the limit is {self.limits.max_points:,}: thin it "
@@ -394,44 +446,34 @@ class BodyService:
         return scan
 
     def read_sequence(self, data: bytes) -> tuple[np.ndarray, np.ndarray | None]:
-        """Read an uploaded .npz holding ``frames`` (T, V, 3) metres in our topology and optionally
-        ``weights`` (T, V).
+        """Read an uploaded .npz holding ``frames`` (T, V, 3) float metres in our topology and optionally
+        ``weights`` (T, V) numbers, both checked from their .npy headers (dtype, shape, T against
+        ``limits.max_frames``, bytes against ``limits.max_decompressed_bytes``) before they are decompressed.
 
         Raises:
             LimitExceededError: too large; InvalidInputError: not an npz, missing or malformed arrays.
         """
         self._check_upload(len(data))
+        V = self.model.n_vertices
+        T = Dim("T", self.limits.max_frames, "frames", "split the sequence into overlapping parts")
+        specs = {
+            "frames": ArraySpec(
+                ((T, V, 3),),
+                FLOAT,
+                hint="meshes in our topology, metres, saved with numpy.savez(path, frames=array); fit other "
+                "topologies frame by frame as scans",
+            ),
+            "weights": ArraySpec(((T, V),), "fiub", required=False, hint="per-vertex weights, 0 = missing"),
+        }
         try:
-            with np.load(io.BytesIO(data), allow_pickle=False) as npz:
-                arrays = {k: npz[k] for k in npz.files if k in ("frames", "weights")}
-                found = list(npz.files)
-        except Exception as exc:
-            raise InvalidInputError(
-                f"the upload is not a readable .npz file ({type(exc).__name__}: {exc}); save the frames with "
-                "numpy.savez(path, frames=array)",
-                field="file",
-            ) from None
-        if "frames" not in arrays:
-            raise InvalidInputError(
-                f"the .npz holds {found or 'no arrays'}; it needs "
-                f"'frames' (T, {self.model.n_vertices}, 3) in "
-                "metres and optionally 'weights' (T, V)",
-                field="frames",
-            )
+            arrays = read_npz(data, specs, max_bytes=self.limits.max_decompressed_bytes, name="the upload")
+        except FileLimitError as exc:
+            raise LimitExceededError(str(exc), field=exc.key or "file") from exc
+        except FileFormatError as exc:
+            raise InvalidInputError(str(exc), field=exc.key or "file") from exc
         frames = arrays["frames"]
-        if frames.ndim != 3 or frames.shape[1:] != (self.model.n_vertices, 3) or len(frames) == 0:
-            raise InvalidInputError(
-                f"frames must have shape (T, {self.model.n_vertices}, 3) with T >= 1 (meshes in our "
-                f"topology; fit other topologies frame by frame as scans); got {frames.shape}",
-                field="frames",
-            )
-        if not np.issubdtype(frames.dtype, np.floating):
-            raise InvalidInputError(f"frames must be floats (metres); got {frames.dtype}", field="frames")
-        if len(frames) > self.limits.max_frames:
-            raise LimitExceededError(
-                f"{len(frames):,} frames sent; the limit is {self.limits.max_frames:,}: split the sequence",
-                field="frames",
-            )
+        if len(frames) == 0:
+            raise InvalidInputError(f"frames holds no frames; send (T, {V}, 3) with T >= 1", field="frames")
         return frames, arrays.get("weights")
 
     def route(self, scan: Scan) -> str:
@@ -443,17 +485,48 @@ class BodyService:
             return SMPL_TOPOLOGY
         return RAW_SCAN
 
+    def check_scan(self, scan: Scan) -> None:
+        """Check, before any fitting, that ``scan`` can be the body :meth:`fit_mesh` fits it as: a whole body
+        for our topology and SMPL's (:func:`check_frames`), at least :data:`SCAN_MIN_EXTENT_M` across for a
+        raw scan.
+
+        Raises:
+            InvalidInputError: what is wrong (degenerate, not human-sized, the wrong units) and the fix.
+        """
+        read_as = " read in millimetres (units=mm)" if scan.source_units == "mm" else ""
+        if self.route(scan) != RAW_SCAN:
+            try:
+                check_frames(scan.points[None], field="file")
+            except InvalidInputError as exc:
+                if not read_as:
+                    raise
+                raise InvalidInputError(
+                    f"{exc.detail} (the mesh was{read_as}: send units=m or auto when the file is in metres)",
+                    field="units",
+                ) from None
+            return
+        extent = float(np.ptp(scan.points, axis=0).max())
+        if extent < SCAN_MIN_EXTENT_M:
+            raise InvalidInputError(
+                f"the scan{read_as} spans only {extent * 1000:.3g} mm; a body or a body part (a head and "
+                f"shoulders) spans at least {SCAN_MIN_EXTENT_M:g} m: send units=m (or auto) when the file is "
+                "in metres, units=mm only when it is in millimetres",
+                field="units" if read_as else "file",
+            )
+
     def fit_mesh(self, scan: Scan, job: Job | None = None) -> MeshFit:
         """Fit one mesh or scan, routed by its topology: 13,348 vertices -> registered fit; 6,890 vertices
         with faces -> SMPL topology (placed through the stored map, then refined on the mesh's surface);
         anything else -> raw scan (orientation searched, no landmarks).
 
         Raises:
-            BusyError: no worker slot within ``limits.queue_seconds``; JobCancelledError /
-            DeadlineExceededError via ``job``.
+            InvalidInputError: a scan that cannot be a body (:meth:`check_scan`), found so during the fit,
+            or whose fit is not finite; BusyError: no worker slot within ``limits.queue_seconds``;
+            JobCancelledError / DeadlineExceededError via ``job``.
         """
         job = job or Job(timeout_s=self.limits.max_seconds)
-        with self._slot():
+        self.check_scan(scan)
+        with self._slot(), invalid_input("file"):
             fitters = self.fitters
             route = self.route(scan)
             # a scan fit says how many steps it takes once it knows what it fits (a whole body here)
@@ -475,19 +548,22 @@ class BodyService:
                 else:
                     f = fitters.scan.fit(scan, progress=progress)
                 fit = MeshFit(route, f.shape, f.coordinates, f.root, f.registration, f.joints, f.report)
+            check_finite_result(
+                "fit",
+                {**fit.arrays(), "report distances": np.array(fit.report.distances.mean)},
+                "the input is probably not a body, or not in metres: check the file and its units",
+                "file",
+            )
             job.report("fit", total, total, "done")
             return fit
 
-    def fit_sequence(
-        self, frames: np.ndarray, weights: np.ndarray | None = None, job: Job | None = None
-    ) -> SequenceFit:
-        """Fit a registered sequence (T, V, 3) of one person (one shape, per-frame pose).
+    def check_sequence(self, frames: np.ndarray, weights: np.ndarray | None = None) -> None:
+        """Check a registered sequence before any fitting: at most ``limits.max_frames`` frames, then
+        :func:`check_frames` (dtype, shape, finite in float32, weights, every frame a human-sized body).
 
         Raises:
-            InvalidInputError: wrong shape, NaN, no frames; LimitExceededError: more than
-            ``limits.max_frames``; BusyError, JobCancelledError, DeadlineExceededError.
+            LimitExceededError: too many frames; InvalidInputError: what is wrong and the fix.
         """
-        job = job or Job(timeout_s=self.limits.max_seconds)
         x = np.asarray(frames)
         if x.ndim >= 1 and len(x) > self.limits.max_frames:
             raise LimitExceededError(
@@ -495,6 +571,27 @@ class BodyService:
                 "overlapping parts",
                 field="frames",
             )
+        check_frames(x, weights, self.model.n_vertices)
+
+    def fit_sequence(
+        self,
+        frames: np.ndarray,
+        weights: np.ndarray | None = None,
+        job: Job | None = None,
+        checked: bool = False,
+    ) -> SequenceFit:
+        """Fit a registered sequence (T, V, 3) of one person (one shape, per-frame pose). ``checked``: the
+        caller ran :meth:`check_sequence` on these arrays already (it runs here otherwise).
+
+        Raises:
+            InvalidInputError: wrong shape or dtype, NaN, no frames, a frame that is not a body
+            (:meth:`check_sequence`), or a fit that is not finite; LimitExceededError: more than
+            ``limits.max_frames``; BusyError, JobCancelledError, DeadlineExceededError.
+        """
+        job = job or Job(timeout_s=self.limits.max_seconds)
+        x = np.asarray(frames)
+        if not checked:
+            self.check_sequence(x, weights)
         with self._slot():
             job.report("fit", 0, max(len(x), 1), "shape and keyframes")
 
@@ -502,7 +599,21 @@ class BodyService:
                 job.report("fit", done, total, f"{done}/{total} frames")
 
             with invalid_input("frames"):
-                return self.fitters.sequence.fit(x, weights, progress=progress)
+                fit = self.fitters.sequence.fit(x, weights, progress=progress)
+            check_finite_result(
+                "sequence fit",
+                {
+                    "shape": fit.shape,
+                    "coordinates": fit.coordinates,
+                    "root": fit.root,
+                    "joints": fit.joints,
+                    "vertices": fit.vertices,
+                    "error_mm": np.array([r.distances.mean for r in fit.reports]),
+                },
+                "check that the frames are one person in our topology, in metres, in time order",
+                "frames",
+            )
+            return fit
 
     # -- SMPL upgrade ----------------------------------------------------------------------------------
     def read_upgrade(self, data: bytes, filename: str) -> SmplSequence:
@@ -518,8 +629,17 @@ class BodyService:
                 "AMASS-style .npz (numpy.savez with poses, trans, betas, gender, mocap_framerate)",
                 field="file",
             )
-        with invalid_input("file"):
-            sequence = read_smpl_npz(data, filename or "upload.npz")
+        try:  # poses, trans, betas, ... checked from their headers; frames and bytes against the limits
+            sequence = read_smpl_npz(
+                data,
+                filename or "upload.npz",
+                max_frames=self.limits.max_frames,
+                max_bytes=self.limits.max_decompressed_bytes,
+            )
+        except FileLimitError as exc:
+            raise LimitExceededError(str(exc), field="file") from exc
+        except BodyfitError as exc:
+            raise InvalidInputError(str(exc), field="file") from exc
         if sequence.n_frames > self.limits.max_frames:
             raise LimitExceededError(
                 f"{sequence.n_frames:,} frames sent; the limit is {self.limits.max_frames:,}: split it",
@@ -535,6 +655,7 @@ class BodyService:
         mean (the result's notes say which ran).
 
         Raises:
+            InvalidInputError: a sequence found unusable during the work, or whose result is not finite;
             BusyError, JobCancelledError, DeadlineExceededError.
         """
         job = job or Job(timeout_s=self.limits.max_seconds)
@@ -547,20 +668,36 @@ class BodyService:
             with invalid_input("file"):
                 fitters = self.fitters
                 if self._smpl is None:
-                    return upgrade_from_rotations(sequence, fitters.upgrade, fitters.proxy, hints, progress)
-                result = upgrade_with_model(sequence, self._smpl, fitters.upgrade, progress=progress)
-            if hints is not None:
+                    result = upgrade_from_rotations(sequence, fitters.upgrade, fitters.proxy, hints, progress)
+                else:
+                    result = upgrade_with_model(sequence, self._smpl, fitters.upgrade, progress=progress)
+            check_finite_result(
+                "upgrade",  # error_mm is NaN by design where there is no input mesh (path b, bad frames)
+                {
+                    "coordinates": result.coordinates,
+                    "root": result.root,
+                    "joints": result.joints,
+                    "shape": result.shape,
+                    "scales": result.scales,
+                    "offsets": result.offsets,
+                },
+                "check the sequence's poses (axis-angle radians), trans (metres) and betas",
+                "file",
+            )
+            if hints is not None and result.path == "a":
                 note = "shape hints were not used: path (a) shapes the body from the sequence's betas"
                 result = replace(result, notes=(*result.notes, note))
             return result
 
     def upgrade_files(self, result: UpgradeResult, name: str) -> dict[str, bytes]:
         """The upgrade's files as bytes: npz, json (summary), osim and mot (see ``write_upgrade``)."""
-        with tempfile.TemporaryDirectory() as tmp:
+        with tempfile.TemporaryDirectory() as tmp, invalid_input("file"):
             paths = write_upgrade(result, self.model, Path(tmp), name)
             return {ext: path.read_bytes() for ext, path in paths.items()}
 
     def _check_upload(self, n_bytes: int) -> None:
+        """The upload's size against ``limits.max_upload_bytes`` (its decompressed arrays are checked
+        against ``limits.max_decompressed_bytes`` by the readers, from their headers)."""
         if n_bytes > self.limits.max_upload_bytes:
             raise LimitExceededError(
                 f"the upload is {n_bytes / 2**20:.1f} MiB; the limit is "
@@ -602,17 +739,240 @@ def invalid_input(field_name: str) -> Iterator[None]:
         raise InvalidInputError(str(exc), field=field_name) from exc
 
 
+def check_plausible(shape: np.ndarray | None, root: np.ndarray | None) -> None:
+    """Refuse shape coefficients beyond +-:data:`SHAPE_LIMIT_SD` and roots beyond +-:data:`ROOT_LIMIT_M`
+    (any array shapes; NaN and infinities pass here and fail the finiteness checks, which name them).
+
+    Raises:
+        InvalidInputError: naming the field, the range, the value and where it is.
+    """
+    for name, value, limit, what in (
+        ("shape", shape, SHAPE_LIMIT_SD, "shape coefficients are in population standard deviations"),
+        ("root", root, ROOT_LIMIT_M, "root is the pelvis position in metres"),
+    ):
+        if value is None:
+            continue
+        outside = np.isfinite(value) & (np.abs(value) > limit)
+        if outside.any():
+            where = [int(k) for k in np.argwhere(outside)[0]]
+            bad = float(value[tuple(where)])
+            fix = (
+                "a standard normal draw is a plausible body; +-10 spans the shortest to the tallest adults"
+                if name == "shape"
+                else "send metres, with the body near the origin"
+            )
+            raise InvalidInputError(
+                f"{what} and must lie within [-{limit:g}, {limit:g}]; got {bad:.6g} at index {where} "
+                f"({int(outside.sum())} value(s) outside): {fix}",
+                field=name,
+            )
+
+
+def check_frames(
+    frames: np.ndarray,
+    weights: np.ndarray | None = None,
+    n_vertices: int | None = None,
+    field: str = "frames",
+    chunk: int = 256,
+) -> None:
+    """Check, before any fitting, that ``frames`` (T, V, 3) are T whole bodies in metres: the one check of
+    registered sequences for every transport (and of single meshes in our or SMPL's topology).
+
+    In order: a float dtype; shape (T, n_vertices, 3) with T >= 1; every value finite once cast to float32
+    (what the fit computes in); weights (T, V) finite and non-negative with a positive one per frame; then
+    per frame, over the vertices with positive weight: not all zeros, not on one point, a line or a plane,
+    the bounding box's longest side within [:data:`BODY_MIN_EXTENT_M`, :data:`BODY_MAX_EXTENT_M`] (the
+    message suggests the unit that fits), and the centre within :data:`ROOT_LIMIT_M` of the origin. Frames
+    are checked ``chunk`` at a time (memory), and the first bad one is named.
+
+    Raises:
+        InvalidInputError: naming ``field``, what is wrong, the first bad frame and the fix.
+    """
+    one = frames.ndim == 3 and len(frames) == 1 and field != "frames"
+
+    def frame(t: int) -> str:
+        return "the mesh" if one else f"frame {t}"
+
+    if frames.dtype.kind != "f":
+        raise InvalidInputError(f"frames must be floats (metres); got {frames.dtype}", field=field)
+    V = frames.shape[1] if frames.ndim == 3 else -1
+    if frames.ndim != 3 or frames.shape[2] != 3 or len(frames) == 0 or n_vertices not in (None, V):
+        size = n_vertices or "V"
+        raise InvalidInputError(
+            f"frames must have shape (T, {size}, 3) with T >= 1 (meshes in our topology, metres); got "
+            f"{frames.shape}",
+            field=field,
+        )
+    T = len(frames)
+    w = None
+    if weights is not None:
+        w = np.asarray(weights)
+        if w.dtype.kind not in "fiub":
+            raise InvalidInputError(f"weights must be numbers (0 = missing); got {w.dtype}", field="weights")
+        if w.shape != (T, V):
+            raise InvalidInputError(
+                f"weights must have one value per frame and vertex, shape {(T, V)}; got {w.shape}",
+                field="weights",
+            )
+        w = w.astype(np.float64)
+        if not np.isfinite(w).all() or (w < 0).any():
+            raise InvalidInputError(
+                "weights must be finite and non-negative (0 marks a missing vertex)", field="weights"
+            )
+        empty = np.flatnonzero(w.max(axis=1) <= 0)
+        if len(empty):
+            raise InvalidInputError(
+                f"{frame(int(empty[0]))} has no vertex with a positive weight ({len(empty)} such frames); "
+                "drop the frames nothing was seen in",
+                field="weights",
+            )
+    for lo in range(0, T, chunk):
+        with np.errstate(over="ignore"):
+            x = np.asarray(frames[lo : lo + chunk], np.float32)
+        finite = np.isfinite(x).all(axis=(1, 2))
+        if not finite.all():
+            t = lo + int(np.argmin(finite))
+            raise InvalidInputError(
+                f"{frame(t)} holds NaN or infinite values (or values beyond float32's range, 3.4e38); every "
+                "vertex needs a finite position in metres: give a vertex nothing saw any finite position "
+                "and weight 0",
+                field=field,
+            )
+        seen = None if w is None else w[lo : lo + chunk] > 0
+        _check_bodies(x, None if seen is None or seen.all() else seen, lo, frame, field)
+
+
+def _check_bodies(
+    x: np.ndarray, seen: np.ndarray | None, lo: int, frame: Callable[[int], str], field: str
+) -> None:
+    """The per-frame checks of :func:`check_frames` on frames lo.. (k, V, 3) float32 with the vertices
+    ``seen`` (k, V) (at least one per frame; None: all). With every vertex seen, about 0.2 ms a frame of our
+    topology: per-axis reductions on strided views (numpy reduces the middle axis of (k, V, 3) slowly),
+    and the spread on every 8th vertex (a body's subset is no more flat than the body)."""
+    if seen is None:
+        k, V = x.shape[:2]
+        flat = x.reshape(k, V * 3)
+        zero = ~flat.any(axis=1)
+        axes = [flat[:, i::3] for i in range(3)]
+        extent = np.max([a.max(axis=1) - a.min(axis=1) for a in axes], axis=0)
+        centre = (np.ones(V, np.float32) @ x).astype(np.float64) / V
+        spread = x[:, ::8]
+        n = np.full((k, 1), spread.shape[1])
+        d = spread - centre[:, None].astype(np.float32)
+    else:
+        mask = seen[..., None]
+        n = seen.sum(axis=1)[:, None]
+        zero = ~np.where(mask, x, 0.0).any(axis=(1, 2))
+        centre = np.where(mask, x, 0.0).sum(axis=1, dtype=np.float64) / n
+        d = np.where(mask, x - centre[:, None].astype(np.float32), 0.0).astype(np.float32)
+        extent = (np.where(mask, x, -np.inf).max(axis=1) - np.where(mask, x, np.inf).min(axis=1)).max(axis=1)
+    if zero.any():
+        t = lo + int(np.argmax(zero))
+        raise InvalidInputError(
+            f"{frame(t)} holds only zeros: an empty frame, not a body; drop it or fill it with the body's "
+            "vertices in metres",
+            field=field,
+        )
+    cov = (np.swapaxes(d, 1, 2) @ d).astype(np.float64) / n[..., None]  # batched BLAS
+    sv = np.sqrt(np.clip(np.linalg.eigvalsh(cov), 0.0, None))[:, ::-1]  # descending
+    for bad, what in (
+        (sv[:, 0] == 0, "all its vertices are at one point"),
+        (sv[:, 1] < _FLAT * sv[:, 0], "its vertices lie on a line"),
+        (sv[:, 2] < _FLAT * sv[:, 0], "its vertices lie on a plane"),
+    ):
+        if bad.any():
+            t = lo + int(np.argmax(bad))
+            raise InvalidInputError(
+                f"{frame(t)} is collapsed: {what} (degenerate), so it cannot be a body; send the body's "
+                "vertices in metres",
+                field=field,
+            )
+    small, large = extent < BODY_MIN_EXTENT_M, extent > BODY_MAX_EXTENT_M
+    if small.any() or large.any():
+        t = int(np.argmax(small | large))
+        e = float(extent[t])
+        if 300.0 <= e <= 4000.0:
+            hint = "it looks like millimetres: divide by 1000"
+        elif 30.0 <= e < 300.0:
+            hint = "it looks like centimetres: divide by 100"
+        elif e < BODY_MIN_EXTENT_M:
+            hint = "too small for a body: send metres"
+        else:
+            hint = "too large for a body: send metres, one body per frame"
+        raise InvalidInputError(
+            f"{frame(lo + t)} spans {e:.4g} (in the units sent) along its longest side; a whole body in "
+            f"metres spans {BODY_MIN_EXTENT_M:g} to {BODY_MAX_EXTENT_M:g}: {hint}",
+            field=field,
+        )
+    far = np.abs(centre).max(axis=1) > ROOT_LIMIT_M
+    if far.any():
+        t = int(np.argmax(far))
+        raise InvalidInputError(
+            f"{frame(lo + t)} is centred {float(np.abs(centre[t]).max()):.4g} m from the origin; bodies must "
+            f"be within {ROOT_LIMIT_M:g} m of it: move the sequence near the origin",
+            field=field,
+        )
+
+
+def check_finite_result(what: str, arrays: Mapping[str, np.ndarray | None], fix: str, field: str) -> None:
+    """Refuse a result holding NaN or infinite values before anything encodes it: JSON has no NaN, and a
+    NaN body is no answer. ``arrays`` name -> array (None: absent).
+
+    Raises:
+        InvalidInputError: naming ``field`` and the array, with ``fix`` (what in the input to check).
+    """
+    for name, value in arrays.items():
+        if value is None:
+            continue
+        a = np.asarray(value)
+        if a.dtype.kind in "fc" and not np.isfinite(a).all():
+            n = int(a.size - np.isfinite(a).sum())
+            raise InvalidInputError(
+                f"the {what} came out with {n:,} NaN or infinite values in {name}, so there is no result to "
+                f"return; {fix}",
+                field=field,
+            )
+
+
+def _float_array(value: Any, field: str) -> np.ndarray:
+    """A parameter as float64; a numpy array must already hold floats (int and bool arrays are refused, as
+    on every transport: an array with a dtype must say it holds real numbers)."""
+    if isinstance(value, np.ndarray) and value.dtype.kind != "f":
+        raise InvalidInputError(
+            f"{field} must hold floats (float32 or float64); got {value.dtype}", field=field
+        )
+    try:
+        return np.asarray(value, np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"{field} must be a (B, N) array of numbers ({exc})", field=field) from None
+
+
 def _batch_of(request: SynthRequest) -> int:
-    for value in (request.shape, request.root):
+    """B: the rows of the first array given, else ``request.batch``, else 1.
+
+    Raises:
+        InvalidInputError: an array with no rows (0 bodies) or a batch below 1.
+    """
+    sources: list[tuple[str, int]] = []
+    for name, value in (("shape", request.shape), ("root", request.root)):
         if value is not None and np.ndim(value) >= 1:
-            return len(value)
+            sources.append((name, len(value)))
     coords = request.coordinates
     if coords is not None and not isinstance(coords, Mapping) and np.ndim(coords) >= 1:
-        return len(coords)
+        sources.append(("coordinates", len(coords)))
     if isinstance(coords, Mapping):
         lengths = [np.size(v) for v in coords.values() if np.ndim(v) >= 1]
         if lengths:
-            return max(lengths)
+            sources.append(("coordinates", max(lengths)))
+    if sources:
+        name, rows = sources[0]
+        if rows < 1:
+            raise InvalidInputError(
+                f"{name} has no rows, so 0 bodies were asked for; send at least one row (B >= 1), or leave "
+                f"{name} out",
+                field=name,
+            )
+        return rows
     if request.batch is not None and request.batch < 1:
         raise InvalidInputError(f"batch must be at least 1; got {request.batch}", field="batch")
     return request.batch or 1

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from typing import ClassVar
 
+from bodyfit.models.errors import AssetError, BodyfitError
+
 
 class ServiceError(Exception):
     """Base of every error the core raises on purpose.
@@ -56,3 +58,15 @@ class JobCancelledError(ServiceError):
 
     kind = "cancelled"
     title = "Cancelled"
+
+
+def as_service_error(exc: BaseException) -> ServiceError | None:
+    """``exc`` as the error a transport reports: itself for a :class:`ServiceError`, an
+    :class:`InvalidInputError` for the model layer's input errors (:class:`BodyfitError`: a bad scan, frames
+    or sequence found in the middle of the work), None for anything else (a bug: an internal error). A
+    missing or corrupted asset (:class:`AssetError`) is the server's fault, never the client's: None."""
+    if isinstance(exc, ServiceError):
+        return exc
+    if isinstance(exc, BodyfitError) and not isinstance(exc, AssetError):
+        return InvalidInputError(str(exc))
+    return None

@@ -8,8 +8,9 @@ from __future__ import annotations
 
 import io
 import json
+import math
 from dataclasses import dataclass
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
 import trimesh
@@ -58,11 +59,13 @@ def encode_bodies(bodies: Bodies, fmt: str, faces: bool = False) -> bytes:
     (mesh formats always carry them). ply and obj hold one body: ask for B = 1 or use npz / glb."""
     if fmt not in MEDIA_TYPES:
         raise InvalidInputError(f"unknown format {fmt!r}; choose one of {', '.join(FORMATS)}", field="format")
+    if bodies.batch < 1:
+        raise InvalidInputError("no bodies to encode: ask for at least one (B >= 1)", field="batch")
     if fmt == "npz":
         return npz_bytes(_arrays(bodies, faces))
     if fmt == "json":
-        doc = {k: v.tolist() for k, v in _arrays(bodies, faces).items()}
-        return json.dumps(doc, separators=(",", ":")).encode()
+        doc = {k: _json_list(v) for k, v in _arrays(bodies, faces).items()}
+        return json.dumps(doc, separators=(",", ":"), allow_nan=False).encode()
     if fmt == "glb":
         scene = trimesh.Scene()
         for b in range(bodies.batch):
@@ -79,6 +82,37 @@ def encode_bodies(bodies: Bodies, fmt: str, faces: bool = False) -> bytes:
     mesh = cast(trimesh.Trimesh, trimesh.util.concatenate(meshes)) if len(meshes) > 1 else meshes[0]
     out = mesh.export(file_type=fmt)
     return out if isinstance(out, bytes) else str(out).encode()
+
+
+def json_ready(value: Any) -> Any:
+    """``value`` (dicts, lists, tuples, numbers, numpy arrays and scalars) as plain JSON values, with every
+    NaN or infinite float as None (null): JSON has no NaN, ``json.dumps`` would write a literal no parser
+    accepts and a strict encoder raises. Results are checked finite before they are encoded; this keeps
+    the encoders from failing on what is NaN by definition (an undefined statistic)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: json_ready(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_ready(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _json_list(value)
+    if isinstance(value, np.generic):
+        return json_ready(value.item())
+    return value
+
+
+def json_bytes(doc: Any) -> bytes:
+    """``doc`` as compact JSON (:func:`json_ready`: NaN and infinities become null, never a failure)."""
+    return json.dumps(json_ready(doc), separators=(",", ":"), allow_nan=False).encode()
+
+
+def _json_list(a: np.ndarray) -> Any:
+    """An array as nested lists; non-finite floats as None (checked in numpy first: the common all-finite
+    array is converted at tolist's speed)."""
+    if a.dtype.kind == "f" and not np.isfinite(a).all():
+        return json_ready(a.tolist())
+    return a.tolist()
 
 
 def _arrays(bodies: Bodies, faces: bool) -> dict[str, np.ndarray]:

@@ -4,7 +4,6 @@ JSON answer; a client that goes away cancels the work (at the core's next progre
 from __future__ import annotations
 
 import asyncio
-import json
 from collections.abc import AsyncGenerator, Callable
 from typing import Any
 
@@ -13,7 +12,8 @@ from fastapi.responses import JSONResponse, StreamingResponse
 
 from bodyfit.api import problems
 from bodyfit.api.wire import progress_event
-from bodyfit.service.errors import ServiceError
+from bodyfit.service.errors import as_service_error
+from bodyfit.service.formats import json_bytes, json_ready
 from bodyfit.service.jobs import Job, Progress
 
 NDJSON = "application/x-ndjson"
@@ -26,7 +26,7 @@ def wants_stream(request: Request) -> bool:
 
 
 def _line(doc: dict[str, Any]) -> bytes:
-    return (json.dumps(doc, separators=(",", ":")) + "\n").encode()
+    return json_bytes(doc) + b"\n"  # NaN as null: a line every JSON parser reads
 
 
 async def stream(work: Work, job: Job) -> AsyncGenerator[bytes, None]:
@@ -51,10 +51,11 @@ async def stream(work: Work, job: Job) -> AsyncGenerator[bytes, None]:
                 getter.cancel()
         try:
             events = task.result()
-        except ServiceError as exc:
-            yield _line({"event": "error", **problems.service_problem(exc)})
-            return
-        except Exception:
+        except Exception as exc:
+            error = as_service_error(exc)  # the model layer's input errors are the client's: 422
+            if error is not None:
+                yield _line({"event": "error", **problems.service_problem(error)})
+                return
             problems.LOG.exception("unhandled error in a streamed job")
             yield _line({"event": "error", **problems.problem("internal", "Internal error", _BUG, 500)})
             return
@@ -75,11 +76,17 @@ async def answer(request: Request, work: Work, job: Job) -> StreamingResponse | 
         await asyncio.wait({task}, timeout=0.5)
         if not task.done() and await request.is_disconnected():
             job.cancel()
-    events = task.result()  # ServiceError -> the app's problem handler
+    try:
+        events = task.result()  # ServiceError -> the app's problem handler
+    except Exception as exc:
+        error = as_service_error(exc)
+        if error is None or error is exc:
+            raise
+        raise error from exc
     result = {k: v for k, v in events[-1].items() if k != "event"}
     if len(events) > 1:
         result["chunks"] = [{k: v for k, v in e.items() if k != "event"} for e in events[:-1]]
-    return JSONResponse(result)
+    return JSONResponse(json_ready(result))  # NaN as null: JSONResponse refuses NaN
 
 
 _BUG = "the server failed unexpectedly; the error is logged on the server. Please report it."

@@ -46,6 +46,7 @@ async def fit_scan(
             "the file name has no suffix; give format= (ply, obj, stl, pcd or npz)", "format"
         )
     scan = await run_in_threadpool(service.read_scan, data, fmt, units)
+    await run_in_threadpool(service.check_scan, scan)  # a scan that cannot be a body: 422 before streaming
     info = service.info()
 
     def work(job: Job) -> list[dict[str, Any]]:
@@ -71,10 +72,11 @@ async def fit_sequence(
 ) -> StreamingResponse | JSONResponse:
     data = await file.read()
     frames, weights = await run_in_threadpool(service.read_sequence, data)
+    await run_in_threadpool(service.check_sequence, frames, weights)  # 422 before streaming or fitting
     joint_names = list(service.info().joint_names)
 
     def work(job: Job) -> list[dict[str, Any]]:
-        fit = service.fit_sequence(frames, weights, job)
+        fit = service.fit_sequence(frames, weights, job, checked=True)
         return [*wire.sequence_chunks(fit, chunk), wire.sequence_summary(fit, joint_names)]
 
     return await answer(request, work, Job(timeout_s=service.limits.max_seconds))
