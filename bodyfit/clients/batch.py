@@ -7,7 +7,9 @@ finished (the JSON is written last, after the other files are in place) and is s
 run resumes where it stopped. Back-ends:
 
 * a server URL (``"http://host:8000"``): the REST SDK, ``concurrency`` requests at once;
-* ``"local"``: in this process (needs the ``server`` extra; path (b) without an SMPL-family model file);
+* ``"local"``: in this process (needs the ``server`` extra); path (a) with an SMPL-family model file
+  (``smpl_model`` or $BODYFIT_SMPL_MODEL), else path (b) from the joint rotations, as ``bodyfit upgrade``
+  and the server choose;
 * ``"ray"`` / ``"ray://host:10001"``: a pool of ``concurrency`` Ray actors, each holding one loaded
   model (needs the ``ray`` extra; ``ray`` alone starts a local Ray).
 """
@@ -87,15 +89,18 @@ def server_upgrader(url: str, timeout: float = 600.0) -> Upgrader:
 
 
 class LocalUpgrader:
-    """Upgrades in this process: the body model and fitters are loaded once (``server`` extra)."""
+    """Upgrades in this process: the body model and fitters are loaded once (``server`` extra). Path (a)
+    with the SMPL-family model file ``smpl_model`` (default $BODYFIT_SMPL_MODEL; a path that does not exist
+    is an error), else path (b) from the joint rotations (each result's notes say which ran)."""
 
     def __init__(self, smpl_model: str | os.PathLike[str] | None = None) -> None:
-        from bodyfit.models.upgrade.smpl_model import model_path
+        from bodyfit.models.upgrade.smpl_model import ENV_VAR, model_path
         from bodyfit.service.core import BodyService
         from bodyfit.service.limits import Limits
 
+        given = smpl_model or os.environ.get(ENV_VAR)
         limits = Limits(max_concurrent=os.cpu_count() or 1, max_frames=10**7, max_upload_bytes=2**40)
-        self.service = BodyService.load(limits=limits, smpl_model=model_path(smpl_model))
+        self.service = BodyService.load(limits=limits, smpl_model=model_path(given) if given else None)
 
     def __call__(self, path: Path) -> Files:
         from bodyfit.models.upgrade.smpl_io import read_smpl_sequence

@@ -26,7 +26,9 @@ def fit_mesh_files(
     echo: Callable[[str], None],
     note: Callable[[str], None],
 ) -> list[dict[str, Any]]:
-    """Fit each mesh or scan (read first, all of them, in ``units``: auto, m or mm) and write ``fit.npz``
+    """Fit each mesh or scan (read first, all of them, in ``units``: auto, m or mm, as the server reads them:
+    NaN or infinite points, the missing pixels of depth cameras and organized PCD clouds, are dropped and
+    ``echo`` says how many) and write ``fit.npz``
     (shape, coordinates, root, vertices, joints per input), ``fit.json`` (one report per input),
     ``registration_<k>.ply`` and ``fit.mot`` to ``out``; returns the records. ``processes``: 1 or 2 (a
     helper process for raw scans), None: 2 from :data:`HELPER_SCANS` raw scans on. ``echo`` gets a summary
@@ -48,7 +50,14 @@ def fit_mesh_files(
             note(f"  {p.message}")
 
     model = service.model
-    scans = [load_scan(path, units=units) for path in paths]
+    scans = [load_scan(path, units=units, drop_nonfinite=True) for path in paths]
+    for path, scan in zip(paths, scans, strict=True):
+        dropped = scan.n_input_points - scan.n_points
+        if dropped:
+            echo(
+                f"{path.name}: dropped {dropped:,} of {scan.n_input_points:,} points that were NaN or "
+                f"infinite (missing depth pixels); fitting the other {scan.n_points:,}"
+            )
     if processes is None:
         raw = sum(service.route(scan) == RAW_SCAN for scan in scans)
         processes = 2 if raw >= HELPER_SCANS else 1
@@ -64,7 +73,15 @@ def fit_mesh_files(
     arrays["dof_names"], arrays["joint_names"] = np.array(model.dof_names), np.array(model.joint_names)
     np.savez_compressed(out / "fit.npz", allow_pickle=False, **arrays)
     pairs = list(zip(paths, fits, strict=True))
-    records = [{"mesh": str(p), "fitted_as": f.fitted_as, **f.report.to_dict()} for p, f in pairs]
+    records = [
+        {
+            "mesh": str(p),
+            "fitted_as": f.fitted_as,
+            "dropped_points": s.n_input_points - s.n_points,
+            **f.report.to_dict(),
+        }
+        for (p, f), s in zip(pairs, scans, strict=True)
+    ]
     (out / "fit.json").write_text(json.dumps(records, indent=1) + "\n")
     for k, f in enumerate(fits):
         trimesh.Trimesh(f.vertices, model.faces, process=False).export(out / f"registration_{k:03d}.ply")

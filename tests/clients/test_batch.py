@@ -47,6 +47,30 @@ def test_resumes_and_reports_failures(body_service: BodyService, tmp_path: Path)
     assert again.skipped == ["subject_a/walk.npz"] and calls == ["broken.npz"] and not again.done
 
 
+def test_the_local_backend_without_a_model_file_upgrades_from_rotations(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`--backend local` with no SMPL-family model file (none given, $BODYFIT_SMPL_MODEL unset) loads the
+    service without one, so upgrades take path (b), as `bodyfit upgrade` and the server do; a file that is
+    not there is still an error (loading is stubbed: what the backend asks for is tested)."""
+    from bodyfit.clients.batch import LocalUpgrader
+    from bodyfit.models.upgrade.smpl_model import ENV_VAR, SmplModelError
+
+    asked: list[object] = []
+
+    def load(**kwargs: object) -> None:
+        asked.append(kwargs["smpl_model"])
+
+    monkeypatch.delenv(ENV_VAR, raising=False)
+    monkeypatch.setattr(BodyService, "load", load)
+    LocalUpgrader()
+    monkeypatch.setenv(ENV_VAR, str(DATA / "smpl_like_model.npz"))
+    LocalUpgrader()
+    assert asked == [None, DATA / "smpl_like_model.npz"]
+    with pytest.raises(SmplModelError, match="does not exist"):
+        LocalUpgrader(tmp_path / "missing.npz")
+
+
 def test_ray_backend(tmp_path: Path) -> None:
     ray = pytest.importorskip("ray")
     root = tmp_path / "amass"

@@ -124,6 +124,24 @@ def test_fit_starts_a_helper_process_for_three_or_more_raw_scans(
     assert seen == [expected]
 
 
+def test_fit_reads_a_depth_camera_cloud_as_the_server_does(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The repository's Kinect PCD marks missing pixels with NaN: `bodyfit fit` drops them, as the server
+    does, and says how many (the fit itself is stopped here: reading is what is tested)."""
+    from bodyfit.service.core import BodyService
+
+    def first_fit(self: BodyService, scan: object, job: object = None) -> None:
+        raise OSError("stopped by the test")
+
+    monkeypatch.setattr(BodyService, "fit_mesh", first_fit)
+    path = DATA / "scans" / "pcl_template_alignment_person.pcd"
+    result = runner.invoke(app, ["fit", str(path), "--out", str(tmp_path / "o")])
+    assert "drop_nonfinite" not in result.output, result.output
+    assert "dropped 64,451 of 307,200 points that were NaN or infinite" in result.output
+    assert result.exit_code == 2 and "stopped by the test" in result.output
+
+
 def test_fit_a_sphere_is_a_low_confidence_scan(tmp_path: Path) -> None:
     """A mesh of another topology is fitted as a raw scan; a sphere is not a body and says so."""
     import trimesh
