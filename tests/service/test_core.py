@@ -194,3 +194,199 @@ def test_sequence_upload_needs_frames_of_our_topology(body_service: BodyService)
         with pytest.raises(InvalidInputError) as err:
             body_service.read_sequence(buf.getvalue())
         assert words in err.value.detail and err.value.field == "frames"
+
+
+@pytest.mark.parametrize(
+    ("request_", "field", "words"),
+    [
+        (SynthRequest(root=np.array([[0.0, 1e308, 0.0]])), "root", "[-100, 100]"),  # inf in float32
+        (SynthRequest(root=np.array([[0.0, 150.0, 0.0]])), "root", "[-100, 100]"),
+        (SynthRequest(shape=np.full((1, 32), 1e6)), "shape", "[-10, 10]"),
+        (SynthRequest(shape=np.full((1, 32), 10.5)), "shape", "standard deviations"),
+        (SynthRequest(coordinates=np.full((1, 46), 1e39)), "coordinates", "range"),
+        (SynthRequest(shape=np.zeros((0, 32))), "shape", "0 bodies"),
+        (SynthRequest(root=np.zeros((0, 3))), "root", "0 bodies"),
+        (SynthRequest(coordinates=np.zeros((0, 46))), "coordinates", "0 bodies"),
+        (SynthRequest(coordinates={"knee_angle_r": []}), "coordinates", "0 bodies"),
+        (SynthRequest(root=np.zeros((1, 3), np.int32)), "root", "floats"),
+        (SynthRequest(shape=np.zeros((1, 32), bool)), "shape", "floats"),
+        (SynthRequest(coordinates=np.zeros((1, 46), np.int64)), "coordinates", "floats"),
+    ],
+)
+def test_implausible_or_empty_synthesis_requests_are_refused(
+    body_service: BodyService, request_: SynthRequest, field: str, words: str
+) -> None:
+    """Values that overflow float32, shapes beyond 10 SD, roots beyond 100 m, zero bodies and int / bool
+    arrays: refused with the field and the range named, before any model call."""
+    with pytest.raises(InvalidInputError) as err:
+        body_service.synthesize(request_)
+    assert err.value.field == field and words in err.value.detail, err.value.detail
+
+
+def test_the_plausible_range_holds_the_extreme_adults(body_service: BodyService) -> None:
+    """+-9.9 SD and a root 99 m away are accepted, and the bodies are finite."""
+    shape = np.zeros((2, 32))
+    shape[:, 0] = [-9.9, 9.9]
+    bodies = body_service.synthesize(SynthRequest(shape=shape, root=np.array([[99.0, 0, -99.0]] * 2)))
+    height = np.ptp(bodies.vertices[..., 1], axis=1)
+    assert np.isfinite(bodies.vertices).all() and 0.6 < height[0] < 0.8 and 2.6 < height[1] < 2.8
+
+
+def _bodies(service: BodyService, n: int = 2) -> np.ndarray:
+    return service.synthesize(SynthRequest(batch=n)).vertices
+
+
+def _flat(x: np.ndarray) -> np.ndarray:
+    x = x.copy()
+    x[..., 2] = 0.0
+    return x
+
+
+def _line(x: np.ndarray) -> np.ndarray:
+    x = _flat(x)
+    x[..., 0] = 0.0
+    return x
+
+
+def _overflow(x: np.ndarray) -> np.ndarray:
+    x = x.astype(np.float64)
+    x[1, 7, 0] = 1e308  # finite in float64, infinite in float32
+    return x
+
+
+def _nan(x: np.ndarray) -> np.ndarray:
+    x = x.copy()
+    x[1, 3] = np.nan
+    return x
+
+
+# (id, frames from the mean bodies (2, V, 3), weights or None, field, words in the message)
+BAD_FRAMES: list[tuple[str, Any, Any, str, str]] = [
+    ("all zero", lambda x: np.zeros_like(x), None, "frames", "only zeros"),
+    ("constant", lambda x: np.full_like(x, 0.5), None, "frames", "one point"),
+    ("on a plane", _flat, None, "frames", "plane"),
+    ("on a line", _line, None, "frames", "line"),
+    ("millimetres", lambda x: x * 1000.0, None, "frames", "divide by 1000"),
+    ("centimetres", lambda x: x * 100.0, None, "frames", "divide by 100"),
+    ("kilometres", lambda x: x / 1000.0, None, "frames", "too small for a body"),
+    ("far away", lambda x: x + 500.0, None, "frames", "within 100 m"),
+    ("NaN", _nan, None, "frames", "frame 1 holds NaN"),
+    ("beyond float32", _overflow, None, "frames", "float32"),
+    ("int32", lambda x: x.astype(np.int32), None, "frames", "floats"),
+    ("bool", lambda x: x > 0, None, "frames", "floats"),
+    ("weights negative", lambda x: x, lambda w: -w, "weights", "non-negative"),
+    ("weights all zero in a frame", lambda x: x, lambda w: w * [[1.0], [0.0]], "weights", "frame 1"),
+    ("weights shape", lambda x: x, lambda w: w[:, :10], "weights", "shape"),
+]
+
+
+@pytest.mark.parametrize(
+    ("make", "weigh", "field", "words"), [b[1:] for b in BAD_FRAMES], ids=[b[0] for b in BAD_FRAMES]
+)
+def test_frames_that_cannot_be_bodies_are_refused_before_any_fit(
+    body_service: BodyService, make: Any, weigh: Any, field: str, words: str
+) -> None:
+    x = _bodies(body_service)
+    weights = None if weigh is None else weigh(np.ones(x.shape[:2]))
+
+    def started(p: Progress) -> None:
+        raise AssertionError(f"the fit started: {p}")
+
+    with pytest.raises(InvalidInputError) as err:
+        body_service.fit_sequence(make(x), weights, Job(on_progress=started))
+    assert err.value.field == field and words in err.value.detail, err.value.detail
+
+
+def test_twenty_thousand_zero_frames_are_refused_at_once(body_service: BodyService) -> None:
+    """The abuse case: 20,000 all-zero frames (3.2 GB as float32; a view here) are refused from the first
+    chunk, not fitted for minutes."""
+    frames = np.broadcast_to(np.zeros((1, 13348, 3), np.float32), (20_000, 13348, 3))
+    with pytest.raises(InvalidInputError, match="frame 0 holds only zeros"):
+        body_service.check_sequence(frames)
+
+
+def test_meshes_are_checked_as_bodies_and_scans_for_their_units(body_service: BodyService) -> None:
+    """A mesh in our topology (or SMPL's) is one whole body; a scan in metres read as millimetres spans 2 mm
+    and says to send units=m: both before any fit."""
+    from bodyfit.models.fitting.scan_io import sample_surface
+
+    body = _bodies(body_service, 1)[0]
+    for points, units, field, words in (
+        (body, "mm", "units", "units=mm"),
+        (sample_surface(body, body_service.model.faces, 2000, seed=1)[0], "mm", "units", "units=m"),
+        (np.c_[body[:, :2], np.zeros(len(body))] + [0, 0, 1e-9], "m", "file", "degenerate"),
+    ):
+        buf = io.BytesIO()
+        np.savez(buf, points=points)
+        try:
+            scan = body_service.read_scan(buf.getvalue(), "npz", units)
+            body_service.check_scan(scan)
+        except InvalidInputError as exc:
+            assert exc.field == field and words in exc.detail, exc.detail
+        else:
+            raise AssertionError(f"{units} accepted")
+
+
+def test_domain_errors_inside_a_fit_are_invalid_input(
+    body_service: BodyService, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A model-layer input error raised in the middle of a fit (here the scan fitter's ScanError) is the
+    client's: InvalidInputError (422 / INVALID_ARGUMENT), never an internal error."""
+    from bodyfit.models.fitting.scan_io import ScanError, sample_surface
+    from bodyfit.service.errors import as_service_error
+
+    def fit(*args: object, **kwargs: object) -> None:
+        raise ScanError("only 4 points are left after thinning to a 1 cm grid")
+
+    monkeypatch.setattr(body_service.fitters.scan, "fit", fit)
+    points = sample_surface(_bodies(body_service, 1)[0], body_service.model.faces, 2000, seed=1)[0]
+    buf = io.BytesIO()
+    np.savez(buf, points=points)
+    scan = body_service.read_scan(buf.getvalue(), "npz")
+    with pytest.raises(InvalidInputError, match="only 4 points") as err:
+        body_service.fit_mesh(scan)
+    assert err.value.field == "file"
+    # the transports' net for anything else: model input errors -> invalid input, bugs stay internal
+    mapped = as_service_error(ScanError("bad scan"))
+    assert isinstance(mapped, InvalidInputError) and mapped.detail == "bad scan"
+    assert as_service_error(RuntimeError("bug")) is None
+
+
+def test_non_finite_fits_are_refused_not_encoded(
+    body_service: BodyService, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A fit that comes out NaN is an error saying what to check, not a result full of NaN."""
+    from types import SimpleNamespace
+
+    body = _bodies(body_service, 1)
+    real = body_service.fitters.registered.fit(body)
+
+    def nan_fit(*args: object, **kwargs: object) -> Any:
+        return SimpleNamespace(
+            shape=real.shape,
+            coordinates=real.coordinates * np.nan,
+            root=real.root,
+            vertices=real.vertices,
+            joints=real.joints,
+            reports=real.reports,
+        )
+
+    monkeypatch.setattr(body_service.fitters.registered, "fit", nan_fit)
+    buf = io.BytesIO()
+    np.savez(buf, points=body[0])
+    with pytest.raises(InvalidInputError, match="46 NaN or infinite values in coordinates") as err:
+        body_service.fit_mesh(body_service.read_scan(buf.getvalue(), "npz"))
+    assert err.value.field == "file" and "units" in err.value.detail
+
+
+def test_json_encoders_write_nan_as_null(body_service: BodyService) -> None:
+    import json
+
+    from bodyfit.service.formats import Bodies, json_bytes
+
+    doc = json.loads(json_bytes({"a": float("nan"), "b": [np.float32(np.inf), 1.0], "c": np.array([np.nan])}))
+    assert doc == {"a": None, "b": [None, 1.0], "c": [None]}
+    v = np.full((1, 2, 3), np.nan, np.float32)
+    bodies = Bodies(v, np.zeros((0, 3), np.int32), v[:, :1], ("pelvis",))
+    parsed = json.loads(encode_bodies(bodies, "json"), parse_constant=lambda c: pytest.fail(c))
+    assert parsed["vertices"][0][0] == [None, None, None]
