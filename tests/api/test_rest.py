@@ -86,6 +86,17 @@ def test_fit_sequence_streams_chunks(client: TestClient, body_service: BodyServi
     assert events[-1]["limit_violations"] == 0
 
 
+def npz_compressed(**arrays: Any) -> bytes:
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    return buf.getvalue()
+
+
+def body_like(n: int, seed: int = 0) -> np.ndarray:
+    """(n, 3) points in a person-sized box, metres (1.7 m tall): no body, but no degenerate array either."""
+    return np.random.default_rng(seed).uniform([-0.2, 0.0, -0.15], [0.2, 1.7, 0.15], (n, 3))
+
+
 def _ply_header(n: int) -> bytes:
     return (
         f"ply\nformat binary_little_endian 1.0\nelement vertex {n}\nproperty float x\nproperty float y\n"
@@ -328,6 +339,77 @@ MALFORMED: list[tuple[str, str, str, dict[str, Any], int, str]] = [
         "npz",
     ),
     (
+        "root overflowing float32",
+        "POST",
+        "/v1/synthesize",
+        {"json": {"root": [[0, 1e308, 0]]}},
+        422,
+        "[-100, 100]",
+    ),
+    (
+        "shape of a 100 km body",
+        "POST",
+        "/v1/synthesize",
+        {"json": {"shape": [[1e6] * 32]}},
+        422,
+        "standard deviations and must lie within [-10, 10]",
+    ),
+    ("zero bodies glb", "POST", "/v1/synthesize", {"json": {"shape": [], "format": "glb"}}, 422, "0 bodies"),
+    ("zero bodies npz", "POST", "/v1/synthesize", {"json": {"root": [], "format": "npz"}}, 422, "0 bodies"),
+    (
+        "zero bodies json",
+        "POST",
+        "/v1/synthesize",
+        {"json": {"coordinates": {"knee_angle_r": []}, "format": "json"}},
+        422,
+        "0 bodies",
+    ),
+    ("batch as a string", "POST", "/v1/synthesize", {"json": {"batch": "2"}}, 422, "integer"),
+    ("batch as a float", "POST", "/v1/synthesize", {"json": {"batch": 2.0}}, 422, "integer"),
+    ("skeleton yes", "POST", "/v1/synthesize", {"json": {"skeleton": "yes"}}, 422, "boolean"),
+    ("faces 1", "POST", "/v1/synthesize", {"json": {"faces": 1}}, 422, "boolean"),
+    (
+        "coordinate as a string",
+        "POST",
+        "/v1/synthesize",
+        {"json": {"coordinates": {"knee_angle_r": "1"}}},
+        422,
+        "number",
+    ),
+    ("coordinate true", "POST", "/v1/synthesize", {"json": {"coordinates": [[True] * 46]}}, 422, "number"),
+    (
+        "sequence of zero frames",
+        "POST",
+        "/v1/fit/sequence",
+        {"files": {"file": ("s.npz", npz_compressed(frames=np.zeros((5, 13348, 3), np.float32)))}},
+        422,
+        "frame 0 holds only zeros",
+    ),
+    (
+        "sequence of constant frames",
+        "POST",
+        "/v1/fit/sequence",
+        {"files": {"file": ("s.npz", npz_compressed(frames=np.ones((5, 13348, 3), np.float32)))}},
+        422,
+        "one point",
+    ),
+    (
+        "sequence in millimetres",
+        "POST",
+        "/v1/fit/sequence",
+        {"files": {"file": ("s.npz", npz(frames=np.stack([body_like(13348) * 1000.0] * 2)))}},
+        422,
+        "divide by 1000",
+    ),
+    (
+        "scan in metres sent as mm",
+        "POST",
+        "/v1/fit/scan",
+        {"files": {"file": ("a.npz", npz(points=body_like(2000)))}, "data": {"units": "mm"}},
+        422,
+        "units=m",
+    ),
+    (
         "sequence chunk zero",
         "POST",
         "/v1/fit/sequence?chunk=0",
@@ -353,6 +435,56 @@ def test_malformed_requests_get_a_problem(
     assert doc["status"] == status and doc["kind"] and doc["title"]
     assert words.lower() in doc["detail"].lower(), doc["detail"]
     assert "Traceback" not in r.text and 'File "' not in r.text
+
+
+def test_a_two_frame_sequence_answers_valid_json(client: TestClient, body_service: BodyService) -> None:
+    """Two frames have no jitter (a second difference needs three): null with the reason, valid JSON."""
+    frames = body_service.synthesize(SynthRequest(coordinates={"knee_angle_l": [0.0, 0.5]})).vertices
+    r = client.post("/v1/fit/sequence", files={"file": ("seq.npz", npz(frames=frames))})
+    assert r.status_code == 200, r.text
+    doc = json.loads(r.text, parse_constant=lambda c: pytest.fail(f"{c} in the JSON"))
+    stats = doc["stats"]
+    assert stats["jitter_ratio"] is None and stats["jitter_fit_mm"] is None
+    assert "three consecutive frames" in stats["jitter_note"] and stats["frames"] == 2
+
+
+def test_streamed_fits_refuse_bad_frames_and_scans_before_the_stream(client: TestClient) -> None:
+    """Frames or a scan that cannot be a body get an HTTP 422 even when NDJSON was asked for."""
+    ndjson = {"accept": "application/x-ndjson"}
+    zero = npz_compressed(frames=np.zeros((3, 13348, 3), np.float32))
+    r = client.post("/v1/fit/sequence", files={"file": ("s.npz", zero)}, headers=ndjson)
+    assert r.status_code == 422 and "only zeros" in r.json()["detail"] and r.json()["field"] == "frames"
+    files = {"file": ("a.npz", npz(points=body_like(2000)))}
+    r = client.post("/v1/fit/scan", files=files, data={"units": "mm"}, headers=ndjson)
+    assert r.status_code == 422 and r.json()["field"] == "units" and "units=mm" in r.json()["detail"]
+
+
+def test_domain_errors_inside_the_work_are_422_streamed_or_not(
+    client: TestClient, body_service: BodyService, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A model-layer input error raised by the fit itself (the scan fitter's ScanError): a 422 problem, or
+    an NDJSON error event with status 422 and kind invalid_argument, never 'Internal error'."""
+    from bodyfit.models.fitting.scan_io import ScanError
+
+    def fit_mesh(*args: object, **kwargs: object) -> None:
+        raise ScanError("only 4 points are left after thinning to a 1 cm grid")
+
+    monkeypatch.setattr(body_service, "fit_mesh", fit_mesh)
+    files = {"file": ("a.npz", npz(points=body_like(2000)))}
+    r = client.post("/v1/fit/scan", files=files)
+    assert r.status_code == 422 and r.json()["kind"] == "invalid_argument", r.text
+    assert "only 4 points" in r.json()["detail"]
+    with client.stream("POST", "/v1/fit/scan", files=files, headers={"accept": "application/x-ndjson"}) as r:
+        events = [json.loads(line) for line in r.iter_lines() if line]
+    error = events[-1]
+    assert error["event"] == "error" and error["status"] == 422 and error["kind"] == "invalid_argument"
+    assert "only 4 points" in error["detail"]
+
+
+def test_ndjson_lines_never_carry_nan() -> None:
+    from bodyfit.api.rest.jobs import _line
+
+    assert _line({"x": float("nan"), "y": [float("inf"), 1.5]}) == b'{"x":null,"y":[null,1.5]}\n'
 
 
 def test_the_corpus_is_large_enough() -> None:
