@@ -69,6 +69,9 @@ def test_synthesize_matches_the_core(client: GrpcClient, body_service: BodyServi
         ({"shape": np.full((1, 32), np.nan)}, InvalidRequestError, "shape", "NaN"),
         ({"root": np.zeros((1, 2))}, InvalidRequestError, "root", "(1, 3)"),
         ({"batch": 100_000}, RequestTooLargeError, "batch", "split"),
+        ({"root": np.array([[0.0, 1e308, 0.0]])}, InvalidRequestError, "root", "[-100, 100]"),
+        ({"shape": np.full((1, 32), 1e6)}, InvalidRequestError, "shape", "[-10, 10]"),
+        ({"shape": np.zeros((0, 32))}, InvalidRequestError, "shape", "0 bodies"),
     ],
 )
 def test_errors_name_the_field(
@@ -86,6 +89,10 @@ def test_malformed_arrays_are_invalid_argument(target: str) -> None:
             (pb.Array(dtype="float32", shape=[1, 46], data=b"\x00" * 10), "need 184"),
             (pb.Array(dtype="complex64", shape=[1, 46]), "dtype"),
             (pb.Array(dtype="float64", shape=[-1, 46]), "negative"),
+            (pb.Array(dtype="float64", shape=[0, 2**62]), "declares a size above"),
+            (pb.Array(dtype="float64", shape=[1] * 9, data=b"\x00" * 8), "dimensions"),
+            (to_proto(np.zeros((1, 46), np.int32)), "floats"),
+            (to_proto(np.zeros((1, 46), bool)), "floats"),
         ):
             with pytest.raises(grpc.RpcError) as err:
                 stub.Synthesize(pb.SynthesizeRequest(coordinates=array), timeout=10)
@@ -97,6 +104,60 @@ def test_malformed_arrays_are_invalid_argument(target: str) -> None:
         with pytest.raises(grpc.RpcError) as err:
             list(stub.FitSequence(pb.FitSequenceRequest(frames=to_proto(np.zeros((2, 5, 3)))), timeout=10))
         assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "13348" in err.value.details()
+
+
+@pytest.mark.parametrize(
+    ("frames", "words"),
+    [
+        (np.zeros((2, 13348, 3), np.int32), "floats"),
+        (np.zeros((2, 13348, 3), bool), "floats"),
+        (np.zeros((3, 13348, 3), np.float32), "frame 0 holds only zeros"),
+        (np.full((3, 13348, 3), 0.5, np.float32), "one point"),
+    ],
+    ids=["int32", "bool", "all zero", "constant"],
+)
+def test_fit_sequence_refuses_what_rest_refuses(target: str, frames: np.ndarray, words: str) -> None:
+    """int and bool frames (which REST refuses from an npz) and frames that cannot be bodies:
+    INVALID_ARGUMENT naming the frames, before any progress event."""
+    with grpc.insecure_channel(target) as channel, pytest.raises(grpc.RpcError) as err:
+        list(
+            pb_grpc.BodyfitStub(channel).FitSequence(
+                pb.FitSequenceRequest(frames=to_proto(frames)), timeout=10
+            )
+        )
+    assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and words in err.value.details()
+    assert dict(err.value.trailing_metadata())["bodyfit-field"] == "frames"
+
+
+def test_zero_bodies_in_a_file_format_are_invalid(target: str) -> None:
+    with grpc.insecure_channel(target) as channel, pytest.raises(grpc.RpcError) as err:
+        pb_grpc.BodyfitStub(channel).Synthesize(
+            pb.SynthesizeRequest(shape=to_proto(np.zeros((0, 32))), format=pb.GLB), timeout=10
+        )
+    assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "0 bodies" in err.value.details()
+
+
+def test_scan_errors_are_invalid_argument_in_the_stream(
+    client: GrpcClient, body_service: BodyService, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A scan in metres sent as millimetres, and a model-layer input error raised by the fit itself (the
+    scan fitter's ScanError): INVALID_ARGUMENT, and the SDK's InvalidRequestError, never INTERNAL."""
+    from bodyfit.models.fitting.scan_io import ScanError
+
+    points = np.random.default_rng(0).uniform([-0.2, 0.0, -0.15], [0.2, 1.7, 0.15], (2000, 3))
+    buf = io.BytesIO()
+    np.savez(buf, points=points)
+    with pytest.raises(InvalidRequestError, match="units=mm") as bad:
+        client.fit_scan(buf.getvalue(), format="npz", units="mm")
+    assert bad.value.field == "units"
+
+    def fit_mesh(*args: object, **kwargs: object) -> None:
+        raise ScanError("only 4 points are left after thinning to a 1 cm grid")
+
+    monkeypatch.setattr(body_service, "fit_mesh", fit_mesh)
+    with pytest.raises(InvalidRequestError, match="only 4 points") as err:
+        client.fit_scan(buf.getvalue(), format="npz")
+    assert err.value.status == "INVALID_ARGUMENT"
 
 
 def test_fit_scan_streams_progress_then_the_result(client: GrpcClient, body_service: BodyService) -> None:
