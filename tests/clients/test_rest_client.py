@@ -86,6 +86,30 @@ def test_fit_scan_takes_points_and_says_what_it_cannot_send(client: Client) -> N
         client.fit_scan(target.vertices[0].tolist())
 
 
+def test_input_errors_found_by_the_fit_are_invalid_request_errors(
+    client: Client, body_service: BodyService, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The SDK streams fits: a scan read in the wrong units (refused before the stream) and a model-layer
+    input error raised by the fit itself (an NDJSON error event) both raise InvalidRequestError, not
+    ServerError."""
+    from bodyfit.models.fitting.scan_io import ScanError
+
+    points = np.random.default_rng(0).uniform([-0.2, 0.0, -0.15], [0.2, 1.7, 0.15], (2000, 3))
+    with pytest.raises(InvalidRequestError, match="units=mm") as bad:
+        client.fit_scan(points, units="mm")
+    assert bad.value.status == 422 and bad.value.field == "units"
+
+    def fit_mesh(*args: object, **kwargs: object) -> None:
+        raise ScanError("only 4 points are left after thinning to a 1 cm grid")
+
+    monkeypatch.setattr(body_service, "fit_mesh", fit_mesh)
+    with pytest.raises(InvalidRequestError, match="only 4 points") as err:
+        client.fit_scan(points)
+    assert err.value.status == 422
+    with pytest.raises(InvalidRequestError, match="0 bodies"):
+        client.synthesize_file("glb", shape=np.zeros((0, 32)))
+
+
 def test_async_client(app: Any) -> None:
     async def run() -> tuple[int, np.ndarray]:
         transport = httpx.ASGITransport(app=app)
