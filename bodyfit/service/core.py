@@ -7,7 +7,6 @@ session and a semaphore bounding concurrent heavy work; one instance serves conc
 
 from __future__ import annotations
 
-import io
 import logging
 import tempfile
 import threading
@@ -24,6 +23,8 @@ import numpy as np
 import onnxruntime as ort
 import torch
 
+from bodyfit.io.errors import FileFormatError, FileLimitError
+from bodyfit.io.npz import FLOAT, ArraySpec, Dim, read_npz
 from bodyfit.models.assets import read_manifest, verified_asset
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.body.onnx_export import BODY_ONNX
@@ -422,8 +423,20 @@ class BodyService:
                 field="format",
             )
         self._check_upload(len(data))
-        with invalid_input("file"):
-            scan = load_scan(data, format=fmt, units=units, drop_nonfinite=True)
+        limits = self.limits
+        try:  # counts and sizes are checked from the file's header before anything is allocated
+            scan = load_scan(
+                data,
+                format=fmt,
+                units=units,
+                drop_nonfinite=True,
+                max_points=limits.max_points,
+                max_bytes=limits.max_decompressed_bytes,
+            )
+        except FileLimitError as exc:
+            raise LimitExceededError(str(exc), field="file") from exc
+        except BodyfitError as exc:
+            raise InvalidInputError(str(exc), field="file") from exc
         if scan.n_points > self.limits.max_points:
             raise LimitExceededError(
                 f"the scan has {scan.n_points:,} points; the limit is {self.limits.max_points:,}: thin it "
@@ -433,44 +446,34 @@ class BodyService:
         return scan
 
     def read_sequence(self, data: bytes) -> tuple[np.ndarray, np.ndarray | None]:
-        """Read an uploaded .npz holding ``frames`` (T, V, 3) metres in our topology and optionally
-        ``weights`` (T, V).
+        """Read an uploaded .npz holding ``frames`` (T, V, 3) float metres in our topology and optionally
+        ``weights`` (T, V) numbers, both checked from their .npy headers (dtype, shape, T against
+        ``limits.max_frames``, bytes against ``limits.max_decompressed_bytes``) before they are decompressed.
 
         Raises:
             LimitExceededError: too large; InvalidInputError: not an npz, missing or malformed arrays.
         """
         self._check_upload(len(data))
+        V = self.model.n_vertices
+        T = Dim("T", self.limits.max_frames, "frames", "split the sequence into overlapping parts")
+        specs = {
+            "frames": ArraySpec(
+                ((T, V, 3),),
+                FLOAT,
+                hint="meshes in our topology, metres, saved with numpy.savez(path, frames=array); fit other "
+                "topologies frame by frame as scans",
+            ),
+            "weights": ArraySpec(((T, V),), "fiub", required=False, hint="per-vertex weights, 0 = missing"),
+        }
         try:
-            with np.load(io.BytesIO(data), allow_pickle=False) as npz:
-                arrays = {k: npz[k] for k in npz.files if k in ("frames", "weights")}
-                found = list(npz.files)
-        except Exception as exc:
-            raise InvalidInputError(
-                f"the upload is not a readable .npz file ({type(exc).__name__}: {exc}); save the frames with "
-                "numpy.savez(path, frames=array)",
-                field="file",
-            ) from None
-        if "frames" not in arrays:
-            raise InvalidInputError(
-                f"the .npz holds {found or 'no arrays'}; it needs "
-                f"'frames' (T, {self.model.n_vertices}, 3) in "
-                "metres and optionally 'weights' (T, V)",
-                field="frames",
-            )
+            arrays = read_npz(data, specs, max_bytes=self.limits.max_decompressed_bytes, name="the upload")
+        except FileLimitError as exc:
+            raise LimitExceededError(str(exc), field=exc.key or "file") from exc
+        except FileFormatError as exc:
+            raise InvalidInputError(str(exc), field=exc.key or "file") from exc
         frames = arrays["frames"]
-        if frames.ndim != 3 or frames.shape[1:] != (self.model.n_vertices, 3) or len(frames) == 0:
-            raise InvalidInputError(
-                f"frames must have shape (T, {self.model.n_vertices}, 3) with T >= 1 (meshes in our "
-                f"topology; fit other topologies frame by frame as scans); got {frames.shape}",
-                field="frames",
-            )
-        if not np.issubdtype(frames.dtype, np.floating):
-            raise InvalidInputError(f"frames must be floats (metres); got {frames.dtype}", field="frames")
-        if len(frames) > self.limits.max_frames:
-            raise LimitExceededError(
-                f"{len(frames):,} frames sent; the limit is {self.limits.max_frames:,}: split the sequence",
-                field="frames",
-            )
+        if len(frames) == 0:
+            raise InvalidInputError(f"frames holds no frames; send (T, {V}, 3) with T >= 1", field="frames")
         return frames, arrays.get("weights")
 
     def route(self, scan: Scan) -> str:
@@ -626,8 +629,17 @@ class BodyService:
                 "AMASS-style .npz (numpy.savez with poses, trans, betas, gender, mocap_framerate)",
                 field="file",
             )
-        with invalid_input("file"):
-            sequence = read_smpl_npz(data, filename or "upload.npz")
+        try:  # poses, trans, betas, ... checked from their headers; frames and bytes against the limits
+            sequence = read_smpl_npz(
+                data,
+                filename or "upload.npz",
+                max_frames=self.limits.max_frames,
+                max_bytes=self.limits.max_decompressed_bytes,
+            )
+        except FileLimitError as exc:
+            raise LimitExceededError(str(exc), field="file") from exc
+        except BodyfitError as exc:
+            raise InvalidInputError(str(exc), field="file") from exc
         if sequence.n_frames > self.limits.max_frames:
             raise LimitExceededError(
                 f"{sequence.n_frames:,} frames sent; the limit is {self.limits.max_frames:,}: split it",
@@ -684,6 +696,8 @@ class BodyService:
             return {ext: path.read_bytes() for ext, path in paths.items()}
 
     def _check_upload(self, n_bytes: int) -> None:
+        """The upload's size against ``limits.max_upload_bytes`` (its decompressed arrays are checked
+        against ``limits.max_decompressed_bytes`` by the readers, from their headers)."""
         if n_bytes > self.limits.max_upload_bytes:
             raise LimitExceededError(
                 f"the upload is {n_bytes / 2**20:.1f} MiB; the limit is "

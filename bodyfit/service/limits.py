@@ -7,11 +7,14 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True)
 class Limits:
-    """max_upload_bytes: largest accepted upload; max_points: points in one scan; max_frames: frames in one
-    sequence; max_batch: bodies in one synthesize call; max_seconds: wall time of one request;
-    max_concurrent: fits / upgrades run at once (others wait up to ``queue_seconds``, then get "busy")."""
+    """max_upload_bytes: largest accepted upload; max_decompressed_bytes: the most an uploaded file's arrays
+    may decompress to (checked from their headers before decompressing); max_points: points in one scan
+    (and twice as many faces); max_frames: frames in one sequence; max_batch: bodies in one synthesize call;
+    max_seconds: wall time of one request; max_concurrent: fits / upgrades run at once (others wait up to
+    ``queue_seconds``, then get "busy")."""
 
     max_upload_bytes: int = 200 * 1024 * 1024
+    max_decompressed_bytes: int = 1024 * 1024 * 1024
     max_points: int = 2_000_000
     max_frames: int = 20_000
     max_batch: int = 256

@@ -13,6 +13,12 @@ as millimetres and divided by 1000. Anything else fails with the extent in the m
 10-250 is ambiguous (a whole body in centimetres is 170; a head-and-shoulders scan in millimetres may be
 200), and more than 3 m is a scene or the wrong unit. ``units="m"`` / ``"mm"`` force the unit and skip the
 size check (for a small partial scan in mm, or a scan with a large background to be cropped later).
+
+Limits (``max_points``, and :data:`FACES_PER_POINT` faces per allowed point): the counts a file declares
+(PLY ``element vertex`` / ``element face``, binary STL's triangle count, PCD's POINTS, an NPZ's array
+headers, an OBJ's ``v`` / ``f`` lines) are checked before anything is allocated, against the limits and
+against the bytes the file holds; decompressed data (NPZ, binary_compressed PCD) against ``max_bytes``. A
+count over a limit raises :class:`~bodyfit.io.errors.FileLimitError`, anything else :class:`ScanError`.
 """
 
 from __future__ import annotations
@@ -25,8 +31,10 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from bodyfit.io.errors import FileLimitError
+from bodyfit.io.npz import DEFAULT_MAX_BYTES, INTEGER, NUMBER, ArraySpec, Dim, npz_keys, read_npz
 from bodyfit.models.errors import BodyfitError
-from bodyfit.models.fitting.pcd import read_pcd
+from bodyfit.models.fitting.pcd import THIN, read_pcd
 
 FORMATS = ("ply", "obj", "stl", "pcd", "npz")
 MIN_POINTS = 300
@@ -35,6 +43,11 @@ MAX_EXTENT_M = 3.0
 MIN_EXTENT_MM = 250.0
 _FLAT = 1e-3  # a singular value below this fraction of the largest means the points lie on a plane / line
 _POINT_KEYS = ("points", "vertices")
+FACES_PER_POINT = 2  # a closed triangle mesh has about two faces per vertex
+# bytes of one PLY property of each type
+_PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2}
+_PLY_SIZES |= {"int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4}
+_PLY_SIZES |= {"double": 8, "float64": 8}
 
 
 class ScanError(BodyfitError):
@@ -69,6 +82,9 @@ def load_scan(
     format: str | None = None,
     units: str = "auto",
     drop_nonfinite: bool = False,
+    *,
+    max_points: int | None = None,
+    max_bytes: int = DEFAULT_MAX_BYTES,
 ) -> Scan:
     """Read and validate a scan file.
 
@@ -77,9 +93,14 @@ def load_scan(
         format: one of :data:`FORMATS`; default: the path's suffix.
         units: "auto" (see the module docstring), "m" or "mm".
         drop_nonfinite: drop points with NaN / inf coordinates (and faces using them) instead of raising.
+        max_points: the most points (and ``FACES_PER_POINT`` times as many faces) the file may declare or
+            hold; None: no limit.
+        max_bytes: the most bytes compressed data (NPZ, binary_compressed PCD) may decompress to.
     Returns:
         the :class:`Scan`, points (N, 3) in metres.
     Raises:
+        FileLimitError: more points or faces than allowed, or more decompressed bytes (checked from the
+            header where the format has one).
         ScanError: what was wrong with the file and how to fix it.
     """
     if isinstance(path_or_bytes, bytes | bytearray):
@@ -101,14 +122,17 @@ def load_scan(
         raise ScanError(f"unknown scan format {format!r}; supported: {', '.join(FORMATS)}")
     if not data.strip():
         raise ScanError(f"{name} is empty")
+    caps = _Caps(max_points, None if max_points is None else FACES_PER_POINT * max_points, max_bytes)
     try:
-        points, faces, normals = _READERS[fmt](data)
-    except ScanError:
+        points, faces, normals = _READERS[fmt](data, caps)
+    except (ScanError, FileLimitError):
         raise
     except Exception as e:
         raise ScanError(f"could not read {name} as {fmt.upper()}: {e}") from None
     if len(points) == 0:
         raise ScanError(f"{name} holds no points (empty, or not a valid {fmt.upper()} file)")
+    if max_points is not None and len(points) > max_points:
+        raise FileLimitError(f"{name} holds {len(points):,} points; the limit is {max_points:,}: {THIN}")
     return scan_from_arrays(points, faces, normals, units=units, drop_nonfinite=drop_nonfinite)
 
 
@@ -261,12 +285,79 @@ def _drop_rows(
 _Arrays = tuple[np.ndarray, np.ndarray | None, np.ndarray | None]
 
 
-def _read_ply(data: bytes) -> _Arrays:
+@dataclass(frozen=True)
+class _Caps:
+    """What a reader may allocate: points and faces (None: no limit) and decompressed bytes."""
+
+    points: int | None
+    faces: int | None
+    bytes: int
+
+    def check(self, n: int, what: str, limit: int | None) -> None:
+        if limit is not None and n > limit:
+            raise FileLimitError(f"the file declares {n:,} {what}; the limit is {limit:,}: {THIN}", what)
+
+
+def _read_ply(data: bytes, caps: _Caps) -> _Arrays:
+    _check_ply(data, caps)
     d = trimesh.exchange.ply.load_ply(io.BytesIO(data))
     return np.asarray(d.get("vertices", np.zeros((0, 3)))), d.get("faces"), d.get("vertex_normals")
 
 
-def _read_obj(data: bytes) -> _Arrays:
+def _check_ply(data: bytes, caps: _Caps) -> None:
+    """The header's element counts against the data the file holds (at least a digit and a separator per
+    ascii value; the fixed sizes, and each list's count, per binary element), then against the limits."""
+    end = data.find(b"end_header")
+    stop = data.find(b"\n", end)
+    if not data.startswith(b"ply") or end < 0 or stop < 0:
+        raise ValueError("not a PLY file: it needs a header from 'ply' to 'end_header'")
+    lines = [line.split() for line in data[:end].decode("ascii", errors="replace").splitlines()]
+    form = next((line[1] for line in lines if line[:1] == ["format"] and len(line) > 1), "")
+    if form not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise ValueError(f"PLY format {form!r} unknown; use ascii, binary_little_endian or binary_big_endian")
+    counts: dict[str, int] = {}
+    least: dict[str, int] = {}  # the fewest bytes one element takes
+    for line in lines:
+        if line[:1] == ["element"]:
+            if len(line) != 3 or not line[2].isdigit():
+                raise ValueError(f"PLY header line {' '.join(line)!r} should be 'element NAME COUNT'")
+            counts[line[1]], least[line[1]] = int(line[2]), 0
+        elif line[:1] == ["property"] and counts:
+            element = next(reversed(counts))
+            if form == "ascii":
+                least[element] += 2  # a digit and a separator
+            else:  # a list counts its length field only: it may be empty
+                typ = line[2] if line[1:2] == ["list"] and len(line) > 2 else " ".join(line[1:2])
+                size = _PLY_SIZES.get(typ)
+                if size is None:
+                    raise ValueError(f"PLY header line {' '.join(line)!r} has an unknown type")
+                least[element] += size
+    need = sum(counts[e] * least[e] for e in counts) - (1 if form == "ascii" else 0)
+    body = len(data) - stop - 1
+    if need > body:
+        detail = ", ".join(f"{c:,} {n}" for n, c in counts.items())
+        raise ValueError(
+            f"the {form} PLY header declares {detail}, at least {need:,} bytes of data, but the file has "
+            f"{body:,}: it is truncated or its header is wrong; re-export it"
+        )
+    rows = data.count(b"\n", stop + 1) if form == "ascii" else 0  # each line is parsed, wanted or not
+    if rows > sum(counts.values()) + 1000:
+        raise ValueError(
+            f"the ascii PLY has {rows:,} lines of data but its header declares {sum(counts.values()):,} "
+            "elements (one a line); its header is wrong: re-export it"
+        )
+    # only a header whose data is there is held to the limits: else the file is corrupt, not too large
+    caps.check(counts.get("vertex", 0), "points", caps.points)
+    caps.check(counts.get("face", 0), "faces", caps.faces)
+    if caps.points is not None and caps.faces is not None:
+        caps.check(sum(counts.values()), "PLY elements", caps.points + caps.faces)
+
+
+def _read_obj(data: bytes, caps: _Caps) -> _Arrays:
+    for key, what, limit in ((b"v", "points", caps.points), (b"f", "faces", caps.faces)):
+        if limit is not None:  # lines that start with "v " / "f " (C-speed counts, before any parsing)
+            n = sum(data.count(b"\n" + key + sep) + data.startswith(key + sep) for sep in (b" ", b"\t"))
+            caps.check(n, what, limit)
     loaded = trimesh.load(io.BytesIO(data), file_type="obj", process=False, maintain_order=True)
     if isinstance(loaded, trimesh.Scene):  # several objects: one mesh; none: no points
         geoms = list(loaded.geometry.values())
@@ -276,7 +367,17 @@ def _read_obj(data: bytes) -> _Arrays:
     return vertices, None if faces is None or len(faces) == 0 else np.asarray(faces), None
 
 
-def _read_stl(data: bytes) -> _Arrays:
+def _read_stl(data: bytes, caps: _Caps) -> _Arrays:
+    count = int.from_bytes(data[80:84], "little") if len(data) >= 84 else -1
+    if count >= 0 and (84 + 50 * count == len(data) or data[:256].lstrip()[:5].lower() != b"solid"):
+        if 84 + 50 * count != len(data):  # binary: 80-byte header, uint32 count, 50 bytes a triangle
+            raise ValueError(
+                f"it holds no points: its binary header declares {count:,} triangles ({84 + 50 * count:,} "
+                f"bytes) but the file has {len(data):,} bytes (truncated, or not an STL file); re-export it"
+            )
+        caps.check(count, "faces", caps.faces)
+    elif caps.faces is not None:  # ascii: three "vertex" lines a triangle
+        caps.check(-(-(data.count(b"vertex") + data.count(b"VERTEX")) // 3), "faces", caps.faces)
     d = trimesh.exchange.stl.load_stl(io.BytesIO(data))
     if "vertices" not in d:
         return np.zeros((0, 3)), None, None
@@ -288,21 +389,29 @@ def _read_stl(data: bytes) -> _Arrays:
     return unique[order], rank[inverse.reshape(-1)].reshape(-1, 3), None
 
 
-def _read_pcd(data: bytes) -> _Arrays:
-    points, normals = read_pcd(data)
+def _read_pcd(data: bytes, caps: _Caps) -> _Arrays:
+    points, normals = read_pcd(data, max_points=caps.points, max_bytes=caps.bytes)
     return points, None, normals
 
 
-def _read_npz(data: bytes) -> _Arrays:
-    with np.load(io.BytesIO(data), allow_pickle=False) as z:
-        key = next((k for k in _POINT_KEYS if k in z.files), None)
-        if key is None:
-            raise ScanError(
-                f"the NPZ has keys {sorted(z.files)}; a scan needs 'points' or 'vertices' (N, 3), optionally "
-                "'faces' (F, 3) and 'normals' (N, 3)"
-            )
-        faces = z["faces"] if "faces" in z.files else None
-        return z[key], faces, z["normals"] if "normals" in z.files else None
+def _read_npz(data: bytes, caps: _Caps) -> _Arrays:
+    """points or vertices (N, 3) numbers, optional faces (F, 3) integers and normals (N, 3), each checked
+    from its header (:func:`bodyfit.io.npz.read_npz`)."""
+    keys = npz_keys(data, name="the NPZ")
+    key = next((k for k in _POINT_KEYS if k in keys), None)
+    if key is None:
+        raise ScanError(
+            f"the NPZ has keys {sorted(keys)}; a scan needs 'points' or 'vertices' (N, 3), optionally "
+            "'faces' (F, 3) and 'normals' (N, 3)"
+        )
+    N, F = Dim("N", caps.points, "points", THIN), Dim("F", caps.faces, "faces", THIN)
+    specs = {
+        key: ArraySpec(((N, 3),), NUMBER, hint="positions, metres or millimetres"),
+        "faces": ArraySpec(((F, 3), (0,)), INTEGER, required=False, hint="vertex indices of triangles"),
+        "normals": ArraySpec(((N, 3),), NUMBER, required=False, hint="one per point"),
+    }
+    z = read_npz(data, specs, max_bytes=caps.bytes, name="the NPZ")
+    return z[key], z.get("faces"), z.get("normals")
 
 
 _READERS = {"ply": _read_ply, "obj": _read_obj, "stl": _read_stl, "pcd": _read_pcd, "npz": _read_npz}

@@ -3,13 +3,17 @@
 Accepted keys: ``poses`` (T, 72) SMPL or (T, 156) SMPL-H / (T, 165) SMPL-X layouts (the first 66 values
 are the root and 21 body joints; SMPL's hand joints 22-23 come from positions 66-72 when the layout is
 SMPL's, else stay zero), or ``global_orient`` (T, 3) + ``body_pose`` (T, 63 or 69); ``trans`` (T, 3);
-``betas`` (K,) or (T, K); ``gender``; ``mocap_framerate`` or ``mocap_frame_rate`` (or ``fps``);
-``surface_model_type``. Frames holding NaN or infinite values are flagged in ``bad_frames``, not dropped.
+``betas`` (K,) or (T, K); ``gender`` (neutral, male or female; absent or empty: neutral);
+``mocap_framerate`` or ``mocap_frame_rate`` (or ``fps``); ``surface_model_type``. Frames holding NaN or
+infinite values are flagged in ``bad_frames``, not dropped.
+
+An .npz is never loaded whole: only these arrays are read, each checked from its .npy header first (numeric
+poses, trans, betas and frame rate; text gender; shapes; frames against ``max_frames``; the total against
+``max_bytes``) by :func:`bodyfit.io.npz.read_npz`.
 """
 
 from __future__ import annotations
 
-import io
 import os
 import pickle
 import zipfile
@@ -19,6 +23,8 @@ from typing import Any
 
 import numpy as np
 
+from bodyfit.io.errors import FileFormatError
+from bodyfit.io.npz import DEFAULT_MAX_BYTES, NUMBER, TEXT, ArraySpec, Dim, npz_keys, read_npz
 from bodyfit.models.errors import BodyfitError
 
 GENDERS = ("neutral", "male", "female")
@@ -52,18 +58,23 @@ class SmplSequence:
         return len(self.poses)
 
 
-def read_smpl_sequence(path: str | os.PathLike[str]) -> SmplSequence:
-    """Read an AMASS-style .npz or an SMPL .pkl.
+def read_smpl_sequence(
+    path: str | os.PathLike[str], *, max_frames: int | None = None, max_bytes: int = DEFAULT_MAX_BYTES
+) -> SmplSequence:
+    """Read an AMASS-style .npz or an SMPL .pkl (a .pkl is unpickled: only for files you trust).
 
+    Args:
+        path: the file; max_frames: the most frames an .npz may declare (None: no limit); max_bytes: the
+            most bytes its arrays may decompress to.
     Raises:
+        FileLimitError: an .npz declaring more frames or bytes than allowed.
         SmplSequenceError: unreadable file, missing or malformed fields (named, with what was expected).
     """
     p = Path(path)
+    if p.suffix == ".npz":
+        return smpl_sequence(_read_amass(p, p.name, max_frames, max_bytes), p.name)
     try:
-        if p.suffix == ".npz":
-            with np.load(p, allow_pickle=False) as z:
-                data: dict[str, Any] = {k: z[k] for k in z.files}
-        elif p.suffix == ".pkl":
+        if p.suffix == ".pkl":
             with p.open("rb") as f:
                 data = pickle.load(f, encoding="latin1")
         else:
@@ -86,20 +97,54 @@ def read_smpl_sequence(path: str | os.PathLike[str]) -> SmplSequence:
     return smpl_sequence(data, p.name)
 
 
-def read_smpl_npz(data: bytes, source: str = "upload.npz") -> SmplSequence:
-    """An AMASS-style .npz given as bytes (never unpickled: safe for uploads).
+def read_smpl_npz(
+    data: bytes,
+    source: str = "upload.npz",
+    *,
+    max_frames: int | None = None,
+    max_bytes: int = DEFAULT_MAX_BYTES,
+) -> SmplSequence:
+    """An AMASS-style .npz given as bytes (never unpickled, never decompressed past its checked headers:
+    safe for uploads).
 
+    Args:
+        data: the file; source: its name in messages; max_frames: the most frames it may declare (None: no
+            limit); max_bytes: the most bytes its arrays may decompress to.
     Raises:
+        FileLimitError: more frames or bytes than allowed (from the headers).
         SmplSequenceError: not an .npz, or missing / malformed fields.
     """
+    return smpl_sequence(_read_amass(data, source, max_frames, max_bytes), source)
+
+
+def _read_amass(
+    source: bytes | Path, name: str, max_frames: int | None, max_bytes: int
+) -> dict[str, np.ndarray]:
+    """The AMASS arrays of an .npz, checked from their headers: poses (T, 72 | 156 | 165) (or global_orient
+    (T, 3) + body_pose (T, 63 | 69)), trans (T, 3), betas (K,) / (1, K) / (T, K) numbers; gender and
+    surface_model_type short texts; the frame rate a number."""
+    T = Dim("T", max_frames, "frames", "split the sequence into shorter files")
+    K = Dim("K", 1000, "betas", "SMPL-family models have a few hundred betas at most")
+    text = ArraySpec(((), (1,), (0,)), TEXT, required=False, max_bytes=1024, hint="numpy.array('female')")
+    rate = ArraySpec(((), (1,)), NUMBER, required=False, hint="frames per second")
+    specs = {
+        "poses": ArraySpec(((T, 72), (T, 156), (T, 165)), NUMBER, required=False, hint="axis-angle"),
+        "global_orient": ArraySpec(((T, 3),), NUMBER, required=False),
+        "body_pose": ArraySpec(((T, 63), (T, 69)), NUMBER, required=False),
+        "trans": ArraySpec(((T, 3),), NUMBER, required=False, hint="metres"),
+        "betas": ArraySpec(((K,), (1, K), (T, K)), NUMBER, required=False),
+        "gender": text,
+        "surface_model_type": text,
+        "mocap_framerate": rate,
+        "mocap_frame_rate": rate,
+        "fps": rate,
+    }
     try:
-        with np.load(io.BytesIO(data), allow_pickle=False) as z:
-            arrays: dict[str, Any] = {k: z[k] for k in z.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-        raise SmplSequenceError(
-            f"{source} is not a readable .npz ({exc}); send an AMASS-style .npz with {EXPECTED}"
-        ) from None
-    return smpl_sequence(arrays, source)
+        if "poses" in npz_keys(source, name="the file"):  # the split layout's arrays are then not read
+            del specs["global_orient"], specs["body_pose"]
+        return read_npz(source, specs, max_bytes=max_bytes, name="the file")
+    except FileFormatError as exc:
+        raise SmplSequenceError(f"cannot read {name}: {exc}") from None
 
 
 def smpl_sequence(data: dict[str, Any], source: str = "") -> SmplSequence:
@@ -119,7 +164,7 @@ def smpl_sequence(data: dict[str, Any], source: str = "") -> SmplSequence:
         betas = betas.mean(0)
     if betas.ndim != 1 or not np.isfinite(betas).all():
         raise SmplSequenceError(f"{where}: betas must be a finite (K,) vector; got shape {betas.shape}")
-    gender = _text(data.get("gender", "neutral")).lower()
+    gender = _text(data.get("gender", "")).strip().lower() or "neutral"  # absent or empty: neutral
     if gender not in GENDERS:
         raise SmplSequenceError(f"{where}: unknown gender {gender!r}; use one of {', '.join(GENDERS)}")
     fps = _fps(data, where)
@@ -182,6 +227,8 @@ def _fps(data: dict[str, Any], where: str) -> float:
 
 def _text(value: Any) -> str:
     a = np.asarray(value)
+    if a.size == 0:
+        return ""
     if a.dtype.kind == "S":
         return bytes(a.reshape(-1)[0]).decode(errors="replace")
     return str(a.reshape(-1)[0]) if a.size else ""
