@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import base64
-import io
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -12,6 +11,8 @@ from typing import Any
 import numpy as np
 
 from bodyfit.clients.errors import ServerError, error_from_problem
+from bodyfit.io.errors import FileFormatError, FileLimitError
+from bodyfit.io.npz import FLOAT, INTEGER, TEXT, ArraySpec, Dim, read_npz
 
 ProgressCallback = Callable[[dict[str, Any]], None]
 """Called with each progress event: ``{"stage", "done", "total", "message"}``."""
@@ -78,8 +79,24 @@ class Synthesis:
 
     @classmethod
     def from_npz(cls, data: bytes) -> Synthesis:
-        with np.load(io.BytesIO(data), allow_pickle=False) as z:
-            get = {k: z[k] for k in z.files}
+        """Decode the server's npz answer, each array checked from its .npy header before it is built.
+
+        Raises:
+            ServerError: an answer that is not the npz the server sends (truncated, wrong arrays).
+        """
+        B, J = Dim("B"), Dim("J")
+        specs = {
+            "vertices": ArraySpec(((B, Dim("V"), 3),), FLOAT),
+            "joints": ArraySpec(((B, J, 3),), FLOAT),
+            "joint_names": ArraySpec(((J,),), TEXT),
+            "faces": ArraySpec(((Dim("F"), 3),), INTEGER, required=False),
+            "bones": ArraySpec(((B, Dim("Vb"), 3),), FLOAT, required=False),
+            "bone_faces": ArraySpec(((Dim("Fb"), 3),), INTEGER, required=False),
+        }
+        try:
+            get = read_npz(data, specs, name="the server's answer")
+        except (FileFormatError, FileLimitError) as exc:
+            raise ServerError(f"unreadable synthesis answer: {exc}") from None
         return cls(
             get["vertices"],
             get["joints"],
