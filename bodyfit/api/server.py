@@ -16,8 +16,12 @@ def run_server(settings: ServiceSettings) -> None:
     from bodyfit.api.metrics import Metrics
     from bodyfit.api.rest.app import create_app
     from bodyfit.service.core import BodyService
+    from bodyfit.service.memory import MemoryTrimmer, configure_allocator
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    # before any worker thread allocates: large requests' memory goes back to the system afterwards
+    configure_allocator()
+    trimmer = MemoryTrimmer().start()
     service = BodyService.load(
         settings.assets,
         settings.limits(),
@@ -46,3 +50,4 @@ def run_server(settings: ServiceSettings) -> None:
     finally:
         if grpc_server is not None:
             grpc_server.stop(grace=5).wait()
+        trimmer.stop()

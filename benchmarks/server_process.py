@@ -1,0 +1,115 @@
+"""A real bodyfit server in a subprocess (``bodyfit serve`` on 127.0.0.1), for benchmarks and end-to-end
+tests: started with its own settings, waited on until ready, measured (resident memory) and stopped."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class ServerProcess:
+    """A started server: ``url`` (REST), ``target`` (gRPC host:port), the process and its start-up time."""
+
+    proc: subprocess.Popen[bytes]
+    url: str
+    target: str
+    startup_s: float
+
+    def rss_mb(self) -> float:
+        """The server's resident memory now (MiB)."""
+        return _status_kb(self.proc.pid, "VmRSS") / 1024
+
+    def peak_rss_mb(self) -> float:
+        """The server's peak resident memory since start or the last :meth:`reset_peak` (MiB)."""
+        return _status_kb(self.proc.pid, "VmHWM") / 1024
+
+    def reset_peak(self) -> None:
+        """Reset the peak that :meth:`peak_rss_mb` reads (Linux: clear_refs 5)."""
+        Path(f"/proc/{self.proc.pid}/clear_refs").write_text("5")
+
+    def ready(self) -> bool:
+        try:
+            return httpx.get(f"{self.url}/readyz", timeout=5).status_code == 200
+        except httpx.HTTPError:
+            return False
+
+    def stop(self) -> None:
+        self.proc.terminate()
+        try:
+            self.proc.wait(30)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait(10)
+
+
+def start_server(env: dict[str, str] | None = None, timeout_s: float = 180.0) -> ServerProcess:
+    """Start ``bodyfit serve`` with REST and gRPC on free 127.0.0.1 ports and ``env`` added to the
+    environment (``BODYFIT_*`` settings); return once /readyz answers 200.
+
+    Raises:
+        RuntimeError: the server exited or was not ready within ``timeout_s`` (with the end of its log).
+    """
+    rest, grpc = free_port(), free_port()
+    cmd = [
+        sys.executable,
+        "-m",
+        "bodyfit.clients.cli",
+        "serve",
+        "--port",
+        str(rest),
+        "--grpc-port",
+        str(grpc),
+    ]
+    log = open(os.devnull, "wb")  # noqa: SIM115 - the server's log is not needed; it must not block on a pipe
+    began = time.monotonic()
+    proc = subprocess.Popen(
+        cmd, cwd=ROOT, env={**os.environ, **(env or {})}, stdout=log, stderr=subprocess.PIPE
+    )
+    server = ServerProcess(proc, f"http://127.0.0.1:{rest}", f"127.0.0.1:{grpc}", 0.0)
+    while time.monotonic() - began < timeout_s:
+        if proc.poll() is not None:
+            raise RuntimeError(
+                f"the server exited: {proc.stderr.read().decode()[-3000:] if proc.stderr else ''}"
+            )
+        if server.ready():
+            server.startup_s = time.monotonic() - began
+            _drain(proc)
+            return server
+        time.sleep(0.1)
+    server.stop()
+    raise RuntimeError(f"the server was not ready within {timeout_s:g} s")
+
+
+def _drain(proc: subprocess.Popen[bytes]) -> None:
+    """Read the server's standard error in the background so that its log never fills the pipe."""
+    import threading
+
+    def run() -> None:
+        assert proc.stderr is not None
+        for _ in proc.stderr:
+            pass
+
+    threading.Thread(target=run, daemon=True).start()
+
+
+def _status_kb(pid: int, key: str) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return float(line.split()[1])
+    raise RuntimeError(f"no {key} in /proc/{pid}/status")
