@@ -62,7 +62,8 @@ def trim() -> None:
 
 class MemoryTrimmer:
     """A background thread that trims the heap (:func:`trim`) when resident memory has grown by more than
-    ``growth_bytes`` since the last trim, checking every ``interval_s`` seconds. :meth:`start` / :meth:`stop`."""
+    ``growth_bytes`` since the last trim, checking every ``interval_s`` seconds (:meth:`start`,
+    :meth:`stop`)."""
 
     def __init__(self, interval_s: float = 1.0, growth_bytes: int = 64 << 20) -> None:
         self.interval_s = interval_s
