@@ -7,10 +7,7 @@ import io
 import struct
 import subprocess
 import sys
-import tracemalloc
 import zipfile
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
 from functools import partial
 from pathlib import Path
 
@@ -19,11 +16,11 @@ import pytest
 
 from bodyfit.io import DEFAULT_MAX_BYTES, ArraySpec, Dim, FileFormatError, FileLimitError, npz_keys, read_npz
 from bodyfit.io.npz import FLOAT, INTEGER, NUMBER, TEXT
+from tests.io.checks import MB, peak_memory, refused
 
 T = Dim("T", 20_000, "frames", "split the sequence")
 FRAMES = {"frames": ArraySpec(((T, 4, 3),), FLOAT), "weights": ArraySpec(((T, 4),), NUMBER, required=False)}
 UNLIMITED = {"frames": ArraySpec(((Dim("T"), 4, 3),), FLOAT)}  # then only the decompressed-bytes cap holds
-MB = 2**20
 
 
 def savez(compressed: bool = False, **arrays: np.ndarray) -> bytes:
@@ -66,28 +63,6 @@ def patch_members(data: bytes, flag: int | None = None, method: int | None = Non
                 out[at + method_at : at + method_at + 2] = struct.pack("<H", method)
             at = out.find(signature, at + 4)
     return bytes(out)
-
-
-@contextmanager
-def peak_memory(limit_mb: float) -> Iterator[None]:
-    """Assert the block's peak Python / numpy allocation stays under ``limit_mb``."""
-    tracemalloc.start()
-    try:
-        yield
-    finally:
-        peak = tracemalloc.get_traced_memory()[1]
-        tracemalloc.stop()
-    assert peak < limit_mb * MB, f"peak {peak / MB:.1f} MiB"
-
-
-def refused(error: type[Exception], words: str, call: Callable[[], object], key: str | None = None) -> str:
-    with pytest.raises(error) as err:
-        call()
-    message = str(err.value)
-    assert words in message, message
-    if key is not None:
-        assert getattr(err.value, "key", None) == key
-    return message
 
 
 # -- what it reads -------------------------------------------------------------------------------------------

@@ -64,8 +64,8 @@ def read_pcd(
     record = sum(dt.itemsize * c for _, dt, c in fields)
     if n * record > max_bytes:
         raise FileLimitError(
-            f"the PCD declares {n:,} points of {record} bytes = {n * record / 2**20:,.1f} MiB; the limit is "
-            f"{max_bytes / 2**20:,.1f} MiB: {THIN}",
+            f"the PCD declares {n:,} points of {record} bytes = {n * record:,} bytes; the limit is "
+            f"{max_bytes:,} bytes: {THIN}",
             "POINTS",
         )
     columns = _READERS[kind](body, fields, n)
@@ -162,10 +162,10 @@ def _ascii(body: bytes, fields: list[tuple[str, np.dtype, int]], n: int) -> dict
     if n:
         try:
             with warnings.catch_warnings():
-                warnings.simplefilter("error")  # e.g. numpy's "input contained no data"
+                warnings.simplefilter("ignore")  # e.g. "no data" for blank lines: the rows are counted below
                 rows = io.BytesIO(body)
                 table = np.loadtxt(rows, ndmin=2, max_rows=n + 1, usecols=range(width), encoding="ascii")
-        except (ValueError, UserWarning, UnicodeDecodeError) as exc:
+        except (ValueError, UnicodeDecodeError) as exc:
             raise ValueError(
                 f"PCD ascii data is not {width} numbers per line ({str(exc).splitlines()[0]})"
             ) from None
