@@ -17,6 +17,8 @@ class ServiceSettings(BaseSettings):
     scan_processes: 2 runs part of each raw-scan fit in a helper process (faster on two or more cores,
     0.5 GB more memory), 1 keeps it in the server's process; max_decompressed_mb
     (BODYFIT_MAX_DECOMPRESSED_MB): the most an uploaded .npz's arrays or a compressed PCD may decompress to;
+    max_request_mb (BODYFIT_MAX_REQUEST_MB): the working memory one request may need (estimated from its
+    headers; sequences and upgrades over it get 413 with how many frames fit);
     the rest are request limits (see :class:`bodyfit.service.limits.Limits`)."""
 
     model_config = SettingsConfigDict(env_prefix="BODYFIT_", extra="ignore")
@@ -30,6 +32,7 @@ class ServiceSettings(BaseSettings):
     scan_processes: int = Field(default=2, ge=1, le=2)
     max_upload_mb: float = Field(default=200.0, gt=0)
     max_decompressed_mb: float = Field(default=1024.0, gt=0)
+    max_request_mb: float = Field(default=4096.0, gt=0)
     max_points: int = Field(default=2_000_000, ge=300)
     max_frames: int = Field(default=20_000, ge=1)
     max_batch: int = Field(default=256, ge=1)
@@ -41,6 +44,7 @@ class ServiceSettings(BaseSettings):
         return Limits(
             max_upload_bytes=int(self.max_upload_mb * 2**20),
             max_decompressed_bytes=int(self.max_decompressed_mb * 2**20),
+            max_request_bytes=int(self.max_request_mb * 2**20),
             max_points=self.max_points,
             max_frames=self.max_frames,
             max_batch=self.max_batch,

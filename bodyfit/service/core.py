@@ -123,6 +123,11 @@ class PendingSynthesis:
     future: Future[Outputs]
 
 
+# Working memory per frame, measured (peak resident growth over 50-250 frames, BENCHMARKS.md): a registered
+# sequence fit holds every frame's fitted mesh and report, an upgrade its proxy poses and coordinates.
+SEQUENCE_BYTES_PER_FRAME = int(1.25 * 2**20)
+UPGRADE_BYTES_PER_FRAME = int(0.25 * 2**20)
+
 # how :meth:`BodyService.fit_mesh` fits a mesh (:meth:`BodyService.route`), as ``MeshFit.fitted_as`` says
 REGISTERED, SMPL_TOPOLOGY, RAW_SCAN = "registered", "SMPL topology", "raw scan"
 
@@ -455,7 +460,8 @@ class BodyService:
         """
         self._check_upload(len(data))
         V = self.model.n_vertices
-        T = Dim("T", self.limits.max_frames, "frames", "split the sequence into overlapping parts")
+        limit, fix = self.frame_limit(SEQUENCE_BYTES_PER_FRAME)
+        T = Dim("T", limit, "frames", fix)
         specs = {
             "frames": ArraySpec(
                 ((T, V, 3),),
@@ -565,12 +571,9 @@ class BodyService:
             LimitExceededError: too many frames; InvalidInputError: what is wrong and the fix.
         """
         x = np.asarray(frames)
-        if x.ndim >= 1 and len(x) > self.limits.max_frames:
-            raise LimitExceededError(
-                f"{len(x):,} frames sent; the limit is {self.limits.max_frames:,}: split the sequence into "
-                "overlapping parts",
-                field="frames",
-            )
+        limit, fix = self.frame_limit(SEQUENCE_BYTES_PER_FRAME)
+        if x.ndim >= 1 and len(x) > limit:
+            raise LimitExceededError(f"{len(x):,} frames sent; the limit is {limit:,}: {fix}", field="frames")
         check_frames(x, weights, self.model.n_vertices)
 
     def fit_sequence(
@@ -629,21 +632,20 @@ class BodyService:
                 "AMASS-style .npz (numpy.savez with poses, trans, betas, gender, mocap_framerate)",
                 field="file",
             )
+        limit, fix = self.frame_limit(UPGRADE_BYTES_PER_FRAME)
         try:  # poses, trans, betas, ... checked from their headers; frames and bytes against the limits
             sequence = read_smpl_npz(
-                data,
-                filename or "upload.npz",
-                max_frames=self.limits.max_frames,
-                max_bytes=self.limits.max_decompressed_bytes,
+                data, filename or "upload.npz", max_frames=limit, max_bytes=self.limits.max_decompressed_bytes
             )
         except FileLimitError as exc:
-            raise LimitExceededError(str(exc), field="file") from exc
+            raise LimitExceededError(
+                str(exc) if limit == self.limits.max_frames else f"{exc} ({fix})", field="file"
+            ) from exc
         except BodyfitError as exc:
             raise InvalidInputError(str(exc), field="file") from exc
-        if sequence.n_frames > self.limits.max_frames:
+        if sequence.n_frames > limit:
             raise LimitExceededError(
-                f"{sequence.n_frames:,} frames sent; the limit is {self.limits.max_frames:,}: split it",
-                field="file",
+                f"{sequence.n_frames:,} frames sent; the limit is {limit:,}: {fix}", field="file"
             )
         return sequence
 
@@ -694,6 +696,19 @@ class BodyService:
         with tempfile.TemporaryDirectory() as tmp, invalid_input("file"):
             paths = write_upgrade(result, self.model, Path(tmp), name)
             return {ext: path.read_bytes() for ext, path in paths.items()}
+
+    def frame_limit(self, bytes_per_frame: int) -> tuple[int, str]:
+        """The most frames one request may hold: ``limits.max_frames``, or fewer where their estimated
+        working memory (``bytes_per_frame`` each) would pass ``limits.max_request_bytes``; and how to
+        split the work, for the refusal's message."""
+        budget = self.limits.max_request_bytes // bytes_per_frame
+        if budget >= self.limits.max_frames:
+            return self.limits.max_frames, "split the sequence into overlapping parts"
+        return max(1, budget), (
+            f"the server's memory budget for one request (BODYFIT_MAX_REQUEST_MB = "
+            f"{self.limits.max_request_bytes / 2**20:.0f}) holds {budget:,} frames of this work: split the "
+            "sequence into overlapping parts of at most that many frames"
+        )
 
     def _check_upload(self, n_bytes: int) -> None:
         """The upload's size against ``limits.max_upload_bytes`` (its decompressed arrays are checked

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import zipfile
 from typing import Any
 
 import numpy as np
@@ -390,3 +391,34 @@ def test_json_encoders_write_nan_as_null(body_service: BodyService) -> None:
     bodies = Bodies(v, np.zeros((0, 3), np.int32), v[:, :1], ("pelvis",))
     parsed = json.loads(encode_bodies(bodies, "json"), parse_constant=lambda c: pytest.fail(c))
     assert parsed["vertices"][0][0] == [None, None, None]
+
+
+def test_the_memory_budget_refuses_long_sequences_from_their_headers(body_service: BodyService) -> None:
+    """BODYFIT_MAX_REQUEST_MB: frames times their measured working memory; a sequence or upgrade over it is
+    refused (413) before anything is decompressed, with how many frames fit."""
+    from dataclasses import replace as with_limits
+
+    from bodyfit.service.core import SEQUENCE_BYTES_PER_FRAME, UPGRADE_BYTES_PER_FRAME
+    from bodyfit.service.errors import LimitExceededError
+    from bodyfit.service.limits import Limits
+
+    small = with_limits(body_service, limits=Limits(max_request_bytes=100 * 2**20))
+    seq_frames, up_frames = (100 * 2**20 // b for b in (SEQUENCE_BYTES_PER_FRAME, UPGRADE_BYTES_PER_FRAME))
+    assert small.frame_limit(SEQUENCE_BYTES_PER_FRAME)[0] == seq_frames == 80
+    header_only = io.BytesIO()
+    with zipfile.ZipFile(header_only, "w") as z:  # declares 81 frames, holds none of them
+        z.writestr("frames.npy", _npy_header((seq_frames + 1, body_service.model.n_vertices, 3)))
+    with pytest.raises(LimitExceededError, match=f"REQUEST_MB = 100\\) holds {seq_frames} frames"):
+        small.read_sequence(header_only.getvalue())
+    with pytest.raises(LimitExceededError, match="holds 80 frames"):
+        small.check_sequence(np.zeros((seq_frames + 1, body_service.model.n_vertices, 3), np.float32))
+    poses = io.BytesIO()
+    np.savez(poses, poses=np.zeros((up_frames + 1, 72)), trans=np.zeros((up_frames + 1, 3)))
+    with pytest.raises(LimitExceededError, match=f"holds {up_frames} frames"):
+        small.read_upgrade(poses.getvalue(), "motion.npz")
+
+
+def _npy_header(shape: tuple[int, ...]) -> bytes:
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(buf, {"descr": "<f4", "fortran_order": False, "shape": shape})
+    return buf.getvalue()
