@@ -4,7 +4,6 @@ refused with a typed error that names the problem, in little memory."""
 from __future__ import annotations
 
 import io
-import struct
 import subprocess
 import sys
 import zipfile
@@ -16,53 +15,11 @@ import pytest
 
 from bodyfit.io import DEFAULT_MAX_BYTES, ArraySpec, Dim, FileFormatError, FileLimitError, npz_keys, read_npz
 from bodyfit.io.npz import FLOAT, INTEGER, NUMBER, TEXT
-from tests.io.checks import MB, peak_memory, refused
+from tests.io.checks import MB, archive, npy, patch_members, peak_memory, refused, savez, savez_compressed
 
 T = Dim("T", 20_000, "frames", "split the sequence")
 FRAMES = {"frames": ArraySpec(((T, 4, 3),), FLOAT), "weights": ArraySpec(((T, 4),), NUMBER, required=False)}
 UNLIMITED = {"frames": ArraySpec(((Dim("T"), 4, 3),), FLOAT)}  # then only the decompressed-bytes cap holds
-
-
-def savez(compressed: bool = False, **arrays: np.ndarray) -> bytes:
-    buf = io.BytesIO()
-    if compressed:
-        np.savez_compressed(buf, **arrays)  # type: ignore[arg-type]
-    else:
-        np.savez(buf, **arrays)  # type: ignore[arg-type]
-    return buf.getvalue()
-
-
-def npy(
-    shape: tuple[int, ...], descr: str = "<f8", data: bytes = b"", fortran: bool = False, v: int = 1
-) -> bytes:
-    """A .npy file whose header says ``shape`` / ``descr`` whatever ``data`` holds (a header that may lie)."""
-    header = repr({"descr": descr, "fortran_order": fortran, "shape": shape}).encode("latin1")
-    magic, length = b"\x93NUMPY" + bytes([v, 0]), "<H" if v == 1 else "<I"
-    header += b" " * (-(len(magic) + struct.calcsize(length) + len(header) + 1) % 64) + b"\n"
-    return magic + struct.pack(length, len(header)) + header + data
-
-
-def archive(members: dict[str, bytes], method: int = zipfile.ZIP_DEFLATED) -> bytes:
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", method) as zf:
-        for name, data in members.items():
-            zf.writestr(f"{name}.npy", data)
-    return buf.getvalue()
-
-
-def patch_members(data: bytes, flag: int | None = None, method: int | None = None) -> bytes:
-    """Set the general-purpose flag bits / compression method of every member, in both the local headers
-    and the central directory (where zipfile reads them)."""
-    out = bytearray(data)
-    for signature, flag_at, method_at in ((b"PK\x03\x04", 6, 8), (b"PK\x01\x02", 8, 10)):
-        at = out.find(signature)
-        while at >= 0:
-            if flag is not None:
-                out[at + flag_at : at + flag_at + 2] = struct.pack("<H", flag)
-            if method is not None:
-                out[at + method_at : at + method_at + 2] = struct.pack("<H", method)
-            at = out.find(signature, at + 4)
-    return bytes(out)
 
 
 # -- what it reads -------------------------------------------------------------------------------------------
@@ -72,7 +29,7 @@ def test_reads_what_numpy_reads(tmp_path: Path, compressed: bool) -> None:
     frames = rng.normal(size=(5, 4, 3)).astype(">f4")  # big-endian kept as stored
     weights = np.asfortranarray(rng.uniform(size=(5, 4)))  # Fortran order: read back the same
     other = np.array([object()], dtype=object)  # never read: not asked for
-    data = savez(compressed, frames=frames, weights=weights, other=other)
+    data = (savez_compressed if compressed else savez)(frames=frames, weights=weights, other=other)
     (tmp_path / "s.npz").write_bytes(data)
     for source in (data, tmp_path / "s.npz", str(tmp_path / "s.npz")):
         got = read_npz(source, FRAMES)
@@ -262,7 +219,7 @@ def test_truncated_and_non_zip_files(cut: int) -> None:
 
 
 def test_corrupt_member_data() -> None:
-    data = bytearray(savez(True, frames=np.arange(600.0).reshape(50, 4, 3)))
+    data = bytearray(savez_compressed(frames=np.arange(600.0).reshape(50, 4, 3)))
     at = data.find(b"frames.npy") + len("frames.npy") + 40  # inside the deflate stream
     data[at : at + 8] = b"\xff" * 8
     refused(FileFormatError, "corrupt or truncated", lambda: read_npz(bytes(data), FRAMES))
