@@ -299,11 +299,15 @@ def test_frames_that_cannot_be_bodies_are_refused_before_any_fit(
 
 
 def test_twenty_thousand_zero_frames_are_refused_at_once(body_service: BodyService) -> None:
-    """The abuse case: 20,000 all-zero frames (3.2 GB as float32; a view here) are refused from the first
-    chunk, not fitted for minutes."""
+    """The abuse case: 20,000 all-zero frames (3.2 GB as float32; a view here) are refused at once, not
+    fitted for minutes: by the memory budget (413) from their count, and within it from the first chunk."""
+    from bodyfit.service.errors import LimitExceededError
+
     frames = np.broadcast_to(np.zeros((1, 13348, 3), np.float32), (20_000, 13348, 3))
-    with pytest.raises(InvalidInputError, match="frame 0 holds only zeros"):
+    with pytest.raises(LimitExceededError, match="memory budget"):
         body_service.check_sequence(frames)
+    with pytest.raises(InvalidInputError, match="frame 0 holds only zeros"):
+        body_service.check_sequence(frames[:3000])
 
 
 def test_meshes_are_checked_as_bodies_and_scans_for_their_units(body_service: BodyService) -> None:
