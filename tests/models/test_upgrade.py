@@ -324,3 +324,20 @@ def test_path_b_shape_hints(model: BodyModel, proxy: SmplProxy) -> None:
         with pytest.raises(ShapeHintError) as info:
             ShapeHints(**bad)
         assert info.value.field == field
+
+
+def test_implausible_smpl_values_are_flagged_or_refused() -> None:
+    """A frame whose rotation vectors or translation are absurd (1e30 rad, 1e6 m) is flagged with the
+    non-finite ones; a file of such frames, or betas beyond 10 SD, is refused with the range."""
+    poses = np.zeros((4, 72))
+    trans = np.zeros((4, 3))
+    poses[1, 5] = 1e30
+    trans[2, 0] = 1e6
+    seq = smpl_sequence({"poses": poses, "trans": trans, "mocap_framerate": 30.0})
+    assert seq.bad_frames.tolist() == [False, True, True, False]
+    assert np.isfinite(seq.poses).all() and np.abs(seq.trans).max() == 0.0
+    with pytest.raises(SmplSequenceError, match="rotations longer than 100 rad"):
+        smpl_sequence({"poses": np.full((3, 72), 1e30), "mocap_framerate": 30.0})
+    with pytest.raises(SmplSequenceError, match=r"betas must lie within \[-10, 10\]"):
+        smpl_sequence({"poses": poses, "betas": np.full(10, 1e6), "mocap_framerate": 30.0})
+    assert smpl_sequence({"poses": poses, "betas": np.full(10, 4.0), "mocap_framerate": 30.0}).betas[0] == 4.0

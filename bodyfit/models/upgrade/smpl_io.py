@@ -5,7 +5,8 @@ are the root and 21 body joints; SMPL's hand joints 22-23 come from positions 66
 SMPL's, else stay zero), or ``global_orient`` (T, 3) + ``body_pose`` (T, 63 or 69); ``trans`` (T, 3);
 ``betas`` (K,) or (T, K); ``gender`` (neutral, male or female; absent or empty: neutral);
 ``mocap_framerate`` or ``mocap_frame_rate`` (or ``fps``); ``surface_model_type``. Frames holding NaN or
-infinite values are flagged in ``bad_frames``, not dropped.
+infinite values, or implausible ones (:data:`POSE_LIMIT_RAD`, :data:`TRANS_LIMIT_M`), are flagged in
+``bad_frames``, not dropped; betas beyond :data:`BETAS_LIMIT_SD` are refused.
 
 An .npz is never loaded whole: only these arrays are read, each checked from its .npy header first (numeric
 poses, trans, betas and frame rate; text gender; shapes; frames against ``max_frames``; the total against
@@ -28,6 +29,15 @@ from bodyfit.io.npz import DEFAULT_MAX_BYTES, NUMBER, TEXT, ArraySpec, Dim, npz_
 from bodyfit.models.errors import BodyfitError
 
 GENDERS = ("neutral", "male", "female")
+BETAS_LIMIT_SD = 10.0
+"""Largest accepted |beta|: SMPL's shape coefficients are in standard deviations of its shape space, and
+AMASS's subjects lie within about 4; beyond 10 they describe no human (another model's coefficients, or a
+unit mistake)."""
+POSE_LIMIT_RAD = 100.0
+"""Largest plausible rotation-vector length (radians, about 16 turns; an unwrapped angle may pass pi). A frame
+with a longer one, or a root farther than :data:`TRANS_LIMIT_M`, is flagged in ``bad_frames`` with the
+non-finite ones: float64 keeps no useful precision in a 1e30-radian rotation."""
+TRANS_LIMIT_M = 1000.0
 EXPECTED = (
     "poses (T, 72 | 156 | 165) or global_orient (T, 3) + body_pose (T, 63 | 69), trans (T, 3), betas, "
     "gender, mocap_framerate or mocap_frame_rate"
@@ -41,7 +51,7 @@ class SmplSequenceError(BodyfitError):
 @dataclass(frozen=True)
 class SmplSequence:
     """poses (T, 24, 3) axis-angle of SMPL's body joints; trans (T, 3) metres; betas (K,); gender; fps;
-    bad_frames (T,) True where the input held NaN / inf (those frames are zeroed here and flagged);
+    bad_frames (T,) True where the input held NaN / inf or implausible values (zeroed here and flagged);
     surface_model_type (as given, or "smpl"); source: the file name."""
 
     poses: np.ndarray
@@ -164,13 +174,24 @@ def smpl_sequence(data: dict[str, Any], source: str = "") -> SmplSequence:
         betas = betas.mean(0)
     if betas.ndim != 1 or not np.isfinite(betas).all():
         raise SmplSequenceError(f"{where}: betas must be a finite (K,) vector; got shape {betas.shape}")
+    if (np.abs(betas) > BETAS_LIMIT_SD).any():
+        raise SmplSequenceError(
+            f"{where}: betas must lie within [-{BETAS_LIMIT_SD:g}, {BETAS_LIMIT_SD:g}] (standard deviations "
+            f"of SMPL's shape space); got {float(np.abs(betas).max()):.6g}: send SMPL-family betas"
+        )
     gender = _text(data.get("gender", "")).strip().lower() or "neutral"  # absent or empty: neutral
     if gender not in GENDERS:
         raise SmplSequenceError(f"{where}: unknown gender {gender!r}; use one of {', '.join(GENDERS)}")
     fps = _fps(data, where)
-    bad = ~(np.isfinite(poses).all(axis=(1, 2)) & np.isfinite(trans).all(axis=1))
+    with np.errstate(invalid="ignore", over="ignore"):
+        bad = ~(np.isfinite(poses).all(axis=(1, 2)) & np.isfinite(trans).all(axis=1))
+        bad |= (np.linalg.norm(np.where(bad[:, None, None], 0.0, poses), axis=2) > POSE_LIMIT_RAD).any(axis=1)
+        bad |= (np.abs(np.where(bad[:, None], 0.0, trans)) > TRANS_LIMIT_M).any(axis=1)
     if bad.all():
-        raise SmplSequenceError(f"{where}: every frame holds NaN or infinite values")
+        raise SmplSequenceError(
+            f"{where}: every frame holds NaN or infinite values, rotations longer than {POSE_LIMIT_RAD:g} "
+            f"rad or a translation beyond {TRANS_LIMIT_M:g} m; poses are axis-angle radians, trans metres"
+        )
     poses = np.where(bad[:, None, None], 0.0, poses)
     trans = np.where(bad[:, None], 0.0, trans)
     model_type = _text(data.get("surface_model_type", "smpl")).lower()
