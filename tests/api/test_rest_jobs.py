@@ -36,7 +36,7 @@ def test_closing_the_stream_cancels_the_work() -> None:
 
     first = asyncio.run(client_reads_one_line_and_leaves())
     assert first["event"] == "progress" and first["total"] == 10_000
-    assert stopped.wait(5.0), "the work kept running after the client left"
+    assert stopped.wait(60.0), "the work kept running after the client left"
 
 
 def test_a_failure_midway_is_an_error_event() -> None:
