@@ -71,7 +71,8 @@ FROM base AS ray
 RUN useradd --create-home --uid 10001 bodyfit
 COPY --from=deps-ray /opt/venv /opt/venv
 ENV PATH=/opt/venv/bin:$PATH PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
-RUN --mount=type=bind,from=wheel,source=/dist,target=/dist pip install --no-deps --no-index /dist/bodyfit-*.whl
+COPY --from=wheel /dist /tmp/dist
+RUN pip install --no-deps --no-index /tmp/dist/bodyfit-*.whl && rm -rf /tmp/dist
 COPY assets /app/assets
 ENV BODYFIT_ASSETS=/app/assets PYTHONUNBUFFERED=1
 USER bodyfit
@@ -83,7 +84,8 @@ FROM base AS service
 RUN useradd --create-home --uid 10001 bodyfit
 COPY --from=deps /opt/venv /opt/venv
 ENV PATH=/opt/venv/bin:$PATH PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
-RUN --mount=type=bind,from=wheel,source=/dist,target=/dist pip install --no-deps --no-index /dist/bodyfit-*.whl
+COPY --from=wheel /dist /tmp/dist
+RUN pip install --no-deps --no-index /tmp/dist/bodyfit-*.whl && rm -rf /tmp/dist
 COPY assets /app/assets
 ENV BODYFIT_ASSETS=/app/assets \
     BODYFIT_HOST=0.0.0.0 \
