@@ -97,4 +97,5 @@ WORKDIR /app
 EXPOSE 8000 50051
 HEALTHCHECK --interval=15s --timeout=3s --start-period=60s --retries=3 \
     CMD ["python", "-c", "import os, sys, urllib.request; url = 'http://127.0.0.1:%s/readyz' % os.environ.get('BODYFIT_REST_PORT', '8000'); sys.exit(urllib.request.urlopen(url, timeout=2).status != 200)"]
-CMD ["sh", "-c", "exec bodyfit serve --host \"$BODYFIT_HOST\" --port \"$BODYFIT_REST_PORT\" --grpc-port \"$BODYFIT_GRPC_PORT\""]
+# bodyfit serve reads BODYFIT_HOST, BODYFIT_REST_PORT, BODYFIT_GRPC_PORT and the limits from the environment
+CMD ["bodyfit", "serve"]

@@ -6,7 +6,7 @@ import json
 import os
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -194,9 +194,16 @@ def _to_stderr(line: str) -> None:
 
 @app.command()
 def serve(
-    host: Annotated[str, typer.Option(help="Interface to listen on (0.0.0.0 in a container).")] = "127.0.0.1",
-    port: Annotated[int, typer.Option(help="REST port.")] = 8000,
-    grpc_port: Annotated[int, typer.Option(help="gRPC port (0: no gRPC).")] = 50051,
+    host: Annotated[
+        str | None,
+        typer.Option(help="Interface (default $BODYFIT_HOST, else 127.0.0.1; 0.0.0.0 in a container)."),
+    ] = None,
+    port: Annotated[
+        int | None, typer.Option(help="REST port (default $BODYFIT_REST_PORT, else 8000).")
+    ] = None,
+    grpc_port: Annotated[
+        int | None, typer.Option(help="gRPC port (0: no gRPC; default $BODYFIT_GRPC_PORT, else 50051).")
+    ] = None,
     assets: Annotated[Path | None, typer.Option(help="Asset folder (default: the built-in assets).")] = None,
     smpl_model: Annotated[
         Path | None,
@@ -215,14 +222,16 @@ def serve(
     from bodyfit.api.settings import ServiceSettings
     from bodyfit.models.errors import BodyfitError
 
-    settings = ServiceSettings(host=host, rest_port=port, grpc_port=grpc_port)
-    settings = settings.model_copy(
-        update={
-            k: v
-            for k, v in {"assets": assets, "threads": threads, "smpl_model": smpl_model}.items()
-            if v is not None
-        }
-    )
+    given: dict[str, Any] = {
+        "host": host,
+        "rest_port": port,
+        "grpc_port": grpc_port,
+        "assets": assets,
+        "threads": threads,
+        "smpl_model": smpl_model,
+    }
+    # options given on the command line win over BODYFIT_* variables, which win over the defaults
+    settings = ServiceSettings(**{k: v for k, v in given.items() if v is not None})
     try:
         run_server(settings)
     except BodyfitError as exc:

@@ -313,3 +313,26 @@ def test_upgrade_writes_opensim_files(tmp_path: Path) -> None:
     )
     assert rotations.exit_code == 0 and "path (b)" in rotations.output
     assert json.loads((tmp_path / "b" / "cmu_131_smpl.json").read_text())["path"] == "b"
+
+
+def test_serve_takes_its_settings_from_options_then_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`bodyfit serve` options win over BODYFIT_* variables, which win over the defaults (the container
+    moves its ports with BODYFIT_REST_PORT / BODYFIT_GRPC_PORT)."""
+    import bodyfit.api.server
+
+    seen = []
+    monkeypatch.setattr(bodyfit.api.server, "run_server", seen.append)
+    monkeypatch.setenv("BODYFIT_REST_PORT", "18000")
+    monkeypatch.setenv("BODYFIT_GRPC_PORT", "0")
+    monkeypatch.setenv("BODYFIT_HOST", "0.0.0.0")
+    assert runner.invoke(app, ["serve", "--port", "9100"]).exit_code == 0
+    assert (seen[0].host, seen[0].rest_port, seen[0].grpc_port) == ("0.0.0.0", 9100, 0)
+    for name in ("BODYFIT_REST_PORT", "BODYFIT_GRPC_PORT", "BODYFIT_HOST"):
+        monkeypatch.delenv(name)
+    assert runner.invoke(app, ["serve", "--threads", "3"]).exit_code == 0
+    assert (seen[1].host, seen[1].rest_port, seen[1].grpc_port, seen[1].threads) == (
+        "127.0.0.1",
+        8000,
+        50051,
+        3,
+    )
