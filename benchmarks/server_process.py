@@ -8,7 +8,8 @@ import socket
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
+from collections import deque
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import httpx
@@ -24,12 +25,18 @@ def free_port() -> int:
 
 @dataclass
 class ServerProcess:
-    """A started server: ``url`` (REST), ``target`` (gRPC host:port), the process and its start-up time."""
+    """A started server: ``url`` (REST), ``target`` (gRPC host:port), the process, its start-up time and
+    the last lines of its log (:meth:`log`)."""
 
     proc: subprocess.Popen[bytes]
     url: str
     target: str
     startup_s: float
+    lines: deque[str] = field(default_factory=lambda: deque(maxlen=2000))
+
+    def log(self) -> str:
+        """The server's log so far (its last 2,000 lines)."""
+        return "".join(self.lines)
 
     def rss_mb(self) -> float:
         """The server's resident memory now (MiB)."""
@@ -76,34 +83,32 @@ def start_server(env: dict[str, str] | None = None, timeout_s: float = 180.0) ->
         "--grpc-port",
         str(grpc),
     ]
-    log = open(os.devnull, "wb")  # noqa: SIM115 - the server's log is not needed; it must not block on a pipe
     began = time.monotonic()
     proc = subprocess.Popen(
-        cmd, cwd=ROOT, env={**os.environ, **(env or {})}, stdout=log, stderr=subprocess.PIPE
+        cmd, cwd=ROOT, env={**os.environ, **(env or {})}, stdout=subprocess.PIPE, stderr=subprocess.STDOUT
     )
     server = ServerProcess(proc, f"http://127.0.0.1:{rest}", f"127.0.0.1:{grpc}", 0.0)
+    _keep_log(server)
     while time.monotonic() - began < timeout_s:
         if proc.poll() is not None:
-            raise RuntimeError(
-                f"the server exited: {proc.stderr.read().decode()[-3000:] if proc.stderr else ''}"
-            )
+            time.sleep(0.2)  # the log's last lines
+            raise RuntimeError(f"the server exited: {server.log()[-3000:]}")
         if server.ready():
             server.startup_s = time.monotonic() - began
-            _drain(proc)
             return server
         time.sleep(0.1)
     server.stop()
     raise RuntimeError(f"the server was not ready within {timeout_s:g} s")
 
 
-def _drain(proc: subprocess.Popen[bytes]) -> None:
-    """Read the server's standard error in the background so that its log never fills the pipe."""
+def _keep_log(server: ServerProcess) -> None:
+    """Read the server's output in the background into ``server.lines`` (so that it never fills the pipe)."""
     import threading
 
     def run() -> None:
-        assert proc.stderr is not None
-        for _ in proc.stderr:
-            pass
+        assert server.proc.stdout is not None
+        for line in server.proc.stdout:
+            server.lines.append(line.decode(errors="replace"))
 
     threading.Thread(target=run, daemon=True).start()
 

@@ -34,8 +34,6 @@ from __future__ import annotations
 import os
 import platform
 import re
-import socket
-import subprocess
 import sys
 import threading
 import time
@@ -46,45 +44,10 @@ from typing import Any
 import httpx
 import numpy as np
 
+from benchmarks.server_process import start_server
+
 ROOT = Path(__file__).resolve().parents[1]
 LEVELS = (1, 8, 32)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def start_server(rest: int, grpc: int) -> subprocess.Popen[bytes]:
-    env = {**os.environ, "BODYFIT_MAX_UPLOAD_MB": "4"}
-    cmd = [
-        sys.executable,
-        "-m",
-        "bodyfit.clients.cli",
-        "serve",
-        "--port",
-        str(rest),
-        "--grpc-port",
-        str(grpc),
-    ]
-    proc = subprocess.Popen(
-        [*cmd, "--threads", "1"], cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
-    )
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise RuntimeError(
-                f"the server exited: {proc.stderr.read().decode()[-2000:] if proc.stderr else ''}"
-            )
-        try:
-            if httpx.get(f"http://127.0.0.1:{rest}/readyz", timeout=1).status_code == 200:
-                return proc
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.3)
-    proc.kill()
-    raise RuntimeError("the server did not become ready in 120 s")
 
 
 def requests_for(n_dof: int, ranges: np.ndarray, n_shape: int) -> list[dict[str, np.ndarray]]:
@@ -342,9 +305,8 @@ def in_process_ms(params: list[dict[str, np.ndarray]], repeats: int) -> float:
 def run(quick: bool) -> dict[str, Any]:
     from bodyfit.clients.rest_client import Client
 
-    rest_port, grpc_port = free_port(), free_port()
-    url, target = f"http://127.0.0.1:{rest_port}", f"127.0.0.1:{grpc_port}"
-    server = start_server(rest_port, grpc_port)
+    server = start_server({"BODYFIT_MAX_UPLOAD_MB": "4", "BODYFIT_THREADS": "1"})
+    url, target = server.url, server.target
     try:
         info = Client(url).model_info()
         params = requests_for(len(info.dof_names), info.dof_ranges, info.n_shape)
@@ -380,11 +342,7 @@ def run(quick: bool) -> dict[str, Any]:
         )
         return result
     finally:
-        server.terminate()
-        try:
-            server.wait(10)
-        except subprocess.TimeoutExpired:
-            server.kill()
+        server.stop()
 
 
 def main(argv: list[str] | None = None) -> None:

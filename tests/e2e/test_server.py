@@ -7,9 +7,6 @@ import io
 import os
 import shutil
 import signal
-import socket
-import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -18,6 +15,7 @@ import httpx
 import numpy as np
 import pytest
 
+from benchmarks.server_process import ServerProcess, start_server
 from bodyfit.clients.batch import batch_upgrade
 from bodyfit.clients.errors import InvalidRequestError, RequestTooLargeError
 from bodyfit.clients.grpc_client import GrpcClient
@@ -26,51 +24,17 @@ from bodyfit.clients.rest_client import Client
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.fixture(scope="module")
-def server() -> Iterator[tuple[str, str, subprocess.Popen[bytes]]]:
-    rest, grpc = free_port(), free_port()
+def server() -> Iterator[ServerProcess]:
     smpl = ROOT / "tests" / "data" / "smpl_format" / "smpl_like_model.npz"
-    env = {
-        **os.environ,
-        "BODYFIT_MAX_UPLOAD_MB": "1",
-        "BODYFIT_THREADS": "1",
-        "BODYFIT_SMPL_MODEL": str(smpl),
-    }
-    cmd = [
-        sys.executable,
-        "-m",
-        "bodyfit.clients.cli",
-        "serve",
-        "--port",
-        str(rest),
-        "--grpc-port",
-        str(grpc),
-    ]
-    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    url = f"http://127.0.0.1:{rest}"
-    deadline = time.monotonic() + 120
-    while True:
-        assert proc.poll() is None, proc.stdout.read().decode()[-3000:] if proc.stdout else ""
-        try:
-            if httpx.get(f"{url}/readyz", timeout=1).status_code == 200:
-                break
-        except httpx.HTTPError:
-            pass
-        assert time.monotonic() < deadline, "the server did not get ready in 120 s"
-        time.sleep(0.3)
-    yield url, f"127.0.0.1:{grpc}", proc
-    proc.terminate()
-    proc.wait(30)
+    env = {"BODYFIT_MAX_UPLOAD_MB": "1", "BODYFIT_THREADS": "1", "BODYFIT_SMPL_MODEL": str(smpl)}
+    process = start_server(env)
+    yield process
+    process.stop()
 
 
-def test_rest_operations_through_the_sdk(server: tuple[str, str, subprocess.Popen[bytes]]) -> None:
-    url, _, _ = server
+def test_rest_operations_through_the_sdk(server: ServerProcess) -> None:
+    url = server.url
     with Client(url) as client:
         info = client.model_info()
         assert len(info.dof_names) == 46 and all(len(h) == 64 for h in info.assets["sha256"].values())
@@ -90,8 +54,8 @@ def test_rest_operations_through_the_sdk(server: tuple[str, str, subprocess.Pope
         assert 'outcome="413",transport="rest"} 1.0' in metrics
 
 
-def test_grpc_operations_through_the_sdk(server: tuple[str, str, subprocess.Popen[bytes]]) -> None:
-    url, target, _ = server
+def test_grpc_operations_through_the_sdk(server: ServerProcess) -> None:
+    url, target = server.url, server.target
     with GrpcClient(target) as grpc_client, Client(url) as rest_client:
         assert grpc_client.model_info().dof_names == rest_client.model_info().dof_names
         over_grpc = grpc_client.synthesize(coordinates={"ankle_angle_l": 0.3})
@@ -104,9 +68,9 @@ def test_grpc_operations_through_the_sdk(server: tuple[str, str, subprocess.Pope
 
 
 def test_batch_upgrade_against_the_server(
-    server: tuple[str, str, subprocess.Popen[bytes]], tmp_path: Path
+    server: ServerProcess, tmp_path: Path
 ) -> None:
-    url, _, _ = server
+    url = server.url
     (tmp_path / "data" / "s1").mkdir(parents=True)
     shutil.copy(
         ROOT / "tests" / "data" / "smpl_format" / "cmu_131_smpl.npz", tmp_path / "data" / "s1" / "walk.npz"
@@ -117,11 +81,12 @@ def test_batch_upgrade_against_the_server(
     assert np.load(tmp_path / "out" / "s1" / "walk.npz")["coordinates"].shape == (60, 46)
 
 
-def test_sigterm_stops_the_server(server: tuple[str, str, subprocess.Popen[bytes]]) -> None:
-    url, _, proc = server
+def test_sigterm_stops_the_server(server: ServerProcess) -> None:
+    url, proc = server.url, server.proc
     assert httpx.get(f"{url}/healthz").json() == {"status": "ok"}
     proc.send_signal(signal.SIGTERM)
     code = proc.wait(30)
-    log = proc.stdout.read().decode() if proc.stdout else ""
+    time.sleep(0.5)  # the log's last lines
+    log = server.log()
     # uvicorn shuts down gracefully, then re-raises the signal so the exit status tells it was stopped.
     assert code in (0, -signal.SIGTERM) and "Finished server process" in log, log[-2000:]
