@@ -319,8 +319,9 @@ def test_serve_takes_its_settings_from_options_then_the_environment(monkeypatch:
     """`bodyfit serve` options win over BODYFIT_* variables, which win over the defaults (the container
     moves its ports with BODYFIT_REST_PORT / BODYFIT_GRPC_PORT)."""
     import bodyfit.api.server
+    from bodyfit.api.settings import ServiceSettings
 
-    seen = []
+    seen: list[ServiceSettings] = []
     monkeypatch.setattr(bodyfit.api.server, "run_server", seen.append)
     monkeypatch.setenv("BODYFIT_REST_PORT", "18000")
     monkeypatch.setenv("BODYFIT_GRPC_PORT", "0")
