@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import asyncio
 import io
+import os
 import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -251,7 +253,8 @@ def test_async_client(target: str) -> None:
 
 
 def test_generated_modules_match_the_proto(tmp_path: Path) -> None:
-    subprocess.run([str(ROOT / "scripts" / "gen_proto.sh"), str(tmp_path)], check=True, cwd=ROOT)
+    env = {**os.environ, "PYTHON": sys.executable}  # this interpreter's grpcio-tools, whatever the venv
+    subprocess.run([str(ROOT / "scripts" / "gen_proto.sh"), str(tmp_path)], check=True, cwd=ROOT, env=env)
     for name in ("bodyfit_pb2.py", "bodyfit_pb2.pyi", "bodyfit_pb2_grpc.py"):
         assert (tmp_path / name).read_text() == (ROOT / "bodyfit" / "api" / name).read_text(), (
             f"{name} is stale: run scripts/gen_proto.sh"
