@@ -4,21 +4,36 @@ unavailable, deadline_exceeded, cancelled, not_found, internal."""
 
 from __future__ import annotations
 
+import json
+from collections.abc import Mapping
 from typing import Any
 
 
 class BodyfitClientError(Exception):
     """Base class. ``status``: the HTTP status (or the gRPC code's name); ``detail``: what was wrong and
-    how to fix it; ``field``: the request field at fault, when known; ``retryable``: safe to send again."""
+    how to fix it; ``field``: the request field at fault, when known; ``retryable``: safe to send again
+    (for an idempotent call); ``retry_after``: seconds the server asked to wait before that, when it said;
+    ``sent``: False only when the request surely never reached the server (safe to send again whatever
+    the call)."""
 
     kind = "internal"
     retryable = False
 
-    def __init__(self, detail: str, status: int | str | None = None, field: str | None = None) -> None:
+    def __init__(
+        self,
+        detail: str,
+        status: int | str | None = None,
+        field: str | None = None,
+        *,
+        retry_after: float | None = None,
+        sent: bool = True,
+    ) -> None:
         super().__init__(detail if field is None else f"{field}: {detail}")
         self.detail = detail
         self.status = status
         self.field = field
+        self.retry_after = retry_after
+        self.sent = sent
 
 
 class InvalidRequestError(BodyfitClientError):
@@ -85,9 +100,53 @@ ERRORS: dict[str, type[BodyfitClientError]] = {
 }
 
 
-def error_from_problem(problem: dict[str, Any], status: int | str | None) -> BodyfitClientError:
+HTTP_KINDS = {413: "resource_exhausted", 404: "not_found", 503: "unavailable", 504: "deadline_exceeded"}
+"""The kind of an HTTP status without a problem document (a proxy's answer); else 4xx invalid_argument,
+5xx internal."""
+_NOT_SENT = ("failed to connect", "connection refused", "dns resolution failed", "name resolution")
+"""Words of gRPC's UNAVAILABLE details when no connection was made, so the request never left."""
+
+
+def error_from_problem(
+    problem: dict[str, Any], status: int | str | None, retry_after: float | None = None
+) -> BodyfitClientError:
     """The typed exception for a problem document ``{"kind", "detail", "field", ...}``."""
     cls = ERRORS.get(str(problem.get("kind", "")), ServerError)
     detail = str(problem.get("detail") or problem.get("title") or "the server gave no detail")
     field = problem.get("field")
-    return cls(detail, status, None if field is None else str(field))
+    return cls(detail, status, None if field is None else str(field), retry_after=retry_after)
+
+
+def error_from_http(status: int, body: bytes, retry_after: float | None = None) -> BodyfitClientError:
+    """The typed exception of a non-2xx answer: its problem+json, or plain text from a proxy."""
+    try:
+        doc = json.loads(body)
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        doc = {}
+    if not isinstance(doc, dict) or "kind" not in doc:
+        kind = HTTP_KINDS.get(status, "invalid_argument" if status < 500 else "internal")
+        text = body[:300].decode("utf-8", "replace")
+        doc = {"kind": kind, "detail": f"HTTP {status}: {text}"}
+    return error_from_problem(doc, status, retry_after)
+
+
+def error_from_status(
+    code: str, details: str, trailing: Mapping[str, Any], retry_after: float | None = None
+) -> BodyfitClientError:
+    """The typed exception of a gRPC status: ``code`` its name, ``trailing`` its metadata (the server's
+    "bodyfit-kind" and "bodyfit-field"). UNAVAILABLE without a kind is gRPC's own (no server answered);
+    the runtime's RESOURCE_EXHAUSTED for too many concurrent calls means busy, not too large."""
+    from bodyfit.api.grpc_wire import STATUS_KINDS  # the gRPC half of the wire contract (needs protobuf)
+
+    if "bodyfit-kind" not in trailing:
+        if code == "UNAVAILABLE":
+            sent = not any(words in details.lower() for words in _NOT_SENT)
+            message = f"cannot reach the bodyfit gRPC server: {details}"
+            return ConnectionFailedError(message, code, retry_after=retry_after, sent=sent)
+        if code == "RESOURCE_EXHAUSTED" and "concurrent rpc limit" in details.lower():
+            return ServerBusyError(details, code, retry_after=retry_after)
+    kind = str(trailing.get("bodyfit-kind") or STATUS_KINDS.get(code, "internal"))
+    field = trailing.get("bodyfit-field")
+    return ERRORS.get(kind, ServerError)(
+        details, code, None if field is None else str(field), retry_after=retry_after
+    )

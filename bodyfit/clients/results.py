@@ -18,8 +18,11 @@ ProgressCallback = Callable[[dict[str, Any]], None]
 """Called with each progress event: ``{"stage", "done", "total", "message"}``."""
 
 
-def decode_array(doc: dict[str, Any]) -> np.ndarray:
-    """The inverse of the server's array encoding ``{"dtype", "shape", "data": base64 little-endian}``."""
+def decode_array(doc: dict[str, Any] | np.ndarray) -> np.ndarray:
+    """The inverse of the server's array encoding ``{"dtype", "shape", "data": base64 little-endian}``
+    (an array already decoded, as the gRPC transport gives, is returned as it is)."""
+    if isinstance(doc, np.ndarray):
+        return doc
     dtype = np.dtype(str(doc["dtype"])).newbyteorder("<")
     return (
         np.frombuffer(base64.b64decode(doc["data"]), dtype=dtype)
@@ -84,27 +87,37 @@ class Synthesis:
         Raises:
             ServerError: an answer that is not the npz the server sends (truncated, wrong arrays).
         """
-        B, J = Dim("B"), Dim("J")
-        specs = {
-            "vertices": ArraySpec(((B, Dim("V"), 3),), FLOAT),
-            "joints": ArraySpec(((B, J, 3),), FLOAT),
-            "joint_names": ArraySpec(((J,),), TEXT),
-            "faces": ArraySpec(((Dim("F"), 3),), INTEGER, required=False),
-            "bones": ArraySpec(((B, Dim("Vb"), 3),), FLOAT, required=False),
-            "bone_faces": ArraySpec(((Dim("Fb"), 3),), INTEGER, required=False),
-        }
-        try:
-            get = read_npz(data, specs, name="the server's answer")
-        except (FileFormatError, FileLimitError) as exc:
-            raise ServerError(f"unreadable synthesis answer: {exc}") from None
-        return cls(
-            get["vertices"],
-            get["joints"],
-            tuple(str(n) for n in get["joint_names"]),
-            get.get("faces"),
-            get.get("bones"),
-            get.get("bone_faces"),
-        )
+        return cls.from_event(synthesis_event(data))
+
+    @classmethod
+    def from_event(cls, doc: dict[str, Any]) -> Synthesis:
+        """From ``{"arrays": {vertices, joints[, faces, bones, bone_faces]}, "joint_names"}``."""
+        a = {k: decode_array(v) for k, v in doc["arrays"].items()}
+        names = tuple(str(n) for n in doc["joint_names"])
+        return cls(a["vertices"], a["joints"], names, a.get("faces"), a.get("bones"), a.get("bone_faces"))
+
+
+def synthesis_event(data: bytes) -> dict[str, Any]:
+    """The server's npz answer to a synthesis as ``{"arrays", "joint_names"}``, each array checked from
+    its .npy header before it is built.
+
+    Raises:
+        ServerError: an answer that is not the npz the server sends (truncated, wrong arrays).
+    """
+    B, J = Dim("B"), Dim("J")
+    specs = {
+        "vertices": ArraySpec(((B, Dim("V"), 3),), FLOAT),
+        "joints": ArraySpec(((B, J, 3),), FLOAT),
+        "joint_names": ArraySpec(((J,),), TEXT),
+        "faces": ArraySpec(((Dim("F"), 3),), INTEGER, required=False),
+        "bones": ArraySpec(((B, Dim("Vb"), 3),), FLOAT, required=False),
+        "bone_faces": ArraySpec(((Dim("Fb"), 3),), INTEGER, required=False),
+    }
+    try:
+        arrays = dict(read_npz(data, specs, name="the server's answer"))
+    except (FileFormatError, FileLimitError) as exc:
+        raise ServerError(f"unreadable synthesis answer: {exc}") from None
+    return {"joint_names": arrays.pop("joint_names").tolist(), "arrays": arrays}
 
 
 @dataclass(frozen=True)
@@ -185,8 +198,10 @@ class EventCollector:
         self.progress = progress
         self.chunks: list[dict[str, Any]] = []
         self.result: dict[str, Any] | None = None
+        self.events = 0
 
     def feed(self, event: dict[str, Any]) -> bool:
+        self.events += 1
         kind = event.get("event")
         if kind == "progress" and self.progress is not None:
             self.progress({k: v for k, v in event.items() if k != "event"})
@@ -247,6 +262,11 @@ class UpgradeOutput:
             dof_names=tuple(result["dof_names"]),
             joint_names=tuple(result["joint_names"]),
             summary=dict(result["summary"]),
-            files={ext: base64.b64decode(data) for ext, data in result["files"].items()},
+            files={ext: _file_bytes(data) for ext, data in result["files"].items()},
             **arrays,
         )
+
+
+def _file_bytes(data: str | bytes) -> bytes:
+    """A file of an upgrade: base64 text in JSON, bytes over gRPC."""
+    return bytes(data) if isinstance(data, bytes | bytearray) else base64.b64decode(data)

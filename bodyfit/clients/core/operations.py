@@ -1,0 +1,199 @@
+"""The SDK's operations, transport-neutral: each public method builds an :class:`Operation` here (its
+arguments checked and normalised once, for REST and gRPC alike) and turns the transport's events into
+the result types of :mod:`bodyfit.clients.results`.
+
+An event is a dict ``{"event": "progress" | "chunk" | "result" | "error", ...}`` whose ``"arrays"`` are
+numpy arrays or the server's base64 documents (:func:`bodyfit.clients.results.decode_array` reads both);
+a unary call answers one ``result`` event.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Generic, TypeVar
+
+import numpy as np
+
+from bodyfit.clients.results import (
+    MeshFitResult,
+    ModelInfo,
+    ProgressCallback,
+    SequenceResult,
+    Synthesis,
+    UpgradeOutput,
+)
+from bodyfit.clients.uploads import ScanInput, scan_upload
+
+R = TypeVar("R")
+Event = dict[str, Any]
+Array = np.ndarray | None
+Coordinates = np.ndarray | Mapping[str, float | Sequence[float] | np.ndarray] | None
+SequenceInput = str | os.PathLike[str] | bytes
+FORMATS = ("npz", "ply", "obj", "glb", "json")
+"""The file formats of :meth:`synthesize_file`."""
+
+
+@dataclass(frozen=True)
+class Operation(Generic[R]):
+    """One call: ``name`` (model_info, synthesize, fit_scan, fit_sequence, upgrade), its checked
+    ``args``, whether sending it twice is harmless (``idempotent``), whether the server streams events
+    (``stream``), the ``progress`` callback, and ``finish``: (chunks, result event) -> the result."""
+
+    name: str
+    finish: Callable[[list[Event], Event], R]
+    args: dict[str, Any] = field(default_factory=dict)
+    idempotent: bool = False
+    stream: bool = False
+    progress: ProgressCallback | None = None
+
+
+def _rows(a: np.ndarray | None) -> np.ndarray | None:
+    return None if a is None else np.atleast_2d(np.asarray(a, np.float64))
+
+
+def synthesis_args(
+    shape: Array,
+    coordinates: Coordinates,
+    root: Array,
+    skeleton: bool,
+    faces: bool,
+    batch: int | None,
+    fmt: str,
+) -> dict[str, Any]:
+    """The checked arguments of a synthesis: arrays as float64 rows, named coordinates as float64 arrays.
+
+    Raises:
+        ValueError: a format other than :data:`FORMATS`."""
+    if fmt not in FORMATS:
+        raise ValueError(f"format must be one of {', '.join(FORMATS)}; got {fmt!r}")
+    named = isinstance(coordinates, Mapping)
+    coords = (
+        {str(k): np.asarray(v, np.float64) for k, v in coordinates.items()}
+        if isinstance(coordinates, Mapping)
+        else _rows(coordinates)
+    )
+    return {
+        "shape": _rows(shape),
+        "coordinates": coords,
+        "named": named,
+        "root": _rows(root),
+        "skeleton": skeleton,
+        "faces": faces,
+        "batch": batch,
+        "format": fmt,
+    }
+
+
+def _model_info(_: list[Event], result: Event) -> ModelInfo:
+    return ModelInfo.from_dict(result)
+
+
+def _synthesis_result(_: list[Event], result: Event) -> Synthesis:
+    return Synthesis.from_event(result)
+
+
+def _file(_: list[Event], result: Event) -> bytes:
+    return bytes(result["data"])
+
+
+def _mesh_fit(_: list[Event], result: Event) -> MeshFitResult:
+    return MeshFitResult.from_event(result)
+
+
+def model_info() -> Operation[ModelInfo]:
+    """DOF names, ranges and units, shape sizes, joint names, asset hashes."""
+    return Operation("model_info", _model_info, idempotent=True)
+
+
+def synthesize(
+    shape: Array = None,
+    coordinates: Coordinates = None,
+    root: Array = None,
+    skeleton: bool = False,
+    faces: bool = False,
+    batch: int | None = None,
+) -> Operation[Synthesis]:
+    """Posed bodies as arrays. shape (B, n_shape); coordinates (B, n_dof) or {name: value(s)}; root
+    (B, 3); see :meth:`synthesize_file` for npz / ply / obj / glb / json bytes."""
+    args = synthesis_args(shape, coordinates, root, skeleton, faces, batch, "npz")
+    return Operation("synthesize", _synthesis_result, args, idempotent=True)
+
+
+def synthesize_file(
+    format: str,
+    shape: Array = None,
+    coordinates: Coordinates = None,
+    root: Array = None,
+    skeleton: bool = False,
+) -> Operation[bytes]:
+    """Posed bodies encoded as ``format`` (npz, ply, obj, glb or json; faces included).
+
+    Raises:
+        ValueError: another format (before anything is sent)."""
+    args = synthesis_args(shape, coordinates, root, skeleton, True, None, format)
+    return Operation("synthesize_file", _file, args, idempotent=True)
+
+
+def fit_scan(
+    scan: ScanInput,
+    format: str | None = None,
+    units: str = "auto",
+    progress: ProgressCallback | None = None,
+) -> Operation[MeshFitResult]:
+    """Fit a mesh or point cloud: a file (path, or bytes with ``format``) or (N, 3) points; ``units``:
+    auto, m or mm; ``progress`` gets each progress event."""
+    name, data = scan_upload(scan, format)
+    args = {"name": name, "data": data, "format": Path(name).suffix.lstrip("."), "units": units}
+    return Operation("fit_scan", _mesh_fit, args, stream=True, progress=progress)
+
+
+def fit_sequence(
+    frames: np.ndarray,
+    weights: Array = None,
+    progress: ProgressCallback | None = None,
+    chunk: int = 64,
+) -> Operation[SequenceResult]:
+    """Fit a registered sequence (T, V, 3) in the model's topology (one shape, per-frame pose);
+    ``weights`` (T, V) optional; the server answers in chunks of ``chunk`` frames."""
+    f32 = None if weights is None else np.asarray(weights, np.float32)
+    args = {"frames": np.asarray(frames, np.float32), "weights": f32, "chunk": chunk}
+    return Operation("fit_sequence", SequenceResult.from_events, args, stream=True, progress=progress)
+
+
+def upgrade(
+    sequence: SequenceInput,
+    progress: ProgressCallback | None = None,
+    chunk: int = 256,
+    sex: str | None = None,
+    height_m: float | None = None,
+    mass_kg: float | None = None,
+) -> Operation[UpgradeOutput]:
+    """Upgrade an AMASS-style .npz (path or bytes) to biomechanical coordinates and OpenSim files.
+    ``sex``, ``height_m`` and ``mass_kg`` shape the body when the server has no SMPL-family model file
+    (path b)."""
+    name, data = upgrade_upload(sequence)
+    hints = {k: v for k, v in (("sex", sex), ("height_m", height_m), ("mass_kg", mass_kg)) if v is not None}
+    args = {"name": name, "data": data, "chunk": chunk, "hints": hints}
+    return Operation("upgrade", UpgradeOutput.from_events, args, stream=True, progress=progress)
+
+
+def upgrade_upload(sequence: SequenceInput) -> tuple[str, bytes]:
+    """(file name, bytes) of an AMASS-style .npz given as a path or bytes."""
+    if isinstance(sequence, bytes | bytearray):
+        return "sequence.npz", bytes(sequence)
+    path = Path(sequence)
+    return path.name, path.read_bytes()
+
+
+def frames_npz(frames: np.ndarray, weights: np.ndarray | None) -> bytes:
+    """An .npz of ``frames`` (and ``weights``) as float32, the upload of a sequence fit over HTTP."""
+    buf = io.BytesIO()
+    arrays = {"frames": np.asarray(frames, np.float32)}
+    if weights is not None:
+        arrays["weights"] = np.asarray(weights, np.float32)
+    np.savez(buf, allow_pickle=False, **arrays)
+    return buf.getvalue()
