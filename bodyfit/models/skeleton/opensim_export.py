@@ -6,10 +6,13 @@ only OpenSim-native components: spine arcs and scapula paths become sub-joints t
 with SimmSpline / Sine functions, and the patella keeps Rajagopal's coupled ``knee_angle_*_beta``
 coordinate with a CoordinateCouplerConstraint. Scaling is baked in: offsets, translation functions, mass
 and inertia of the written model are those of the scaled skeleton, so OpenSim needs no ScaleTool step.
+:func:`write_osim` also writes the bones beside the model (``Geometry/<body>_bones.obj``, from the shipped
+bone mesh), so OpenSim finds every mesh the model names and shows the skeleton without other files.
 """
 
 from __future__ import annotations
 
+import io
 import math
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
@@ -17,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bodyfit.models.skeleton.bones import BoneMesh
 from bodyfit.models.skeleton.functions import evaluate_function
 from bodyfit.models.skeleton.spec import Body, Function, SkeletonSpec, is_identity, translation_scale_weights
 
@@ -24,6 +28,7 @@ ARC_KNOTS = 61  # SimmSpline samples of an arc function over its coordinate rang
 LINK_MASS = 1e-4  # kg; OpenSim needs a little mass on the sub-segment links
 LINK_INERTIA = 1e-7
 AXIS_NAMES = ("rotation1", "rotation2", "rotation3", "translation1", "translation2", "translation3")
+GEOMETRY_DIR = "Geometry"  # beside the .osim: one of the folders OpenSim searches for mesh files
 
 
 def _fmt(values: Sequence[float] | np.ndarray) -> str:
@@ -75,7 +80,7 @@ def _offset_frame(
     _sub(f, "orientation", _fmt(orientation))
 
 
-def _body_xml(parent: ET.Element, body: Body, s: np.ndarray) -> None:
+def _body_xml(parent: ET.Element, body: Body, s: np.ndarray, mesh_file: str | None) -> None:
     el = _sub(parent, "Body", name=body.name)
     volume = float(np.prod(s))
     inertia: tuple[float, ...]
@@ -95,8 +100,8 @@ def _body_xml(parent: ET.Element, body: Body, s: np.ndarray) -> None:
         _sub(f, "translation", _fmt(np.asarray(body.geometry_offset) * s))
         _sub(f, "orientation", "0 0 0")
         geoms = _sub(f, "attached_geometry")
-        for mesh in body.geometry:
-            m = _sub(geoms, "Mesh", name=mesh.replace(".vtp", ""))
+        for mesh in [mesh_file] if mesh_file else body.geometry:
+            m = _sub(geoms, "Mesh", name=mesh.rsplit(".", 1)[0].rsplit("/", 1)[-1])
             _sub(m, "scale_factors", _fmt(s))
             _sub(m, "mesh_file", mesh)
 
@@ -109,6 +114,7 @@ def osim_document(
     scales: np.ndarray | None = None,
     name: str = "bodyfit",
     markers: Sequence[Marker] | None = None,
+    mesh_files: dict[str, str] | None = None,
 ) -> ET.ElementTree:
     """The skeleton as an OpenSim 4 document.
 
@@ -118,7 +124,10 @@ def osim_document(
         name: the model name.
         markers: optional MarkerSet: ``(name, body, location)`` with the location in the body's frame
             before scaling (it is scaled with the body, like everything else in the written model).
+        mesh_files: body name -> the one mesh file holding its bones (:func:`write_bone_geometry`); bodies
+            not in it name Rajagopal's own ``.vtp`` files, which OpenSim finds only in its installation.
     """
+    mesh_files = mesh_files or {}
     seg = {s: i for i, s in enumerate(spec.segments)}
     S = np.ones((len(spec.segments), 3)) if scales is None else np.asarray(scales, np.float64)
     body_by_name = {b.name: b for b in spec.bodies}
@@ -143,7 +152,7 @@ def osim_document(
     _sub(model, "gravity", "0 -9.8066500000000005 0")
     bodyset = _sub(_sub(model, "BodySet", name="bodyset"), "objects")
     for b in spec.bodies:
-        _body_xml(bodyset, b, scale_of(b.name))
+        _body_xml(bodyset, b, scale_of(b.name), mesh_files.get(b.name))
 
     jointset = _sub(_sub(model, "JointSet", name="jointset"), "objects")
     owned: set[str] = set()
@@ -229,11 +238,48 @@ def write_osim(
     scales: np.ndarray | None = None,
     name: str = "bodyfit",
     markers: Sequence[Marker] | None = None,
+    geometry: bool = True,
+    bones: BoneMesh | None = None,
 ) -> Path:
-    """Write a scaled OpenSim model of ``spec`` (optionally with a MarkerSet). See :func:`osim_document`."""
+    """Write a scaled OpenSim model of ``spec`` (optionally with a MarkerSet; see :func:`osim_document`)
+    and, with ``geometry``, its bones beside it (:func:`write_bone_geometry`, from ``bones`` or the
+    shipped bone mesh), so that the folder is self-contained."""
     path = Path(path)
-    osim_document(spec, scales, name, markers).write(path, encoding="UTF-8", xml_declaration=True)
+    mesh_files = None
+    if geometry:
+        mesh_files = write_bone_geometry(path.parent, spec, bones or BoneMesh.load(spec))
+    osim_document(spec, scales, name, markers, mesh_files).write(path, encoding="UTF-8", xml_declaration=True)
     return path
+
+
+def write_bone_geometry(folder: str | Path, spec: SkeletonSpec, bones: BoneMesh) -> dict[str, str]:
+    """Write each body's bones as a Wavefront OBJ in ``folder/Geometry``: vertices in the body's geometry
+    frame before scaling (the model scales them with ``scale_factors``), triangles as in the bone mesh.
+
+    Returns:
+        body name -> the file's path relative to ``folder`` (``Geometry/<body>_bones.obj``), for every body
+        with bones.
+    """
+    out = Path(folder) / GEOMETRY_DIR
+    out.mkdir(parents=True, exist_ok=True)
+    files = {}
+    for i, body in enumerate(spec.bodies):
+        mine = np.flatnonzero(bones.vertex_body == i)
+        if not body.geometry or not len(mine):
+            continue
+        index = np.full(len(bones.vertices), -1)
+        index[mine] = np.arange(len(mine))
+        faces = index[bones.faces]
+        faces = faces[(faces >= 0).all(axis=1)]
+        vertices = bones.vertices[mine].astype(np.float64) - np.asarray(body.geometry_offset)
+        buf = io.StringIO()
+        buf.write(f"# {body.name} bones (bodyfit), metres in the body's geometry frame\n")
+        np.savetxt(buf, vertices, fmt="v %.7g %.7g %.7g")
+        np.savetxt(buf, faces + 1, fmt="f %d %d %d")
+        name = f"{body.name}_bones.obj"
+        (out / name).write_text(buf.getvalue())
+        files[body.name] = f"{GEOMETRY_DIR}/{name}"
+    return files
 
 
 def mot_columns(spec: SkeletonSpec) -> list[str]:
