@@ -685,7 +685,8 @@ class BodyService:
     def upgrade_files(self, result: UpgradeResult, name: str) -> dict[str, bytes]:
         """The upgrade's files as bytes: npz, json (summary), osim and mot (see ``write_upgrade``)."""
         with tempfile.TemporaryDirectory() as tmp, invalid_input("file"):
-            paths = write_upgrade(result, self.model, Path(tmp), name)
+            # the answer carries four files, not a Geometry folder: the .osim names OpenSim's own meshes
+            paths = write_upgrade(result, self.model, Path(tmp), name, geometry=False)
             return {ext: path.read_bytes() for ext, path in paths.items()}
 
     def frame_limit(self, bytes_per_frame: int) -> tuple[int, str]:

@@ -249,11 +249,12 @@ def _result(
 
 
 def write_upgrade(
-    result: UpgradeResult, model: BodyModel, out: Path, name: str = "upgrade"
+    result: UpgradeResult, model: BodyModel, out: Path, name: str = "upgrade", geometry: bool = True
 ) -> dict[str, Path]:
     """Write ``name``.npz (every array with its names; ``offsets`` when fitted), ``name``.json (the
-    summary), ``name``.osim (our skeleton scaled to the subject) and ``name``.mot (the coordinates;
-    degrees, as OpenSim expects)."""
+    summary), ``name``.osim (our skeleton scaled to the subject; with ``geometry`` its bones beside it in
+    Geometry/, else it names Rajagopal's .vtp files, which OpenSim's installation holds) and ``name``.mot
+    (the coordinates; degrees, as OpenSim expects)."""
     out.mkdir(parents=True, exist_ok=True)
     paths = {ext: out / f"{name}.{ext}" for ext in ("npz", "json", "osim", "mot")}
     arrays: dict[str, np.ndarray] = {
@@ -274,6 +275,7 @@ def write_upgrade(
         arrays["offsets"] = result.offsets.astype(np.float32)
     np.savez_compressed(paths["npz"], **arrays)  # type: ignore[arg-type]
     paths["json"].write_text(json.dumps(result.summary(), indent=1) + "\n")
-    write_osim(paths["osim"], model.skeleton.spec, result.scales, name=name)
+    bones = model.skeleton.bone_mesh() if geometry else None
+    write_osim(paths["osim"], model.skeleton.spec, result.scales, name=name, geometry=geometry, bones=bones)
     write_mot(paths["mot"], model.skeleton.spec, result.coordinates, result.root, fps=result.rate)
     return paths
