@@ -2,7 +2,7 @@
 
 Exponential backoff with full jitter (a wait drawn uniformly from ``[0, min(cap, base * 2**n))``), never
 shorter than the server's ``Retry-After``; only what is safe is retried (:func:`safe_to_retry`), and only
-while the next attempt would start within ``budget_s`` of the first. Clock, randomness and sleeps are
+while the next attempt would start less than ``budget_s`` after the first. Clock, randomness and sleeps are
 injectable, so tests run the policy without waiting.
 """
 
@@ -20,15 +20,16 @@ from bodyfit.clients.errors import BodyfitClientError
 DEFAULT_RETRIES = 20
 """Retries at most; with the defaults below, the budget ends the retries first."""
 DEFAULT_BUDGET_S = 20.0
-"""No retry starts later than this after the first attempt. The server takes about 3-12 s to load and
+"""Every retry starts less than this after the first attempt. The server takes about 3-12 s to load and
 asks for ``Retry-After: 5`` while it does, so attempts at 0, 5, 10 and 15 s see it ready."""
 
 
 @dataclass(frozen=True)
 class RetryPolicy:
-    """How the clients retry. ``retries``: attempts after the first, at most; ``budget_s``: no retry
-    starts later than this after the first attempt; ``base_s`` / ``cap_s``: the backoff's first and largest
-    ceiling. ``clock``, ``random``, ``sleep`` and ``async_sleep`` are injectable for tests."""
+    """How the clients retry. ``retries``: attempts after the first, at most; ``budget_s``: a retry
+    starts less than this after the first attempt, or not at all; ``base_s`` / ``cap_s``: the backoff's
+    first and largest ceiling. ``clock``, ``random``, ``sleep`` and ``async_sleep`` are injectable for
+    tests."""
 
     retries: int = DEFAULT_RETRIES
     budget_s: float = DEFAULT_BUDGET_S
@@ -76,7 +77,7 @@ class Retrying:
         if self.done >= p.retries or not safe_to_retry(error, self.idempotent, answered):
             return None
         wait = max(error.retry_after or 0.0, p.backoff(self.done))
-        if p.clock() - self.began + wait > p.budget_s:
+        if p.clock() - self.began + wait >= p.budget_s:
             return None
         self.done += 1
         return wait
