@@ -64,7 +64,7 @@ def fit_mesh_files(
     service.scan_processes = processes  # read when the first fit builds the fitters
     fits = []
     for path, scan in zip(paths, scans, strict=True):
-        note(f"{path.name}: {scan.n_points} points")
+        note(f"{path.name}: fitting as a {service.route(scan)}")  # its first progress line gives the points
         fits.append(service.fit_mesh(scan, Job(on_progress=show)))
     out.mkdir(parents=True, exist_ok=True)
     arrays: dict[str, np.ndarray] = {
