@@ -179,7 +179,7 @@ class GrpcClient(_Grpc[grpc.Channel], SyncClientCore):
         target: "host:port" (default 127.0.0.1:50051, or $BODYFIT_GRPC).
         timeout: seconds for unary calls (fits get ``fit_timeout``).
         retries: attempts after the first, at most, when safe (see :class:`RetryPolicy`).
-        retry: the retry policy (default: :class:`RetryPolicy`, with ``retries``).
+        retry: the retry policy (default :class:`RetryPolicy`: a 20 s budget); ``retries`` caps its count.
     """
 
     def _new_channel(self, target: str, options: list[tuple[str, int]]) -> grpc.Channel:

@@ -156,7 +156,7 @@ class Client(_Rest[httpx.Client], SyncClientCore):
         timeout: seconds (connect / write) or an httpx.Timeout; reads of long fits may take minutes.
         retries: attempts after the first, at most, when safe (see :class:`RetryPolicy`).
         http_client: an httpx.Client to use instead of a new one (its base_url wins).
-        retry: the retry policy (default: :class:`RetryPolicy`, with ``retries``).
+        retry: the retry policy (default :class:`RetryPolicy`: a 20 s budget); ``retries`` caps its count.
     """
 
     def _new_http(self, **kwargs: Any) -> httpx.Client:

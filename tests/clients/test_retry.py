@@ -10,6 +10,7 @@ from collections.abc import Callable
 from datetime import UTC, datetime
 from email.utils import format_datetime
 
+import grpc
 import httpx
 import numpy as np
 import pytest
@@ -25,6 +26,7 @@ from bodyfit.clients.errors import (
     ServerBusyError,
     ServerError,
 )
+from bodyfit.clients.grpc_client import GrpcClient
 from bodyfit.clients.rest_client import AsyncClient, Client
 
 
@@ -47,7 +49,11 @@ class FakeTime:
 
     def policy(self, rand: Callable[[], float] = lambda: 0.5, **kwargs: float) -> RetryPolicy:
         return RetryPolicy(
-            clock=self.clock, random=rand, sleep=self.sleep, async_sleep=self.async_sleep, **kwargs  # type: ignore[arg-type]
+            clock=self.clock,
+            random=rand,
+            sleep=self.sleep,
+            async_sleep=self.async_sleep,
+            **kwargs,  # type: ignore[arg-type]
         )
 
 
@@ -241,3 +247,30 @@ def test_retries_argument_and_policy() -> None:
     policy = RetryPolicy(budget_s=3.0)
     assert Client(retry=policy, retries=5).retry == RetryPolicy(budget_s=3.0, retries=5)
     assert Client().retry == RetryPolicy() and RetryPolicy().budget_s == 20.0
+
+
+def test_grpc_sends_a_fit_again_only_when_no_connection_was_made() -> None:
+    from tests.clients.test_parity import FakeStub, RpcFailure, grpc_answers
+
+    refused = RpcFailure(
+        grpc.StatusCode.UNAVAILABLE, "failed to connect to all addresses; Connection refused"
+    )
+    cut = RpcFailure(grpc.StatusCode.UNAVAILABLE, "Socket closed")
+    for failures, outcome in (([refused, refused], "registered"), ([cut], ConnectionFailedError)):
+        t, sent = FakeTime(), list[object]()
+
+        def fit_scan(
+            request: object, failures: list[RpcFailure] = failures, sent: list[object] = sent
+        ) -> list[object]:
+            sent.append(request)
+            return [failures.pop(0)] if failures else grpc_answers()["FitScan"](request)
+
+        with GrpcClient("127.0.0.1:1", retry=t.policy()) as client:
+            client._stub = FakeStub({"FitScan": fit_scan}, aio=False)  # type: ignore[assignment]
+            if outcome == "registered":
+                assert client.fit_scan(np.zeros((5, 3))).fitted_as == "registered"
+                assert len(sent) == 3 and len(t.sleeps) == 2
+            else:
+                with pytest.raises(ConnectionFailedError, match="Socket closed"):
+                    client.fit_scan(np.zeros((5, 3)))
+                assert len(sent) == 1 and t.sleeps == []

@@ -21,8 +21,9 @@ R = TypeVar("R")
 
 
 def retry_policy(retries: int, retry: RetryPolicy | None) -> RetryPolicy:
-    """``retry`` (or the default policy) with at most ``retries`` retries."""
-    return replace(retry or RetryPolicy(), retries=retries)
+    """``retry`` (or the default policy) with at most ``retries`` retries (the fewer of the two counts)."""
+    policy = retry or RetryPolicy()
+    return replace(policy, retries=min(retries, policy.retries))
 
 
 def sync_method(build: Callable[P, Operation[R]]) -> Callable[Concatenate[SyncClientCore, P], R]:
