@@ -175,11 +175,7 @@ class SequenceResult:
 
     @classmethod
     def from_events(cls, chunks: list[dict[str, Any]], result: dict[str, Any]) -> SequenceResult:
-        chunks = sorted(chunks, key=lambda c: int(c["start"]))
-        arrays = {
-            key: np.concatenate([decode_array(c["arrays"][key]) for c in chunks])
-            for key in ("coordinates", "root", "vertices", "joints", "error_mm")
-        }
+        arrays = per_frame(chunks, ("coordinates", "root", "vertices", "joints", "error_mm"))
         return cls(
             shape=decode_array(result["arrays"]["shape"]),
             dof_names=tuple(result["dof_names"]),
@@ -188,6 +184,12 @@ class SequenceResult:
             limit_violations=int(result.get("limit_violations", 0)),
             **arrays,
         )
+
+
+def per_frame(chunks: list[dict[str, Any]], keys: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """The per-frame arrays ``keys`` of a stream's chunk events, joined in frame order (by ``start``)."""
+    ordered = sorted(chunks, key=lambda c: int(c["start"]))
+    return {key: np.concatenate([decode_array(c["arrays"][key]) for c in ordered]) for key in keys}
 
 
 class EventCollector:
@@ -251,11 +253,7 @@ class UpgradeOutput:
 
     @classmethod
     def from_events(cls, chunks: list[dict[str, Any]], result: dict[str, Any]) -> UpgradeOutput:
-        chunks = sorted(chunks, key=lambda c: int(c["start"]))
-        arrays = {
-            key: np.concatenate([decode_array(c["arrays"][key]) for c in chunks])
-            for key in ("coordinates", "root", "joints", "error_mm", "bad_frames")
-        }
+        arrays = per_frame(chunks, ("coordinates", "root", "joints", "error_mm", "bad_frames"))
         return cls(
             shape=decode_array(result["arrays"]["shape"]),
             scales=decode_array(result["arrays"]["scales"]),
