@@ -526,3 +526,20 @@ def test_a_format_the_server_cannot_write_is_refused_before_sending() -> None:
     ):
         c.synthesize_file("stl")
     assert sent == []
+
+
+def test_the_four_clients_have_the_same_methods_and_signatures() -> None:
+    import inspect
+
+    names = ("model_info", "synthesize", "synthesize_file", "fit_scan", "fit_sequence", "upgrade")
+    for name in names:
+        signatures = {
+            str(inspect.signature(getattr(cls, name)))
+            for cls in (Client, AsyncClient, GrpcClient, AsyncGrpcClient)
+        }
+        assert len(signatures) == 1, (name, signatures)
+        assert inspect.iscoroutinefunction(getattr(AsyncClient, name))
+        assert not inspect.iscoroutinefunction(getattr(Client, name))
+    synthesize = inspect.signature(Client("http://t").synthesize)
+    assert list(synthesize.parameters) == ["shape", "coordinates", "root", "skeleton", "faces", "batch"]
+    assert synthesize.return_annotation.__name__ == "Synthesis"

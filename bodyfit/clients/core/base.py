@@ -5,6 +5,8 @@ implements ``_send``: an operation in, its events out, or a typed error raised."
 from __future__ import annotations
 
 import functools
+import inspect
+import typing
 from collections.abc import AsyncGenerator, Callable, Coroutine, Generator
 from contextlib import aclosing, closing
 from dataclasses import replace
@@ -18,6 +20,7 @@ from bodyfit.clients.results import EventCollector
 
 P = ParamSpec("P")
 R = TypeVar("R")
+F = TypeVar("F", bound=Callable[..., Any])
 
 
 def retry_policy(retries: int, retry: RetryPolicy | None) -> RetryPolicy:
@@ -33,7 +36,7 @@ def sync_method(build: Callable[P, Operation[R]]) -> Callable[Concatenate[SyncCl
     def method(self: SyncClientCore, /, *args: P.args, **kwargs: P.kwargs) -> R:
         return self._call(build(*args, **kwargs))
 
-    return method
+    return _signed(method, build)
 
 
 def async_method(
@@ -45,6 +48,18 @@ def async_method(
     async def method(self: AsyncClientCore, /, *args: P.args, **kwargs: P.kwargs) -> R:
         return await self._call(build(*args, **kwargs))
 
+    return _signed(method, build)
+
+
+def _signed(method: F, build: Callable[..., Operation[Any]]) -> F:
+    """``method`` introspected as ``build``'s parameters after ``self``, returning its operation's result
+    (for help(), IDEs and documentation tools)."""
+    signature = inspect.signature(build)
+    (result,) = typing.get_args(typing.get_type_hints(build)["return"])
+    self = inspect.Parameter("self", inspect.Parameter.POSITIONAL_OR_KEYWORD)
+    method.__signature__ = signature.replace(  # type: ignore[attr-defined]
+        parameters=[self, *signature.parameters.values()], return_annotation=result
+    )
     return method
 
 

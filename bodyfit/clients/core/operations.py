@@ -110,9 +110,9 @@ def model_info() -> Operation[ModelInfo]:
 
 
 def synthesize(
-    shape: Array = None,
+    shape: np.ndarray | None = None,
     coordinates: Coordinates = None,
-    root: Array = None,
+    root: np.ndarray | None = None,
     skeleton: bool = False,
     faces: bool = False,
     batch: int | None = None,
@@ -125,9 +125,9 @@ def synthesize(
 
 def synthesize_file(
     format: str,
-    shape: Array = None,
+    shape: np.ndarray | None = None,
     coordinates: Coordinates = None,
-    root: Array = None,
+    root: np.ndarray | None = None,
     skeleton: bool = False,
 ) -> Operation[bytes]:
     """Posed bodies encoded as ``format`` (npz, ply, obj, glb or json; faces included).
@@ -153,7 +153,7 @@ def fit_scan(
 
 def fit_sequence(
     frames: np.ndarray,
-    weights: Array = None,
+    weights: np.ndarray | None = None,
     progress: ProgressCallback | None = None,
     chunk: int = 64,
 ) -> Operation[SequenceResult]:
@@ -165,7 +165,7 @@ def fit_sequence(
 
 
 def upgrade(
-    sequence: SequenceInput,
+    sequence: str | os.PathLike[str] | bytes,
     progress: ProgressCallback | None = None,
     chunk: int = 256,
     sex: str | None = None,
