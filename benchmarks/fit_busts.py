@@ -28,13 +28,13 @@ from typing import Any
 import numpy as np
 from fit_scans import HELD_OUT_SEED, POINTS, SPREAD, vertex_parts  # benchmarks/ is on sys.path
 
+from benchmarks import corrupt
+from bodyfit.io.scans import sample_surface
 from bodyfit.models.body.anny_posed import posed_anny_bodies
 from bodyfit.models.body.anny_source import AnnySource
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.build_assets import default_cache_dir
-from bodyfit.models.fitting import corrupt
-from bodyfit.models.fitting.scan_fit import ScanFitter
-from bodyfit.models.fitting.scan_io import sample_surface
+from bodyfit.models.fitting.scan.fitter import ScanFitter
 from bodyfit.models.threads import torch_threads
 
 BUST_M = 0.45

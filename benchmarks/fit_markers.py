@@ -42,12 +42,12 @@ from typing import Any
 import numpy as np
 import torch
 
+from bodyfit.io.mocap import MarkerTrial, read_trc, write_trc
 from bodyfit.models.body.model import BodyModel
-from bodyfit.models.fitting.calibration import DofPlan
-from bodyfit.models.fitting.marker_sets import MARKER_SETS
-from bodyfit.models.fitting.marker_solve import marker_errors, solve_ik
-from bodyfit.models.fitting.markers import MarkerFit, fit_markers, observed_positions
-from bodyfit.models.fitting.mocap_io import MarkerTrial, read_trc, write_trc
+from bodyfit.models.fitting.mocap.calibration import DofPlan
+from bodyfit.models.fitting.mocap.fitter import MarkerFit, fit_markers, observed_positions
+from bodyfit.models.fitting.mocap.marker_sets import MARKER_SETS
+from bodyfit.models.fitting.mocap.marker_solve import marker_errors, solve_ik
 from bodyfit.models.skeleton.model import Skeleton
 from bodyfit.models.skeleton.opensim_export import read_mot
 

@@ -34,7 +34,7 @@ from bodyfit.models.body.anny_posed import PosedBodies, posed_anny_bodies
 from bodyfit.models.body.anny_source import ANNY_TO_OURS, AnnySource
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.build_assets import default_cache_dir
-from bodyfit.models.fitting.registered import RegisteredFitter
+from bodyfit.models.fitting.registered.fitter import RegisteredFitter
 
 HELD_OUT_SEED = 4242  # the build uses 20261122 (+1, +2)
 ANNY_BATCH = 8

@@ -42,14 +42,14 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks import corrupt
+from bodyfit.io.scans import sample_surface
 from bodyfit.models.body.anny_posed import posed_anny_bodies
 from bodyfit.models.body.anny_source import AnnySource
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.build_assets import default_cache_dir
-from bodyfit.models.fitting import corrupt
-from bodyfit.models.fitting.scan_config import ScanFitConfig
-from bodyfit.models.fitting.scan_fit import ScanFitter
-from bodyfit.models.fitting.scan_io import sample_surface
+from bodyfit.models.fitting.scan.config import ScanFitConfig
+from bodyfit.models.fitting.scan.fitter import ScanFitter
 from bodyfit.models.threads import torch_threads
 
 HELD_OUT_SEED = 4243  # the build uses 20261122 (+1, +2); the registered benchmark 4242

@@ -5,12 +5,12 @@ What is measured
 ----------------
 * Motion: CMU mocap subject 131 (BVH, 120 fps; ``tests/data/cmu_bvh`` holds the clip the tests use, the
   full trials are in ``../shared/data/cmu_bvh``), retargeted onto our skeleton scaled to each body
-  (:func:`bodyfit.models.fitting.retarget.retarget`), root translation from the BVH.
+  (:func:`bodyfit.models.fitting.retarget.fitter.retarget`), root translation from the BVH.
 * Bodies: adults from anny's shape distribution with a seed the asset build never used
   (``HELD_OUT_SEED``), the skeleton placed inside from their landmarks, posed frame by frame to the
   retargeted coordinates and skinned by anny's own rig (:func:`bodyfit.models.body.anny_posed.pose_anny`):
   ground truth our model never saw.
-* Ours: :func:`bodyfit.models.fitting.sequence.fit_sequence` (one shape, pose per frame, warm starts),
+* Ours: :func:`bodyfit.models.fitting.sequence.fitter.fit_sequence` (one shape, pose per frame, warm starts),
   float32, each chunk's frames on the fitter's two threads and torch on one thread per op (the figure at
   torch's default threads is reported too). Time: wall time of the whole fit including the shape
   keyframes, after one untimed fit of the same clip (a long-lived process's warm allocations).
@@ -35,11 +35,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from bodyfit.io.bvh import CMU_UNITS, BvhMotion, read_bvh
 from bodyfit.models.body.model import BodyModel
-from bodyfit.models.fitting.bvh import CMU_UNITS, BvhMotion, read_bvh
-from bodyfit.models.fitting.registered import RegisteredFitter
-from bodyfit.models.fitting.retarget import retarget
-from bodyfit.models.fitting.sequence import SequenceFitter, jitter
+from bodyfit.models.fitting.registered.fitter import RegisteredFitter
+from bodyfit.models.fitting.retarget.fitter import retarget
+from bodyfit.models.fitting.sequence.fitter import SequenceFitter, jitter
 
 HELD_OUT_SEED = 4242  # the build uses 20261122 (+1, +2)
 ROOT = Path(__file__).resolve().parents[1]

@@ -19,11 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.render import RenderMesh, render, save_png, tile
+from bodyfit.io.scans import load_scan
 from bodyfit.models.body.model import BodyModel
-from bodyfit.models.fitting.scan_fit import ScanFit, ScanFitter
-from bodyfit.models.fitting.scan_io import load_scan
-from bodyfit.models.fitting.smpl_topology import SMPL_TO_BODY, SOURCE_DIR, SOURCES, read_obj
-from bodyfit.models.render import RenderMesh, render, save_png, tile
+from bodyfit.models.fitting.registered.smpl_topology import SMPL_TO_BODY, SOURCE_DIR, SOURCES, read_obj
+from bodyfit.models.fitting.scan.fitter import ScanFit, ScanFitter
 
 KINECT = (
     Path(__file__).resolve().parents[1] / "tests" / "data" / "scans" / "pcl_template_alignment_person.pcd"

@@ -48,12 +48,12 @@ from typing import Any
 import numpy as np
 import torch
 
+from bodyfit.io.smpl import SmplSequence, read_smpl_sequence, smpl_sequence
 from bodyfit.models.body.model import BodyModel
-from bodyfit.models.fitting.retarget import wrap_pelvis
-from bodyfit.models.fitting.sequence import SequenceFitter
-from bodyfit.models.fitting.smpl_topology import SMPL_TO_BODY, smpl_map
-from bodyfit.models.fitting.surface import point_to_surface
-from bodyfit.models.upgrade.smpl_io import SmplSequence, read_smpl_sequence, smpl_sequence
+from bodyfit.models.fitting.common.surface import point_to_surface
+from bodyfit.models.fitting.registered.smpl_topology import SMPL_TO_BODY, smpl_map
+from bodyfit.models.fitting.retarget.fitter import wrap_pelvis
+from bodyfit.models.fitting.sequence.fitter import SequenceFitter
 from bodyfit.models.upgrade.smpl_model import SmplModel, load_smpl_model
 from bodyfit.models.upgrade.upgrade import upgrade_fitter, upgrade_from_rotations, upgrade_with_model
 
@@ -70,7 +70,7 @@ FLEXIONS = tuple(f"{j}_{s}" for j in ("hip_flexion", "knee_angle", "ankle_angle"
 def sequence(model: BodyModel, smpl: SmplModel, quick: bool) -> SmplSequence:
     if quick or not FULL_TRIAL.exists():
         return read_smpl_sequence(DATA / "cmu_131_smpl.npz")
-    from bodyfit.models.upgrade.testdata import build_smpl_like_model, cmu_smpl_sequence
+    from benchmarks.smpl_testdata import build_smpl_like_model, cmu_smpl_sequence
 
     _, fitted = build_smpl_like_model(model)
     return smpl_sequence(cmu_smpl_sequence(model, smpl, fitted, FULL_TRIAL), FULL_TRIAL.name)

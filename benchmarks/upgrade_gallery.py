@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks.render import RenderMesh, render, save_png, tile
+from bodyfit.io.smpl import read_smpl_sequence
 from bodyfit.models.body.model import BodyModel
-from bodyfit.models.fitting.retarget import wrap_pelvis
-from bodyfit.models.fitting.smpl_topology import SMPL_TO_BODY
-from bodyfit.models.render import RenderMesh, render, save_png, tile
-from bodyfit.models.upgrade.smpl_io import read_smpl_sequence
+from bodyfit.models.fitting.registered.smpl_topology import SMPL_TO_BODY
+from bodyfit.models.fitting.retarget.fitter import wrap_pelvis
 from bodyfit.models.upgrade.smpl_model import load_smpl_model
 from bodyfit.models.upgrade.upgrade import (
     UpgradeResult,

@@ -8,13 +8,16 @@ Writes one PNG per pose (front and side view of every body, side by side) and pr
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from bodyfit.models.body.model import BodyModel
-from bodyfit.models.render import RenderMesh, render, save_png, tile
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/ is not installed
+from benchmarks.render import RenderMesh, render, save_png, tile
 
 # Poses by name: DOF name -> degrees (both sides unless the name has a side).
 POSES: dict[str, dict[str, float]] = {

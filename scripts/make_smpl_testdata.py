@@ -6,9 +6,11 @@ Usage: python scripts/make_smpl_testdata.py [--frames 60]
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
-from bodyfit.models.upgrade.testdata import write_test_data
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/ is not installed
+from benchmarks.smpl_testdata import write_test_data
 
 ROOT = Path(__file__).resolve().parents[1]
 

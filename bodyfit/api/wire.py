@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from bodyfit.models.fitting.sequence import SequenceFit
+from bodyfit.models.fitting.sequence.fitter import SequenceFit
 from bodyfit.models.upgrade.upgrade import UpgradeResult
 from bodyfit.service.core import MeshFit
 from bodyfit.service.jobs import Progress

@@ -103,7 +103,7 @@ class LocalUpgrader:
         self.service = BodyService.load(limits=limits, smpl_model=model_path(given) if given else None)
 
     def __call__(self, path: Path) -> Files:
-        from bodyfit.models.upgrade.smpl_io import read_smpl_sequence
+        from bodyfit.io.smpl import read_smpl_sequence
 
         result = self.service.upgrade(read_smpl_sequence(path))
         return self.service.upgrade_files(result, path.stem)

@@ -322,10 +322,10 @@ def upgrade(
     """
     from tqdm import tqdm
 
+    from bodyfit.io.smpl import read_smpl_sequence
     from bodyfit.models.body.model import BodyModel
     from bodyfit.models.errors import BodyfitError
     from bodyfit.models.upgrade.proxy import ShapeHints
-    from bodyfit.models.upgrade.smpl_io import read_smpl_sequence
     from bodyfit.models.upgrade.smpl_model import ENV_VAR, load_smpl_model
     from bodyfit.models.upgrade.upgrade import (
         upgrade_fitter,

@@ -1,5 +1,5 @@
 """``bodyfit fit`` on motion-capture marker trials (.trc, .c3d): coordinates, a scaled OpenSim subject and
-an error report per trial (:func:`bodyfit.models.fitting.markers.fit_markers`)."""
+an error report per trial (:func:`bodyfit.models.fitting.mocap.fitter.fit_markers`)."""
 
 from __future__ import annotations
 
@@ -63,9 +63,9 @@ def fit_marker_trials(
     Raises:
         BodyfitError (unreadable files, marker sets, coordinates), ValueError (bad options), OSError.
     """
+    from bodyfit.io.mocap import lab_rotation, read_markers
     from bodyfit.models.body.model import BodyModel
-    from bodyfit.models.fitting.markers import fit_markers
-    from bodyfit.models.fitting.mocap_io import lab_rotation, read_markers
+    from bodyfit.models.fitting.mocap.fitter import fit_markers
 
     held = parse_static_pose(options.static_pose)
     rotation = lab_rotation(options.up, options.forward)

@@ -40,7 +40,7 @@ def fit_mesh_files(
     import numpy as np
     import trimesh
 
-    from bodyfit.models.fitting.scan_io import load_scan
+    from bodyfit.io.scans import load_scan
     from bodyfit.models.skeleton.opensim_export import write_mot
     from bodyfit.service.core import RAW_SCAN
     from bodyfit.service.jobs import Job, Progress

@@ -18,10 +18,10 @@ from bodyfit.models.body.model import BODY_ASSET, BodyModel
 from bodyfit.models.body.onnx_export import BODY_ONNX, export_body_onnx
 from bodyfit.models.body.onnx_export import INPUTS as ONNX_INPUTS
 from bodyfit.models.body.onnx_export import OUTPUTS as ONNX_OUTPUTS
-from bodyfit.models.fitting.smpl_topology import ASSET as SMPL_ASSET
-from bodyfit.models.fitting.smpl_topology import SOURCE_DIR as SMPL_SOURCE_DIR
-from bodyfit.models.fitting.smpl_topology import SOURCES as SMPL_SOURCES
-from bodyfit.models.fitting.smpl_topology import build_smpl_topology, read_obj
+from bodyfit.models.fitting.registered.smpl_topology import ASSET as SMPL_ASSET
+from bodyfit.models.fitting.registered.smpl_topology import SOURCE_DIR as SMPL_SOURCE_DIR
+from bodyfit.models.fitting.registered.smpl_topology import SOURCES as SMPL_SOURCES
+from bodyfit.models.fitting.registered.smpl_topology import build_smpl_topology, read_obj
 from bodyfit.models.skeleton.bones import BONES_ASSET, build_bone_mesh
 from bodyfit.models.skeleton.build import build_skeleton
 from bodyfit.models.skeleton.docs import skeleton_markdown
@@ -63,8 +63,9 @@ def export_onnx(folder: Path | None = None, model: BodyModel | None = None) -> P
 
 
 def build_smpl_asset(out: Path, model: BodyModel) -> dict[str, Any]:
-    """Write the SMPL-topology correspondence (:mod:`bodyfit.models.fitting.smpl_topology`) for ``model``
-    into ``out``; returns its manifest entry (sources, metrics, seconds)."""
+    """Write the SMPL-topology correspondence
+    (:mod:`~bodyfit.models.fitting.registered.smpl_topology`) for ``model`` into ``out``;
+    returns its manifest entry (sources, metrics, seconds)."""
     t0 = time.perf_counter()
     sources = [read_obj(SMPL_SOURCE_DIR / name) for name in SMPL_SOURCES]
     tmap, metrics = build_smpl_topology(model, sources)

@@ -25,21 +25,21 @@ import torch
 
 from bodyfit.io.errors import FileFormatError, FileLimitError
 from bodyfit.io.npz import FLOAT, ArraySpec, Dim, read_npz
+from bodyfit.io.scans import FORMATS as SCAN_FORMATS
+from bodyfit.io.scans import Scan, load_scan
+from bodyfit.io.smpl import SmplSequence, read_smpl_npz
 from bodyfit.models.assets import read_manifest, verified_asset
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.body.onnx_export import BODY_ONNX
 from bodyfit.models.errors import BodyfitError
-from bodyfit.models.fitting.registered import BodyFit, RegisteredFitter
-from bodyfit.models.fitting.report import FitReport
-from bodyfit.models.fitting.scan_config import ScanFitConfig
-from bodyfit.models.fitting.scan_fit import ScanFitter
-from bodyfit.models.fitting.scan_io import FORMATS as SCAN_FORMATS
-from bodyfit.models.fitting.scan_io import Scan, load_scan
-from bodyfit.models.fitting.sequence import SequenceFit, SequenceFitter
-from bodyfit.models.fitting.smpl_topology import SMPL_VERTICES, fit_smpl_meshes, refine_smpl_fit
+from bodyfit.models.fitting.common.report import FitReport
+from bodyfit.models.fitting.registered.fitter import BodyFit, RegisteredFitter
+from bodyfit.models.fitting.registered.smpl_topology import SMPL_VERTICES, fit_smpl_meshes, refine_smpl_fit
+from bodyfit.models.fitting.scan.config import ScanFitConfig
+from bodyfit.models.fitting.scan.fitter import ScanFitter
+from bodyfit.models.fitting.sequence.fitter import SequenceFit, SequenceFitter
 from bodyfit.models.skeleton.model import RANGE_TOLERANCE
 from bodyfit.models.upgrade.proxy import ShapeHintError, ShapeHints, SmplProxy, load_proxy
-from bodyfit.models.upgrade.smpl_io import SmplSequence, read_smpl_npz
 from bodyfit.models.upgrade.smpl_model import SmplModel, load_smpl_model
 from bodyfit.models.upgrade.upgrade import (
     UpgradeResult,
@@ -405,7 +405,7 @@ class BodyService:
 
     # -- fitting ---------------------------------------------------------------------------------------
     def read_scan(self, data: bytes, format: str, units: str = "auto") -> Scan:
-        """Read an uploaded mesh or point cloud (see :func:`bodyfit.models.fitting.scan_io.load_scan`).
+        """Read an uploaded mesh or point cloud (see :func:`bodyfit.io.scans.load_scan`).
 
         Raises:
             LimitExceededError: larger than ``limits.max_upload_bytes`` or ``limits.max_points``.

@@ -150,7 +150,7 @@ def test_scan_errors_are_invalid_argument_in_the_stream(
 ) -> None:
     """A scan in metres sent as millimetres, and a model-layer input error raised by the fit itself (the
     scan fitter's ScanError): INVALID_ARGUMENT, and the SDK's InvalidRequestError, never INTERNAL."""
-    from bodyfit.models.fitting.scan_io import ScanError
+    from bodyfit.io.scans import ScanError
 
     points = np.random.default_rng(0).uniform([-0.2, 0.0, -0.15], [0.2, 1.7, 0.15], (2000, 3))
     buf = io.BytesIO()

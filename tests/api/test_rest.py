@@ -464,7 +464,7 @@ def test_domain_errors_inside_the_work_are_422_streamed_or_not(
 ) -> None:
     """A model-layer input error raised by the fit itself (the scan fitter's ScanError): a 422 problem, or
     an NDJSON error event with status 422 and kind invalid_argument, never 'Internal error'."""
-    from bodyfit.models.fitting.scan_io import ScanError
+    from bodyfit.io.scans import ScanError
 
     def fit_mesh(*args: object, **kwargs: object) -> None:
         raise ScanError("only 4 points are left after thinning to a 1 cm grid")

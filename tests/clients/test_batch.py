@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from bodyfit.clients.batch import batch_upgrade, find_sequences
-from bodyfit.models.upgrade.smpl_io import read_smpl_sequence
+from bodyfit.io.smpl import read_smpl_sequence
 from bodyfit.service.core import BodyService
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "smpl_format"

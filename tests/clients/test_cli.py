@@ -159,7 +159,7 @@ def test_fit_a_sphere_is_a_low_confidence_scan(tmp_path: Path) -> None:
 def test_fit_a_real_head_and_shoulders_scan(tmp_path: Path) -> None:
     """The real Kinect capture cropped to the person (tests/data/scans) is fitted as a head and shoulders,
     and the command's summary and fit.json say so."""
-    from bodyfit.models.fitting.scan_io import load_scan
+    from bodyfit.io.scans import load_scan
 
     scan = load_scan(
         DATA / "scans" / "pcl_template_alignment_person.pcd",
@@ -181,7 +181,7 @@ def test_fit_an_smpl_topology_mesh(tmp_path: Path) -> None:
     CC BY woman, in millimetres)."""
     import trimesh
 
-    from bodyfit.models.fitting.smpl_topology import SOURCE_DIR, read_obj
+    from bodyfit.models.fitting.registered.smpl_topology import SOURCE_DIR, read_obj
 
     verts, faces = read_obj(SOURCE_DIR / "human_woman.obj")
     path = tmp_path / "woman.ply"

@@ -92,7 +92,7 @@ def test_input_errors_found_by_the_fit_are_invalid_request_errors(
     """The SDK streams fits: a scan read in the wrong units (refused before the stream) and a model-layer
     input error raised by the fit itself (an NDJSON error event) both raise InvalidRequestError, not
     ServerError."""
-    from bodyfit.models.fitting.scan_io import ScanError
+    from bodyfit.io.scans import ScanError
 
     points = np.random.default_rng(0).uniform([-0.2, 0.0, -0.15], [0.2, 1.7, 0.15], (2000, 3))
     with pytest.raises(InvalidRequestError, match="units=mm") as bad:

@@ -13,8 +13,8 @@ import pytest
 import trimesh
 
 from bodyfit.io.errors import FileLimitError
-from bodyfit.models.fitting.pcd import LZF_MAX_RATIO, lzf_decompress, read_pcd
-from bodyfit.models.fitting.scan_io import ScanError, load_scan
+from bodyfit.io.pcd import LZF_MAX_RATIO, lzf_decompress, read_pcd
+from bodyfit.io.scans import ScanError, load_scan
 from tests.io.checks import peak_memory, refused
 
 

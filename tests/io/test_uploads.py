@@ -15,7 +15,7 @@ from bodyfit.api.settings import ServiceSettings
 from bodyfit.clients.errors import ServerError
 from bodyfit.clients.results import Synthesis
 from bodyfit.io.errors import FileLimitError
-from bodyfit.models.upgrade.smpl_io import SmplSequenceError, read_smpl_npz, read_smpl_sequence
+from bodyfit.io.smpl import SmplSequenceError, read_smpl_npz, read_smpl_sequence
 from bodyfit.service.core import BodyService
 from bodyfit.service.errors import InvalidInputError, LimitExceededError
 from tests.io.checks import MB, archive, npy, patch_members, peak_memory, refused, savez, savez_compressed

@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from bodyfit.models.body.anny_posed import random_poses
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.errors import NonFiniteError, ShapeError
-from bodyfit.models.fitting.registered import (
+from bodyfit.models.fitting.registered.fitter import (
     BodyFit,
     RegisteredFitConfig,
     RegisteredFitter,
@@ -225,7 +225,7 @@ def test_building_a_fitter_does_not_import_the_compiler() -> None:
     code = (
         "import sys\n"
         "from bodyfit.models.body.model import BodyModel\n"
-        "from bodyfit.models.fitting.registered import RegisteredFitter\n"
+        "from bodyfit.models.fitting.registered.fitter import RegisteredFitter\n"
         "RegisteredFitter(BodyModel.load())\n"
         "print('torch._dynamo' in sys.modules)\n"
     )

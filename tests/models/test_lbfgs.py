@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from bodyfit.models.fitting.lbfgs import batched_lbfgs
+from bodyfit.models.fitting.common.lbfgs import batched_lbfgs
 
 
 def rosenbrock(z: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:

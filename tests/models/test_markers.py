@@ -10,28 +10,28 @@ import numpy as np
 import pytest
 import torch
 
+from bodyfit.io.mocap import (
+    MarkerTrial,
+    read_trc,
+)
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.errors import UnknownCoordinateError
-from bodyfit.models.fitting.calibration import DofPlan, moved_bodies, virtual_markers
-from bodyfit.models.fitting.marker_ik import (
+from bodyfit.models.fitting.mocap.calibration import DofPlan, moved_bodies, virtual_markers
+from bodyfit.models.fitting.mocap.fitter import fit_markers
+from bodyfit.models.fitting.mocap.marker_ik import (
     MarkerChain,
     levenberg_marquardt,
     marker_jacobian,
     marker_positions,
 )
-from bodyfit.models.fitting.marker_sets import (
+from bodyfit.models.fitting.mocap.marker_sets import (
     GAIT2392,
     RAJAGOPAL,
     RAJAGOPAL_MARKERS,
     MarkerSetError,
     choose_marker_set,
 )
-from bodyfit.models.fitting.marker_solve import solve_ik
-from bodyfit.models.fitting.markers import fit_markers
-from bodyfit.models.fitting.mocap_io import (
-    MarkerTrial,
-    read_trc,
-)
+from bodyfit.models.fitting.mocap.marker_solve import solve_ik
 from bodyfit.models.skeleton import Skeleton
 from bodyfit.models.skeleton.model import twin_name
 from bodyfit.models.skeleton.opensim_export import read_mot

@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 import torch
 
+from bodyfit.io.bvh import CMU_UNITS, read_bvh
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.errors import NonFiniteError, ShapeError
-from bodyfit.models.fitting.bvh import CMU_UNITS, read_bvh
-from bodyfit.models.fitting.offsets import OffsetConfig, fit_rest_offsets
-from bodyfit.models.fitting.registered import RegisteredFitter
-from bodyfit.models.fitting.retarget import retarget
-from bodyfit.models.fitting.sequence import SequenceConfig, SequenceFitter
+from bodyfit.models.fitting.registered.fitter import RegisteredFitter
+from bodyfit.models.fitting.retarget.fitter import retarget
+from bodyfit.models.fitting.sequence.fitter import SequenceConfig, SequenceFitter
+from bodyfit.models.fitting.sequence.offsets import OffsetConfig, fit_rest_offsets
 from tests.conftest import random_pose
 
 CLIP = Path(__file__).resolve().parents[1] / "data" / "cmu_bvh" / "cmu_131_01_clip.bvh"

@@ -15,28 +15,28 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from benchmarks import corrupt
+from bodyfit.io.scans import ScanError, load_scan, sample_surface, scan_from_arrays
 from bodyfit.models.body.anny_posed import random_poses
 from bodyfit.models.body.model import BodyModel
-from bodyfit.models.fitting import corrupt
-from bodyfit.models.fitting.nonrigid import NonRigidConfig, refine_nonrigid
-from bodyfit.models.fitting.registered import RegisteredFitter, Stage, farthest_point_subset
-from bodyfit.models.fitting.scan_config import DEFAULT_BRANCHES, DEFAULT_PHASES, ScanFitConfig
-from bodyfit.models.fitting.scan_fit import (
-    REACH_MM,
-    ScanFit,
-    ScanFitter,
-    clean_points,
-    orientation_candidates,
-)
-from bodyfit.models.fitting.scan_io import ScanError, load_scan, sample_surface, scan_from_arrays
-from bodyfit.models.fitting.smpl_topology import SMPL_TO_BODY, SOURCE_DIR, read_obj
-from bodyfit.models.fitting.surface import (
+from bodyfit.models.fitting.common.nonrigid import NonRigidConfig, refine_nonrigid
+from bodyfit.models.fitting.common.surface import (
     coarse_faces,
     laplacian,
     point_to_surface,
     point_triangle_distance,
     vertex_faces,
     vertex_normals,
+)
+from bodyfit.models.fitting.registered.fitter import RegisteredFitter, Stage, farthest_point_subset
+from bodyfit.models.fitting.registered.smpl_topology import SMPL_TO_BODY, SOURCE_DIR, read_obj
+from bodyfit.models.fitting.scan.config import DEFAULT_BRANCHES, DEFAULT_PHASES, ScanFitConfig
+from bodyfit.models.fitting.scan.fitter import (
+    REACH_MM,
+    ScanFit,
+    ScanFitter,
+    clean_points,
+    orientation_candidates,
 )
 
 KINECT = Path(__file__).resolve().parents[1] / "data" / "scans" / "pcl_template_alignment_person.pcd"

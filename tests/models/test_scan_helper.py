@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 import torch
 
+from bodyfit.io.scans import sample_surface
 from bodyfit.models.body.anny_posed import random_poses
 from bodyfit.models.body.model import BodyModel
-from bodyfit.models.fitting.scan_config import DEFAULT_PHASES, ScanFitConfig
-from bodyfit.models.fitting.scan_fit import ScanFitter
-from bodyfit.models.fitting.scan_io import sample_surface
+from bodyfit.models.fitting.scan.config import DEFAULT_PHASES, ScanFitConfig
+from bodyfit.models.fitting.scan.fitter import ScanFitter
 
 BRANCHED = ("shape", "limbs", "fine")
 HELPER_START_SECONDS = 180.0  # it starts in about 5 s; the suite's other worker may hold the other core
@@ -95,8 +95,8 @@ def _run_script(tmp_path: Path, *lines: str) -> subprocess.CompletedProcess[str]
     script = tmp_path / "script.py"
     script.write_text(
         "from bodyfit.models.body.model import BodyModel\n"
-        "from bodyfit.models.fitting.scan_config import ScanFitConfig\n"
-        "from bodyfit.models.fitting.scan_fit import ScanFitter\n"
+        "from bodyfit.models.fitting.scan.config import ScanFitConfig\n"
+        "from bodyfit.models.fitting.scan.fitter import ScanFitter\n"
         "fitter = ScanFitter(BodyModel.load(), ScanFitConfig(processes=2))\n"
         + "".join(f"{x}\n" for x in lines)
     )

@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 import torch
 
+from bodyfit.io.scans import sample_surface
 from bodyfit.models.body.model import BodyModel
-from bodyfit.models.fitting.limb_search import Hypotheses, distinct
-from bodyfit.models.fitting.scan_config import DEFAULT_BRANCHES, DEFAULT_PHASES, ScanFitConfig
-from bodyfit.models.fitting.scan_fit import STRAIGHTENED, ScanFitter
-from bodyfit.models.fitting.scan_io import sample_surface
+from bodyfit.models.fitting.scan.config import DEFAULT_BRANCHES, DEFAULT_PHASES, ScanFitConfig
+from bodyfit.models.fitting.scan.fitter import STRAIGHTENED, ScanFitter
+from bodyfit.models.fitting.scan.limb_search import Hypotheses, distinct
 from bodyfit.models.rotations import rotation_angle_between
 
 # grid values of DISTAL_SEARCH (10% in from each range's limits), in degrees

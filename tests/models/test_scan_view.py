@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
+from benchmarks import corrupt
+from bodyfit.io.scans import sample_surface
 from bodyfit.models.body.model import BodyModel
-from bodyfit.models.fitting import corrupt
-from bodyfit.models.fitting.scan_io import sample_surface
-from bodyfit.models.fitting.view import Silhouette, view_direction
+from bodyfit.models.fitting.scan.view import Silhouette, view_direction
 from tests.conftest import random_pose
 
 

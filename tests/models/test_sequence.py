@@ -12,14 +12,14 @@ import numpy as np
 import pytest
 import torch
 
+from bodyfit.io.bvh import CMU_UNITS, BvhMotion, read_bvh
+from bodyfit.io.mocap import MocapFormatError
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.errors import NonFiniteError, ShapeError
-from bodyfit.models.fitting.bvh import CMU_UNITS, BvhMotion, read_bvh
-from bodyfit.models.fitting.mocap_io import MocapFormatError
-from bodyfit.models.fitting.registered import RegisteredFitter, Stage
-from bodyfit.models.fitting.report import DistanceStats
-from bodyfit.models.fitting.retarget import Retargeted, retarget, wrap_pelvis
-from bodyfit.models.fitting.sequence import (
+from bodyfit.models.fitting.common.report import DistanceStats
+from bodyfit.models.fitting.registered.fitter import RegisteredFitter, Stage
+from bodyfit.models.fitting.retarget.fitter import Retargeted, retarget, wrap_pelvis
+from bodyfit.models.fitting.sequence.fitter import (
     JitterSum,
     SequenceConfig,
     SequenceFit,

@@ -9,9 +9,9 @@ from scipy.spatial.transform import Rotation
 
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.errors import NonFiniteError, ShapeError
-from bodyfit.models.fitting.registered import RegisteredFitter
-from bodyfit.models.fitting.scan_fit import ScanFitter
-from bodyfit.models.fitting.smpl_topology import (
+from bodyfit.models.fitting.common.surface import point_to_surface
+from bodyfit.models.fitting.registered.fitter import RegisteredFitter
+from bodyfit.models.fitting.registered.smpl_topology import (
     SMPL_TO_BODY,
     SMPL_VERTICES,
     SOURCE_DIR,
@@ -21,7 +21,7 @@ from bodyfit.models.fitting.smpl_topology import (
     refine_smpl_fit,
     smpl_map,
 )
-from bodyfit.models.fitting.surface import point_to_surface
+from bodyfit.models.fitting.scan.fitter import ScanFitter
 
 # Measured when the asset was built (BENCHMARKS.md): 10.4 / 9.4 mm mean SMPL-vertex-to-surface distance.
 MEAN_MM = 12.0

@@ -15,14 +15,14 @@ import pytest
 import torch
 from scipy import sparse
 
+from bodyfit.io.smpl import SmplSequence, SmplSequenceError, read_smpl_sequence, smpl_sequence
 from bodyfit.models.body.model import BodyModel
-from bodyfit.models.fitting.registered import RegisteredFitter
-from bodyfit.models.fitting.retarget import wrap_pelvis
-from bodyfit.models.fitting.sequence import SequenceFitter
-from bodyfit.models.fitting.smpl_topology import SMPL_TO_BODY
-from bodyfit.models.fitting.surface import point_to_surface
+from bodyfit.models.fitting.common.surface import point_to_surface
+from bodyfit.models.fitting.registered.fitter import RegisteredFitter
+from bodyfit.models.fitting.registered.smpl_topology import SMPL_TO_BODY
+from bodyfit.models.fitting.retarget.fitter import wrap_pelvis
+from bodyfit.models.fitting.sequence.fitter import SequenceFitter
 from bodyfit.models.upgrade.proxy import ShapeHintError, ShapeHints, SmplProxy, load_proxy
-from bodyfit.models.upgrade.smpl_io import SmplSequence, SmplSequenceError, read_smpl_sequence, smpl_sequence
 from bodyfit.models.upgrade.smpl_model import SmplModel, SmplModelError, load_smpl_model, rodrigues
 from bodyfit.models.upgrade.upgrade import (
     UPGRADE_SEQUENCE,

@@ -113,7 +113,7 @@ def test_a_scan_helper_process_gives_the_services_raw_scan_fit(body_service: Bod
     """``scan_processes=2`` (BODYFIT_SCAN_PROCESSES) gives the raw-scan fitter a helper process, and a raw
     scan's fit through the service is the one the service without it gives: both run with torch on the one
     thread the service set once at load, and no fit changes that setting."""
-    from bodyfit.models.fitting.scan_io import sample_surface
+    from bodyfit.io.scans import sample_surface
     from bodyfit.service.limits import Limits
 
     q = body_service.model.skeleton.coordinates({"knee_angle_r": 0.8, "elbow_flex_l": 1.0})
@@ -146,7 +146,7 @@ def test_a_scan_helper_process_gives_the_services_raw_scan_fit(body_service: Bod
 def test_a_head_and_shoulders_scan_reports_its_own_steps(body_service: BodyService) -> None:
     """A raw scan smaller than a body is fitted as a head and shoulders, in fewer steps than a whole body:
     the progress says so as soon as the fit knows and counts to that total (it used to jump to done)."""
-    from bodyfit.models.fitting.scan_io import sample_surface
+    from bodyfit.io.scans import sample_surface
 
     body = body_service.synthesize(SynthRequest()).vertices[0]
     points, _ = sample_surface(body, body_service.model.faces, 30_000, seed=4)
@@ -313,7 +313,7 @@ def test_twenty_thousand_zero_frames_are_refused_at_once(body_service: BodyServi
 def test_meshes_are_checked_as_bodies_and_scans_for_their_units(body_service: BodyService) -> None:
     """A mesh in our topology (or SMPL's) is one whole body; a scan in metres read as millimetres spans 2 mm
     and says to send units=m: both before any fit."""
-    from bodyfit.models.fitting.scan_io import sample_surface
+    from bodyfit.io.scans import sample_surface
 
     body = _bodies(body_service, 1)[0]
     for points, units, field, words in (
@@ -337,7 +337,7 @@ def test_domain_errors_inside_a_fit_are_invalid_input(
 ) -> None:
     """A model-layer input error raised in the middle of a fit (here the scan fitter's ScanError) is the
     client's: InvalidInputError (422 / INVALID_ARGUMENT), never an internal error."""
-    from bodyfit.models.fitting.scan_io import ScanError, sample_surface
+    from bodyfit.io.scans import ScanError, sample_surface
     from bodyfit.service.errors import as_service_error
 
     def fit(*args: object, **kwargs: object) -> None:

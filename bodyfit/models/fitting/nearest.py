@@ -1,24 +1,11 @@
-"""Nearest-neighbour queries for the fitting loops (pykdtree: 2-3x faster than scipy's cKDTree to build and
-query at our sizes, 10^3-10^5 points)."""
+"""Deprecated: moved to :mod:`bodyfit.models.fitting.common.nearest`;
+this path will be removed in the next release. Its public names are re-exported from there.
+"""
 
-from __future__ import annotations
+from bodyfit.models.fitting.common.nearest import (
+    PointTree,
+)
 
-import numpy as np
-from pykdtree.kdtree import KDTree
-
-
-class PointTree:
-    """A kd-tree of points (N, 3) (float64)."""
-
-    def __init__(self, points: np.ndarray) -> None:
-        self._tree = KDTree(np.ascontiguousarray(points, np.float64))
-
-    def query(
-        self, queries: np.ndarray, upper: float | None = None, k: int = 1
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Each query point's (M, 3) nearest tree point: distances (M,) and indices (M,) int64, or the ``k``
-        nearest (M, k) when k > 1. Beyond ``upper`` the distance is inf and the index the number of tree
-        points."""
-        queries = np.ascontiguousarray(queries, np.float64)
-        d, i = self._tree.query(queries, k=k, distance_upper_bound=upper)
-        return d, i.astype(np.int64)
+__all__ = [
+    "PointTree",
+]

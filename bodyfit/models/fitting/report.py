@@ -1,97 +1,15 @@
-"""The error report every fit returns (DESIGN.md section 6)."""
+"""Deprecated: moved to :mod:`bodyfit.models.fitting.common.report`;
+this path will be removed in the next release. Its public names are re-exported from there.
+"""
 
-from __future__ import annotations
+from bodyfit.models.fitting.common.report import (
+    DistanceStats,
+    FitReport,
+    count_limit_violations,
+)
 
-from dataclasses import asdict, dataclass, field
-from typing import Any
-
-import numpy as np
-
-
-@dataclass(frozen=True)
-class DistanceStats:
-    """Distances in millimetres."""
-
-    mean: float
-    median: float
-    p95: float
-    max: float
-
-    @classmethod
-    def of(cls, metres: np.ndarray) -> DistanceStats:
-        """Statistics of distances given in metres (any shape; NaN entries ignored)."""
-        d = np.asarray(metres, np.float64).ravel() * 1000.0
-        d = d[np.isfinite(d)]
-        if d.size == 0:
-            return cls(float("nan"), float("nan"), float("nan"), float("nan"))
-        return cls(float(d.mean()), float(np.median(d)), float(np.percentile(d, 95)), float(d.max()))
-
-    @classmethod
-    def of_rows(cls, metres: np.ndarray, keep: np.ndarray) -> list[DistanceStats]:
-        """One :meth:`of` per row of distances (k, N) metres, over the entries where ``keep`` (k, N) is
-        true; all rows at once when every row keeps the same entries and they are finite."""
-        columns = keep[0]
-        chosen = np.asarray(metres)
-        if not columns.all():
-            chosen = chosen[:, columns]
-        if (keep == columns).all() and np.isfinite(chosen).all() and chosen.shape[1] > 0:
-            # in the distances' own float type (float32: sub-micrometre at this scale), then in mm
-            mean, peak = chosen.mean(axis=1), chosen.max(axis=1)
-            median, p95 = np.percentile(chosen, [50, 95], axis=1)
-            rows = zip(mean, median, p95, peak, strict=True)
-            return [cls(*(float(x) * 1000.0 for x in row)) for row in rows]
-        return [cls.of(row[k]) for row, k in zip(metres, keep, strict=True)]
-
-
-@dataclass(frozen=True)
-class FitReport:
-    """What a fit reports about itself.
-
-    Attributes:
-        distances: per-vertex / per-point / per-marker distances of the result to the input (mm).
-        limit_violations: number of coordinate values outside their joint limits (always 0 when the fit
-            worked; counted, not assumed).
-        iterations: optimiser iterations over all stages.
-        seconds: wall time of the fit.
-        confident: False when the result should not be trusted; ``reasons`` says why.
-        reasons: human-readable causes of low confidence (empty when confident).
-        extra: fit-specific numbers (e.g. per-stage losses, scan coverage).
-    """
-
-    distances: DistanceStats
-    limit_violations: int
-    iterations: int
-    seconds: float
-    confident: bool
-    reasons: tuple[str, ...] = ()
-    extra: dict[str, Any] = field(default_factory=dict)
-
-    @classmethod
-    def judged(
-        cls,
-        distances: DistanceStats,
-        q: np.ndarray,
-        ranges: np.ndarray,
-        iterations: int,
-        seconds: float,
-        reasons: list[str],
-        extra: dict[str, Any] | None = None,
-    ) -> FitReport:
-        """A report whose confidence follows from ``reasons`` (causes found by the fitter) plus the
-        joint-limit violations of q (..., n_dof) against ``ranges`` (n_dof, 2), counted here."""
-        violations = count_limit_violations(q, ranges)
-        if violations:
-            reasons = [*reasons, f"{violations} coordinate values outside their joint limits"]
-        return cls(distances, violations, iterations, seconds, not reasons, tuple(reasons), extra or {})
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dictionary (distances in mm)."""
-        out = asdict(self)
-        out["reasons"] = list(self.reasons)
-        return out
-
-
-def count_limit_violations(q: np.ndarray, ranges: np.ndarray, tolerance: float = 1e-9) -> int:
-    """Number of entries of q (..., n_dof) outside ``ranges`` (n_dof, 2)."""
-    q = np.asarray(q, np.float64)
-    return int(((q < ranges[:, 0] - tolerance) | (q > ranges[:, 1] + tolerance)).sum())
+__all__ = [
+    "DistanceStats",
+    "FitReport",
+    "count_limit_violations",
+]

@@ -24,15 +24,15 @@ import numpy as np
 import torch
 from scipy import sparse
 
+from bodyfit.io.smpl import SmplSequence
 from bodyfit.models.body.model import BodyModel
-from bodyfit.models.fitting.offsets import OffsetConfig
-from bodyfit.models.fitting.registered import RegisteredFitter
-from bodyfit.models.fitting.report import count_limit_violations
-from bodyfit.models.fitting.sequence import FRAME_STAGES, SequenceConfig, SequenceFit, SequenceFitter
-from bodyfit.models.fitting.smpl_topology import SMPL_TO_BODY, SMPL_VERTICES, TopologyMap, smpl_map
+from bodyfit.models.fitting.common.report import count_limit_violations
+from bodyfit.models.fitting.registered.fitter import RegisteredFitter
+from bodyfit.models.fitting.registered.smpl_topology import SMPL_TO_BODY, SMPL_VERTICES, TopologyMap, smpl_map
+from bodyfit.models.fitting.sequence.fitter import FRAME_STAGES, SequenceConfig, SequenceFit, SequenceFitter
+from bodyfit.models.fitting.sequence.offsets import OffsetConfig
 from bodyfit.models.skeleton.opensim_export import write_mot, write_osim
 from bodyfit.models.upgrade.proxy import ShapeHints, SmplProxy, load_proxy
-from bodyfit.models.upgrade.smpl_io import SmplSequence
 from bodyfit.models.upgrade.smpl_model import SmplModel, SmplModelError
 
 UPGRADE_OFFSETS = OffsetConfig(smoothness=0.25)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from bodyfit.models.render import RenderMesh, render, save_png, tile
+from benchmarks.render import RenderMesh, render, save_png, tile
 
 RED = (1.0, 0.0, 0.0)
 GREEN = (0.0, 1.0, 0.0)

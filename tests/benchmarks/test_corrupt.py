@@ -11,7 +11,7 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import pdist
 
-from bodyfit.models.fitting.corrupt import (
+from benchmarks.corrupt import (
     add_noise,
     add_outliers,
     clothing_offset,
@@ -19,8 +19,8 @@ from bodyfit.models.fitting.corrupt import (
     random_rigid,
     remove_patches,
 )
-from bodyfit.models.fitting.scan_io import sample_surface
-from bodyfit.models.fitting.surface import NormalOperators, vertex_normals
+from bodyfit.io.scans import sample_surface
+from bodyfit.models.fitting.common.surface import NormalOperators, vertex_normals
 
 
 @pytest.fixture(scope="module")

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bodyfit.models.fitting.bvh import CMU_UNITS, parse_bvh, read_bvh
-from bodyfit.models.fitting.mocap_io import MocapFormatError
+from bodyfit.io.bvh import CMU_UNITS, parse_bvh, read_bvh
+from bodyfit.io.mocap import MocapFormatError
 
 CLIP = Path(__file__).resolve().parents[1] / "data" / "cmu_bvh" / "cmu_131_01_clip.bvh"
 

@@ -36,8 +36,8 @@ import torch
 
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.errors import ShapeError
-from bodyfit.models.fitting.offsets import OffsetConfig, fit_rest_offsets
-from bodyfit.models.fitting.registered import (
+from bodyfit.models.fitting.common.report import DistanceStats, FitReport
+from bodyfit.models.fitting.registered.fitter import (
     CONFIDENT_MEAN_MM,
     BodyFit,
     RegisteredFitConfig,
@@ -45,8 +45,8 @@ from bodyfit.models.fitting.registered import (
     Stage,
     vertex_term,
 )
-from bodyfit.models.fitting.report import DistanceStats, FitReport
-from bodyfit.models.fitting.retarget import unwrap_pelvis, wrap_pelvis
+from bodyfit.models.fitting.retarget.fitter import unwrap_pelvis, wrap_pelvis
+from bodyfit.models.fitting.sequence.offsets import OffsetConfig, fit_rest_offsets
 from bodyfit.models.rotations import kabsch, zxy_angles
 from bodyfit.models.skeleton.model import PELVIS_ROTATIONS
 
@@ -68,7 +68,7 @@ class SequenceConfig:
     blend: weight b of the centred three-frame blend of the joint coordinates (all but the pelvis's) after
     the per-frame fits, ``q[t] <- (1 - 2 b) q[t] + b (q[t-1] + q[t+1])``: symmetric in time, so it adds
     no lag; a convex combination, so it stays within the limits; 0 turns it off;
-    offsets: fit the person's rest-pose offsets (:mod:`~bodyfit.models.fitting.offsets`: surface detail
+    offsets: fit the person's rest-pose offsets (:mod:`.offsets`: surface detail
     beyond the shape space) on the shape keyframes and fit every pose with them; None: shape space only;
     workers: threads a chunk's pose fits are split over (frames are independent problems)."""
 

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bodyfit.models.fitting.c3d import _dec_to_ieee
-from bodyfit.models.fitting.mocap_io import (
+from bodyfit.io.c3d import _dec_to_ieee
+from bodyfit.io.mocap import (
     MarkerTrial,
     MocapFormatError,
     lab_rotation,

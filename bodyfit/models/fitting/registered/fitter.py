@@ -23,8 +23,8 @@ from scipy.spatial import cKDTree
 
 from bodyfit.models.body.model import BodyDecoder, BodyModel
 from bodyfit.models.errors import ShapeError
-from bodyfit.models.fitting.lbfgs import batched_lbfgs
-from bodyfit.models.fitting.report import DistanceStats, FitReport
+from bodyfit.models.fitting.common.lbfgs import batched_lbfgs
+from bodyfit.models.fitting.common.report import DistanceStats, FitReport
 from bodyfit.models.rotations import kabsch, zxy_angles
 from bodyfit.models.skeleton.model import PELVIS_ROTATIONS, check_finite
 

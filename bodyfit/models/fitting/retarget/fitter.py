@@ -26,10 +26,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from bodyfit.io.bvh import BvhMotion
+from bodyfit.io.mocap import MocapFormatError
 from bodyfit.models.errors import ShapeError
-from bodyfit.models.fitting.bvh import BvhMotion
-from bodyfit.models.fitting.lbfgs import batched_lbfgs
-from bodyfit.models.fitting.mocap_io import MocapFormatError
+from bodyfit.models.fitting.common.lbfgs import batched_lbfgs
 from bodyfit.models.rotations import zxy_angles
 from bodyfit.models.skeleton.model import PELVIS_ROTATIONS, Skeleton
 
@@ -244,7 +244,7 @@ def retarget(
     """Retarget a BVH motion onto our skeleton.
 
     Args:
-        motion: a parsed BVH (see :func:`~bodyfit.models.fitting.bvh.read_bvh`; units and axes set there).
+        motion: a parsed BVH (see :func:`~bodyfit.io.bvh.read_bvh`; units and axes set there).
         skeleton: ours.
         scales: (n_seg, 3) our segment scales (the body the motion is for), default ones.
         seg_map: which BVH joints drive which of our bodies (:data:`CMU_MAP`).

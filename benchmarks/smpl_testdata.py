@@ -21,12 +21,17 @@ from scipy.optimize import nnls
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from bodyfit.io.bvh import CMU_UNITS, read_bvh
 from bodyfit.models.body.model import BodyModel
-from bodyfit.models.fitting.bvh import CMU_UNITS, read_bvh
-from bodyfit.models.fitting.registered import RegisteredFitter
-from bodyfit.models.fitting.retarget import retarget
-from bodyfit.models.fitting.smpl_topology import SMPL_TO_BODY, SOURCE_DIR, fit_smpl_meshes, read_obj
-from bodyfit.models.fitting.surface import closest_on_surface, vertex_normals
+from bodyfit.models.fitting.common.surface import closest_on_surface, vertex_normals
+from bodyfit.models.fitting.registered.fitter import RegisteredFitter
+from bodyfit.models.fitting.registered.smpl_topology import (
+    SMPL_TO_BODY,
+    SOURCE_DIR,
+    fit_smpl_meshes,
+    read_obj,
+)
+from bodyfit.models.fitting.retarget.fitter import retarget
 from bodyfit.models.upgrade.smpl_joints import SMPL_JOINTS, SMPL_PARENTS, smpl_joint_locations
 from bodyfit.models.upgrade.smpl_model import SmplModel
 

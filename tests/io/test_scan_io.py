@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from bodyfit.models.fitting.pcd import lzf_decompress
-from bodyfit.models.fitting.scan_io import (
+from bodyfit.io.pcd import lzf_decompress
+from bodyfit.io.scans import (
     MIN_POINTS,
     Scan,
     ScanError,

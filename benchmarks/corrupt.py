@@ -18,7 +18,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from bodyfit.models.fitting.surface import vertex_normals
+from bodyfit.models.fitting.common.surface import vertex_normals
 
 _NEAR = 1e-3  # m: triangles closer to the camera plane than this are dropped
 _CHUNK = 2_000_000  # candidate pixel tests per vectorised block

@@ -1,0 +1,325 @@
+"""Motion capture markers -> our skeleton's coordinates, per frame, within the joint limits.
+
+``fit_markers(trial, static)`` is the public entry point:
+
+1. pick the marker protocol (:mod:`.marker_sets`: OpenSim gait2392 or Rajagopal2015, or by name overlap)
+   and put its virtual markers on our template (:func:`.calibration.virtual_markers`);
+2. calibrate the subject (:mod:`.subject`): from the static trial (scales and standing pose from the
+   anatomical markers, then every marker placed where the static trial saw it, as OpenSim's ScaleTool and
+   MarkerPlacer do) or, without one, from K frames of the motion itself (scales, technical marker
+   locations and those frames' poses together);
+3. inverse kinematics of all frames at once (:mod:`.marker_solve`);
+4. an error report (:class:`~bodyfit.models.fitting.common.report.FitReport`): marker distances,
+   joint-limit violations, iterations, time, and confidence with reasons.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from bodyfit.io.mocap import MarkerTrial
+from bodyfit.models.body.model import BodyModel
+from bodyfit.models.fitting.common.report import DistanceStats, FitReport
+from bodyfit.models.fitting.mocap.calibration import (
+    DofPlan,
+    ScaleModel,
+    VirtualMarkers,
+    moved_bodies,
+    place_markers,
+    virtual_markers,
+)
+from bodyfit.models.fitting.mocap.marker_sets import MarkerSetError, choose_marker_set, normalise_name
+from bodyfit.models.fitting.mocap.marker_solve import solve_ik
+from bodyfit.models.fitting.mocap.subject import Calibration, calibrate
+from bodyfit.models.skeleton.model import Skeleton
+from bodyfit.models.skeleton.opensim_export import write_mot, write_osim
+from bodyfit.models.skeleton.spec import SkeletonSpec
+
+MIN_VISIBLE = 6  # markers a frame needs for a trustworthy pose
+MAX_MEAN_ERROR = 0.02  # m: a mean marker error above this makes the fit not confident
+CALIBRATION_FRAMES = 24  # frames of the motion used when there is no static trial
+
+
+@dataclass(frozen=True)
+class MarkerFit:
+    """The result of :func:`fit_markers`.
+
+    Attributes:
+        coordinates: (T, n_dof) radians / metres in ``dof_names`` order, inside the joint limits.
+        root: (T, 3) pelvis translation (m). times: (T,) s.
+        scales: (n_seg, 3) segment scale factors of the subject.
+        markers: the calibrated virtual markers (body-frame locations before scaling).
+        marker_errors: (T, M) distance of each model marker to its measurement (m; NaN where missing),
+            markers in ``markers.names`` order.
+        static_coordinates: (n_dof,) the standing pose of the static trial, or None.
+        marker_set: the protocol used. dof_names: coordinate names. report: the error report.
+    """
+
+    coordinates: np.ndarray
+    root: np.ndarray
+    times: np.ndarray
+    scales: np.ndarray
+    markers: VirtualMarkers
+    marker_errors: np.ndarray
+    static_coordinates: np.ndarray | None
+    marker_set: str
+    dof_names: list[str]
+    report: FitReport
+
+    def write(self, folder: str | Path, spec: SkeletonSpec, name: str = "subject") -> dict[str, Path]:
+        """Write ``<name>.osim`` (scaled skeleton with the calibrated MarkerSet) and ``<name>.mot``."""
+        out = Path(folder)
+        out.mkdir(parents=True, exist_ok=True)
+        marker_rows = list(zip(self.markers.names, self.markers.bodies, self.markers.local))
+        osim = write_osim(out / f"{name}.osim", spec, self.scales, name, marker_rows)
+        rate = 1.0 / float(np.median(np.diff(self.times))) if len(self.times) > 1 else 60.0
+        mot = write_mot(out / f"{name}.mot", spec, self.coordinates, self.root, self.times, rate, name)
+        return {"osim": osim, "mot": mot}
+
+
+def observed_positions(trial: MarkerTrial, names: list[str]) -> np.ndarray:
+    """Positions (T, M, 3) of the markers ``names`` (set names; trial names are matched after
+    :func:`~.marker_sets.normalise_name`) in a trial, NaN for markers it does not have."""
+    index = {normalise_name(n): i for i, n in enumerate(trial.names)}
+    out = np.full((trial.n_frames, len(names), 3), np.nan)
+    for k, n in enumerate(names):
+        if n in index:
+            out[:, k] = trial.positions[:, index[n]]
+    return out
+
+
+def _calibration_frames(observed: np.ndarray, count: int) -> np.ndarray:
+    """Up to ``count`` frames spread evenly over the trial, among those showing the most markers."""
+    seen = np.isfinite(observed).all(-1).sum(-1)
+    good = np.flatnonzero(seen >= seen.max() - 2)
+    return good[np.unique(np.linspace(0, len(good) - 1, min(count, len(good))).round().astype(int))]
+
+
+def fit_markers(
+    trial: MarkerTrial,
+    static: MarkerTrial | None = None,
+    marker_set: str = "auto",
+    *,
+    model: BodyModel | None = None,
+    weights: Mapping[str, float] | None = None,
+    static_window: tuple[float, float] | None = None,
+    static_pose: Mapping[str, float] | None = None,
+    calibration: str = "auto",
+    calibration_frames: int = CALIBRATION_FRAMES,
+    max_iterations: int = 50,
+) -> MarkerFit:
+    """Coordinates of our skeleton for every frame of a marker trial, with subject calibration.
+
+    Args:
+        trial: the motion (:func:`~bodyfit.io.mocap.read_markers`), positions in our world frame.
+        static: a standing trial of the same subject with the same markers (plus any static-only
+            anatomical ones, e.g. knee and ankle markers), or None to calibrate from the motion.
+        marker_set: ``"auto"`` (the set sharing most names), ``"gait2392"`` or ``"rajagopal"``.
+        model: the body model (loaded when None).
+        weights: IK weight overrides by marker name (0 drops a marker).
+        static_window: (start, stop) seconds of the static trial to average (default: all of it).
+        static_pose: coordinates (name -> rad or m) held at these values in the static trial's standing
+            pose, as a lab's OpenSim ScaleTool setup holds them with its coordinate tasks (e.g. the ankles
+            at 0 for a subject standing in shoes): the markers placed in that pose set the zero of those
+            coordinates in the motion. Default: the pose fitted to the markers.
+        calibration: ``"static"``: from the static trial (scales, standing pose and every marker it shows);
+            ``"motion"``: from frames of the motion (scales and technical marker locations; needs no
+            static trial, and with one and ``static_pose`` the markers on the bodies the held
+            coordinates move are then placed where the static trial saw them); ``"auto"``: "static"
+            when a static trial is given, else "motion".
+        calibration_frames: frames of the motion used for calibration when ``static`` is None.
+        max_iterations: Levenberg-Marquardt iterations per frame and pass.
+    Returns:
+        :class:`MarkerFit`.
+    Raises:
+        MarkerSetError: unknown set or too few shared markers. ShapeError/ValueError: bad inputs.
+        UnknownCoordinateError: a ``static_pose`` name that is not a coordinate.
+    """
+    t0 = time.perf_counter()
+    if trial.n_frames == 0:
+        raise MarkerSetError("the trial has no frames")
+    mode = _calibration_mode(calibration, static, static_pose)
+    model = model or BodyModel.load()
+    skel = model.skeleton
+    names_all = [*trial.names, *(static.names if static is not None else ())]
+    defn = choose_marker_set(names_all, marker_set)
+    vm = virtual_markers(defn, model)
+    if weights:
+        unknown = sorted(set(weights) - set(vm.names))
+        if unknown:
+            raise MarkerSetError(f"weights name markers not in the {defn.name} set: {', '.join(unknown)}")
+        w = vm.weights.copy()
+        for n, v in weights.items():
+            w[vm.names.index(n)] = float(v)
+        vm = replace(vm, weights=w)
+    in_trial = {normalise_name(n) for n in trial.names}
+    window = None if static is None else static if static_window is None else static.between(*static_window)
+    in_static: set[str] = set()
+    if window is not None and mode == "static":  # every marker it shows is placed
+        in_static = {normalise_name(n) for n in window.names}
+    used = [n for n, wt in zip(vm.names, vm.weights) if wt > 0 and (n in in_trial or n in in_static)]
+    vm = vm.subset(used)
+    plan = DofPlan.build(skel, defn)
+    standing_plan = plan.holding(skel, static_pose) if static_pose else plan  # the static trial's pose
+    scale_model = ScaleModel(model)
+    notes: list[str] = []
+    standing: np.ndarray | None = None
+    if mode == "static":
+        assert window is not None
+        static_frames = observed_positions(window, used)
+        cal, markers = _calibrate_static(skel, scale_model, vm, static_frames, standing_plan, defn.name)
+        standing, described = cal.q[0], "static"
+        missing = [
+            n for n in used if n in in_trial and not np.isfinite(observed_positions(window, [n])).any()
+        ]
+        if missing:
+            notes.append(f"not in the static trial, left at their default locations: {', '.join(missing)}")
+    else:
+        obs = observed_positions(trial, used)
+        frames = _calibration_frames(obs, calibration_frames)
+        first = solve_ik(skel, vm, scale_model.mean.numpy(), obs[frames], trial.times[frames], plan)
+        cal = calibrate(
+            skel, scale_model, vm, obs[frames], trial.times[frames], plan, ~vm.anatomical, start=first.q
+        )
+        markers, described = cal.markers, f"motion ({len(cal.q)} frames)"
+        if window is not None and static_pose:
+            static_frames = observed_positions(window, list(markers.names))
+            markers, standing, bodies = _place_from_static(
+                skel, markers, cal.scales, static_frames, standing_plan, static_pose
+            )
+            described += (
+                f"; the markers on {', '.join(bodies)} placed from the static trial with "
+                f"{', '.join(static_pose)} held"
+            )
+    t_cal = time.perf_counter()
+
+    ik_names = [n for n in markers.names if n in in_trial]
+    ik_markers = markers.subset(ik_names)
+    observed = observed_positions(trial, ik_names)
+    sol = solve_ik(skel, ik_markers, cal.scales, observed, trial.times, plan, max_iterations=max_iterations)
+    t_end = time.perf_counter()
+    report = _report(sol.q, sol.errors, observed, skel.ranges, cal.iterations + sol.iterations, t_end - t0)
+    extra = {
+        "marker_set": defn.name,
+        "calibration": described,
+        "calibration_seconds": t_cal - t0,
+        "ik_seconds": t_end - t_cal,
+        "calibration_error_mm": DistanceStats.of(cal.errors).mean,
+        "marker_mean_error_mm": {
+            n: float(np.nanmean(sol.errors[:, i]) * 1000)
+            for i, n in enumerate(ik_names)
+            if np.isfinite(sol.errors[:, i]).any()
+        },
+        "unused_markers": sorted(in_trial - set(vm.names)),
+        "notes": notes,
+    }
+    return MarkerFit(
+        sol.q, sol.root, trial.times.copy(), cal.scales, markers, sol.errors,
+        standing, defn.name, list(skel.dof_names),
+        replace(report, extra=extra),
+    )  # fmt: skip
+
+
+def _calibrate_static(
+    skel: Skeleton,
+    scale_model: ScaleModel,
+    markers: VirtualMarkers,
+    frames: np.ndarray,
+    plan: DofPlan,
+    set_name: str,
+) -> tuple[Calibration, VirtualMarkers]:
+    """Scales and standing pose from the anatomical markers of a static trial (frames (K, M, 3), averaged),
+    then every marker it shows placed where it was seen (OpenSim's ScaleTool + MarkerPlacer)."""
+    mean = _frame_mean(frames)
+    seen = np.isfinite(mean).all(-1)
+    anat = markers.anatomical & seen
+    if anat.sum() < MIN_VISIBLE:
+        raise MarkerSetError(
+            f"the static trial shows {int(anat.sum())} anatomical markers of the {set_name} set; at least "
+            f"{MIN_VISIBLE} are needed to scale the subject (or calibrate from the motion: static=None)"
+        )
+    fit_markers_ = replace(markers, weights=np.where(anat, markers.weights, 0.0))
+    cal = calibrate(skel, scale_model, fit_markers_, mean[None], np.zeros(1), plan, np.zeros(len(seen), bool))
+    placed = place_markers(skel, markers, mean, cal.q[0], cal.root[0], cal.scales, seen)
+    return cal, placed
+
+
+def _calibration_mode(
+    calibration: str, static: MarkerTrial | None, static_pose: Mapping[str, float] | None
+) -> str:
+    """ "static" or "motion": how :func:`fit_markers` calibrates (see there); ValueError on a combination
+    that would leave an argument unused."""
+    if calibration not in ("auto", "static", "motion"):
+        raise ValueError(f"calibration must be 'auto', 'static' or 'motion', not {calibration!r}")
+    if static is None:
+        if calibration == "static":
+            raise ValueError("calibration='static' needs the static trial: pass it, or use 'motion'")
+        if static_pose:
+            raise ValueError("static_pose holds coordinates in a static trial's pose: pass the static trial")
+        return "motion"
+    if calibration == "motion" and not static_pose:
+        raise ValueError(
+            "with calibration='motion' a static trial only places the markers of the coordinates static_pose "
+            "holds: pass static_pose, or calibrate from the static trial (calibration='static')"
+        )
+    return "motion" if calibration == "motion" else "static"
+
+
+def _frame_mean(frames: np.ndarray) -> np.ndarray:
+    """(M, 3) the mean of frames (K, M, 3) over K, NaN for a marker no frame shows."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # markers absent from the static trial
+        return np.nanmean(frames, axis=0)
+
+
+def _place_from_static(
+    skel: Skeleton,
+    markers: VirtualMarkers,
+    scales: np.ndarray,
+    frames: np.ndarray,
+    holding: DofPlan,
+    held: Iterable[str],
+) -> tuple[VirtualMarkers, np.ndarray, list[str]]:
+    """The markers on the bodies the coordinates ``held`` move, placed where a static trial (frames
+    (K, M, 3) of ``markers``, averaged) saw them in its pose: solved from all the markers where they are,
+    by the plan ``holding`` that holds those coordinates (scales (n_seg, 3): the subject's), as OpenSim's
+    MarkerPlacer solves it before it moves them. Returns the markers, that pose (n_dof,) and the names of
+    the bodies whose markers were placed."""
+    held = list(held)
+    mean = _frame_mean(frames)
+    on = moved_bodies(skel, held)[markers.body_indices(skel)] & np.isfinite(mean).all(-1)
+    if not on.any():
+        raise MarkerSetError(
+            f"the static trial shows no marker on the bodies that {', '.join(held)} move: nothing to place"
+        )
+    pose = solve_ik(skel, markers, scales, mean[None], np.zeros(1), holding, stride=1)
+    placed = place_markers(skel, markers, mean, pose.q[0], pose.root[0], scales, on)
+    return placed, pose.q[0], sorted({markers.bodies[i] for i in np.flatnonzero(on)})
+
+
+def _report(
+    q: np.ndarray,
+    errors: np.ndarray,
+    observed: np.ndarray,
+    ranges: np.ndarray,
+    iterations: int,
+    seconds: float,
+) -> FitReport:
+    """The fit's error report. q: (T, n_dof); errors: (T, M) m; observed: (T, M, 3); ranges: (n_dof, 2)."""
+    reasons: list[str] = []
+    visible = np.isfinite(observed).all(-1).sum(-1)
+    if (visible < MIN_VISIBLE).any():
+        reasons.append(f"{int((visible < MIN_VISIBLE).sum())} frames show fewer than {MIN_VISIBLE} markers")
+    mean_error = float(np.nanmean(errors)) if np.isfinite(errors).any() else float("nan")
+    if not mean_error <= MAX_MEAN_ERROR:
+        reasons.append(
+            f"mean marker error {mean_error * 1000:.1f} mm exceeds {MAX_MEAN_ERROR * 1000:.0f} mm: check "
+            "marker names and labelling, the static trial, or the lab-to-world rotation"
+        )
+    return FitReport.judged(DistanceStats.of(errors), q, ranges, iterations, seconds, reasons)

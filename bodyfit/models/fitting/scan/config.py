@@ -1,0 +1,164 @@
+"""How a raw scan is fitted (:class:`.fitter.ScanFitter`): its phases, its branches and the settings.
+
+The phases and their numbers are explained where the fitter is (:mod:`.fitter`): they were chosen on the
+held-out scans of ``benchmarks/fit_scans.py`` and ``benchmarks/fit_busts.py``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from bodyfit.models.fitting.common.nonrigid import NonRigidConfig
+from bodyfit.models.fitting.registered.fitter import Stage
+
+
+@dataclass(frozen=True)
+class ScanPhase:
+    """``stage.iterations`` L-BFGS iterations of ``stage`` on the robust two-way Chamfer loss.
+
+    sigma_mm: Geman-McClure scale; keep: orientation candidates kept after the phase; scan_points: scan
+    points used (a random subset of the cleaned scan); plane: point-to-plane distances (model normals) for
+    the scan -> model term instead of point-to-point; two_way: False keeps the model -> scan term only (a
+    part of the body fitted inside the whole scan); search_limbs: a grid search of the limbs' poses
+    (:class:`.limb_search.LimbSearch`) before the phase; search_distal: a grid search of the head, hands
+    and toes (:data:`.fitter.DISTAL_SEARCH`) before the phase; straighten: before the phase (and the
+    searches), add to the best :data:`.fitter.STRAIGHTENED` hypotheses of a full scan a twin with a
+    straight spine (:meth:`.fitter.ScanFitter._straighten_spine`; on single-view scans it picked wrong
+    twins, so they go without);
+    scapula_twin: before the phase (and the searches), add to every hypothesis a twin with the scapulae at
+    the middle of their ranges (:meth:`.fitter.ScanFitter._scapula_twin`);
+    flipped_margin: after the phase, also keep the best hypothesis that faces the other way from the best
+    one (forward axes more than 90 degrees apart) when its score is within this fraction of the best's;
+    rounds: the phase's L-BFGS runs this many times, ``stage.iterations`` each, every round from a fresh
+    start where the last ended (the single view's visible vertices and, in a metric phase, the Gauss-Newton
+    metric taken again there; the searches run before the first round only).
+    """
+
+    stage: Stage
+    sigma_mm: float
+    keep: int
+    scan_points: int
+    plane: bool = False
+    two_way: bool = True
+    search_limbs: bool = False
+    search_distal: bool = False
+    straighten: bool = False
+    scapula_twin: bool = False
+    flipped_margin: float = 0.0
+    rounds: int = 1
+
+
+# A body seen from behind can fit a scan nearly as well as the right one until its limbs are posed: the CC BY
+# man in a T-pose, as bare points, was fitted backwards with his legs crossed: the backward fit scored 1.2%
+# below the right heading after the shape phase, and 12% above it after the limbs phase. On 102 held-out
+# synthetic scans the best hypothesis facing the other way scored 28-74% above the best after the shape phase.
+FLIPPED_MARGIN = 0.05
+
+
+DEFAULT_PHASES = (
+    ScanPhase(Stage("orient", "core", "none", "coarse", 25), 150.0, 3, 500),
+    ScanPhase(Stage("pose", "all", "bone", "subset", 30), 60.0, 2, 1500, search_limbs=True, straighten=True),
+    ScanPhase(Stage("shape", "all", "all", "subset", 30), 25.0, 1, 3000, flipped_margin=FLIPPED_MARGIN),
+    ScanPhase(
+        Stage("limbs", "all", "all", "subset", 20),
+        25.0,
+        2,
+        3000,
+        search_limbs=True,
+        search_distal=True,
+        scapula_twin=True,
+    ),
+    ScanPhase(
+        Stage("fine", "all", "all", "dense", 15), 10.0, 1, 4000, plane=True, search_distal=True, rounds=2
+    ),
+    ScanPhase(Stage("valley", "all", "all", "dense", 25), 10.0, 1, 4000, plane=True),
+)
+
+# A scan smaller than a body (:attr:`ScanFitConfig.partial_extent`) is fitted as a head and shoulders: the
+# "upper" vertex set (RegisteredFitter.index) placed by the trunk's, neck's and scapulae's DOFs, the rest of
+# the body in the start pose, and the whole scan fitted two ways in three phases; the shape is fitted in the
+# last one only, once the bust is in place (fitted from the first, before the placement was right, it grew
+# giant shoulders into the scan). The Kinect head and shoulders of tests/data/scans, fitted so from three
+# random turns, gave the same bust each time (1.7 mm mean, the orientation searched); the full-body phases
+# had folded the whole body into it. benchmarks/fit_busts.py, heads within 10 mm: 68% with the first phase's
+# scale at 80 mm, 74% at 40 (forearms in the crop tilt the trunk less), 75% with the shape fitted (median
+# head error 5.3 -> 4.0 mm).
+UPPER_BODY_PHASES = (
+    ScanPhase(Stage("upper_orient", "upper", "none", "upper", 30), 40.0, 3, 1500),
+    ScanPhase(Stage("upper_pose", "upper", "none", "upper", 40), 30.0, 1, 3000),
+    ScanPhase(Stage("upper_fine", "upper", "all", "upper", 40), 12.0, 1, 4000),
+)
+# What the vertex set a scan is fitted with ("all" or "upper") is called in reports.
+PART_NAMES = {"all": "whole body", "upper": "head and shoulders"}
+# A head and shoulders measures 0.4-0.7 m, up to 0.85 with an arm reaching out (benchmarks/fit_busts.py); the
+# 102 whole bodies of benchmarks/fit_scans.py 1.27 m or more (a depth view), a crouching adult about 0.9.
+PARTIAL_EXTENT_M = 0.85
+
+
+@dataclass(frozen=True)
+class ScanBranch:
+    """One way to run the phases from :attr:`ScanFitConfig.branch_from` on: metric_phases: the phases
+    (by name) whose L-BFGS runs in the variables of the loss's Gauss-Newton metric
+    (:meth:`.fitter.ScanFitter._metric`); damping: the metric's ``regularise``."""
+
+    metric_phases: frozenset[str]
+    damping: float
+
+
+# Two branches from the shape phase to the valley phase, and the one whose hypothesis scores best after the
+# first point-to-plane phase goes on. The second runs the subset phases in the metric too, with more damping:
+# on their own, either ends in a gross error (an arm or the head placed wrong) on scans where the other does
+# not (102 held-out scans of every condition: 10.9 and 12.0 mm alone). Chosen by the point-to-plane phase's
+# robust score, 8.2 mm; by the refined registrations' distance to the scan, after both had run to the end, 9.0
+# (a non-rigid registration lies close to the scan even where its body does not) at one more valley phase and
+# refinement per scan.
+DEFAULT_BRANCHES = (
+    ScanBranch(frozenset({"fine", "valley"}), 1e-3),
+    ScanBranch(frozenset({"shape", "limbs", "fine", "valley"}), 1e-2),
+)
+
+
+@dataclass(frozen=True)
+class ScanFitConfig:
+    """voxel: cleaning grid (m); neighbours, outlier_cutoff: a point is dropped when its mean distance to
+    its neighbours exceeds the median by ``outlier_cutoff`` robust standard deviations; tangential: weight
+    of the in-plane part of point-to-plane distances; nonrigid: None skips the refinement; single_view:
+    detect one sensor's view (:func:`.view.view_direction`) and then fit only the surface that faced it;
+    branches: each runs the phases from the one named ``branch_from`` up to the one named ``branch_until``
+    (the earlier ones run once, as the first branch says; no phase of that name: to the end); the branch
+    whose hypothesis scores best on the last branched phase goes on alone, the way it says; one branch, or
+    no phase named ``branch_from``, fits once; workers: threads the branches run on at once (they are
+    independent, so the fit does not depend on it; torch's intra-op threads add little at these sizes:
+    ``torch.set_num_threads(1)`` and 2 workers suit 2 cores); processes: 2 starts a helper process
+    (:class:`.helper.ScanHelper`, its own copy of the fitter: ready about 1.5 s later, 0.5 GB)
+    that runs the second branch and half of the hypotheses of the phases before the branches on another
+    core (the fit is bound by the interpreter lock, so threads alone share one core's worth of Python); it
+    suits a long-lived fitter (the service, a batch of scans), not a single fit. Work the helper cannot
+    take (starting, busy with another fit's, or failed) runs in the calling process; the fit is the same
+    either way (the hypotheses are independent problems, and the phases before the branches run them in
+    the same two halves however many processes there are); partial_extent: a cleaned scan whose largest
+    extent along its principal axes (:func:`bodyfit.io.scans.largest_extent`) is below this (m) is fitted as a
+    head and shoulders by ``partial_phases`` (:data:`UPPER_BODY_PHASES`), never confidently; 0 turns that
+    off; refine_from: the phase from which :meth:`.fitter.ScanFitter.refine` runs (a body already in
+    place: the point-to-plane phases)."""
+
+    phases: tuple[ScanPhase, ...] = DEFAULT_PHASES
+    branches: tuple[ScanBranch, ...] = DEFAULT_BRANCHES
+    branch_from: str = "shape"
+    branch_until: str = "valley"
+    voxel: float = 0.01
+    neighbours: int = 8
+    outlier_cutoff: float = 3.0
+    tangential: float = 0.1
+    nonrigid: NonRigidConfig | None = field(default_factory=NonRigidConfig)
+    single_view: bool = True
+    seed: int = 0
+    workers: int = 2
+    processes: int = 1
+    partial_phases: tuple[ScanPhase, ...] = UPPER_BODY_PHASES
+    partial_extent: float = PARTIAL_EXTENT_M
+    refine_from: str = "fine"
+
+    def __post_init__(self) -> None:
+        if self.processes not in (1, 2):
+            raise ValueError(f"processes must be 1 or 2 (a helper process), not {self.processes}")
