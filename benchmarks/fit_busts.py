@@ -25,10 +25,10 @@ from __future__ import annotations
 import time
 from typing import Any
 
+import corrupt  # benchmarks/ is on sys.path
 import numpy as np
 from fit_scans import HELD_OUT_SEED, POINTS, SPREAD, vertex_parts  # benchmarks/ is on sys.path
 
-from benchmarks import corrupt
 from bodyfit.io.scans import sample_surface
 from bodyfit.models.body.anny_posed import posed_anny_bodies
 from bodyfit.models.body.anny_source import AnnySource

@@ -40,9 +40,9 @@ import json
 import time
 from typing import Any
 
+import corrupt  # benchmarks/ is on sys.path when this runs as a script
 import numpy as np
 
-from benchmarks import corrupt
 from bodyfit.io.scans import sample_surface
 from bodyfit.models.body.anny_posed import posed_anny_bodies
 from bodyfit.models.body.anny_source import AnnySource

@@ -18,8 +18,8 @@ import argparse
 from pathlib import Path
 
 import numpy as np
+from render import RenderMesh, render, save_png, tile  # benchmarks/ is on sys.path
 
-from benchmarks.render import RenderMesh, render, save_png, tile
 from bodyfit.io.scans import load_scan
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting.registered.smpl_topology import SMPL_TO_BODY, SOURCE_DIR, SOURCES, read_obj

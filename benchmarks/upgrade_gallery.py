@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from render import RenderMesh, render, save_png, tile  # benchmarks/ is on sys.path
 
-from benchmarks.render import RenderMesh, render, save_png, tile
 from bodyfit.io.smpl import read_smpl_sequence
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting.registered.smpl_topology import SMPL_TO_BODY
