@@ -22,7 +22,14 @@ import numpy as np
 
 from bodyfit.models.skeleton.bones import BoneMesh
 from bodyfit.models.skeleton.functions import evaluate_function
-from bodyfit.models.skeleton.spec import Body, Function, SkeletonSpec, is_identity, translation_scale_weights
+from bodyfit.models.skeleton.spec import (
+    Body,
+    Function,
+    Joint,
+    SkeletonSpec,
+    is_identity,
+    translation_scale_weights,
+)
 
 ARC_KNOTS = 61  # SimmSpline samples of an arc function over its coordinate range (error < 1e-8 m)
 LINK_MASS = 1e-4  # kg; OpenSim needs a little mass on the sub-segment links
@@ -109,6 +116,143 @@ def _body_xml(parent: ET.Element, body: Body, s: np.ndarray, mesh_file: str | No
 Marker = tuple[str, str, Sequence[float]]  # (name, body, location in the body frame before scaling, m)
 
 
+def _body_scales(spec: SkeletonSpec, scales: np.ndarray | None) -> dict[str, np.ndarray]:
+    """Body name (and ``ground``) -> (3,) scale factors of its segment; ``scales`` is (n_seg, 3) or None."""
+    seg = {s: i for i, s in enumerate(spec.segments)}
+    S = np.ones((len(spec.segments), 3)) if scales is None else np.asarray(scales, np.float64)
+    out = {b.name: S[seg[b.segment]] for b in spec.bodies}
+    out["ground"] = np.ones(3)
+    return out
+
+
+def _model_header(doc: ET.Element, name: str) -> ET.Element:
+    """The ``Model`` element under ``doc``, with credits, units and gravity."""
+    model = _sub(doc, "Model", name=name)
+    _sub(
+        model,
+        "credits",
+        "bodyfit skeleton: Rajagopal2015 (Rajagopal et al. 2016) with spine and scapula joints",
+    )
+    _sub(model, "publications", "Rajagopal A. et al. (2016) IEEE TBME 63(10):2068-79")
+    _sub(model, "length_units", "meters")
+    _sub(model, "force_units", "N")
+    _sub(model, "gravity", "0 -9.8066500000000005 0")
+    return model
+
+
+def _local_coordinates(joint: Joint, owned: set[str]) -> dict[str, str]:
+    """Coordinate -> the name this joint writes it under, in order of first appearance.
+
+    A coordinate already in ``owned`` (written by an earlier joint) gets a coupled ``<name>_beta`` twin.
+    """
+    local: dict[str, str] = {}
+    for ax in (*joint.rotations, *joint.translations):
+        if ax.coordinate and ax.coordinate not in local:
+            local[ax.coordinate] = f"{ax.coordinate}_beta" if ax.coordinate in owned else ax.coordinate
+    return local
+
+
+def _coordinates_xml(jel: ET.Element, local: dict[str, str], ranges: dict[str, tuple[float, float]]) -> None:
+    """Write the joint's ``coordinates``: one Coordinate per entry of ``local``, with its source's range."""
+    coords = _sub(jel, "coordinates")
+    for src, cname in local.items():
+        c = _sub(coords, "Coordinate", name=cname)
+        _sub(c, "default_value", "0")
+        _sub(c, "range", _fmt(ranges[src]))
+        _sub(c, "clamped", "true")
+        _sub(c, "locked", "false")
+
+
+def _joint_frames_xml(jel: ET.Element, joint: Joint, body_scale: dict[str, np.ndarray]) -> None:
+    """Write the joint's parent and child offset frames, their translations scaled with their bodies."""
+    frames = _sub(jel, "frames")
+    parent_path = "/ground" if joint.parent == "ground" else f"/bodyset/{joint.parent}"
+    _offset_frame(
+        frames,
+        f"{joint.parent}_offset",
+        parent_path,
+        np.asarray(joint.parent_offset.translation) * body_scale[joint.parent],
+        joint.parent_offset.orientation,
+    )
+    _offset_frame(
+        frames,
+        f"{joint.child}_offset",
+        f"/bodyset/{joint.child}",
+        np.asarray(joint.child_offset.translation) * body_scale[joint.child],
+        joint.child_offset.orientation,
+    )
+
+
+def _spatial_transform_xml(
+    jel: ET.Element,
+    joint: Joint,
+    local: dict[str, str],
+    ranges: dict[str, tuple[float, float]],
+    s_f: np.ndarray,
+) -> None:
+    """Write the joint's six TransformAxis; translation functions are scaled by ``s_f`` (3,)."""
+    st = _sub(jel, "SpatialTransform")
+    for k, (axname, ax) in enumerate(zip(AXIS_NAMES, (*joint.rotations, *joint.translations))):
+        ta = _sub(st, "TransformAxis", name=axname)
+        _sub(ta, "coordinates", local[ax.coordinate] if ax.coordinate else "")
+        _sub(ta, "axis", _fmt(ax.axis))
+        factor = 1.0
+        if k >= 3 and not is_identity(ax.function):
+            factor = float(np.asarray(translation_scale_weights(ax.axis, ax.function)) @ s_f)
+        rng = ranges.get(ax.coordinate, (-math.pi, math.pi)) if ax.coordinate else (-1.0, 1.0)
+        _function_xml(ta, ax.function, factor, rng)
+
+
+def _jointset_xml(
+    model: ET.Element, spec: SkeletonSpec, body_scale: dict[str, np.ndarray]
+) -> list[tuple[str, str]]:
+    """Write the JointSet; returns the (independent, dependent) coordinate pairs that need a coupler."""
+    ranges = {c.name: c.range for c in (*spec.coordinates, *spec.root_coordinates)}
+    segments = set(spec.segments)
+    jointset = _sub(_sub(model, "JointSet", name="jointset"), "objects")
+    owned: set[str] = set()
+    couplers: list[tuple[str, str]] = []
+    for j in spec.joints:
+        jel = _sub(jointset, "CustomJoint", name=j.name)
+        _sub(jel, "socket_parent_frame", f"{j.parent}_offset")
+        _sub(jel, "socket_child_frame", f"{j.child}_offset")
+        local = _local_coordinates(j, owned)
+        couplers += [(src, cname) for src, cname in local.items() if cname != src]
+        owned.update(src for src, cname in local.items() if cname == src)
+        _coordinates_xml(jel, local, ranges)
+        _joint_frames_xml(jel, j, body_scale)
+        s_f = body_scale[j.scale_segment] if j.scale_segment in segments else np.ones(3)
+        _spatial_transform_xml(jel, j, local, ranges, s_f)
+    return couplers
+
+
+def _markerset_xml(
+    model: ET.Element, markers: Sequence[Marker], bodies: set[str], body_scale: dict[str, np.ndarray]
+) -> None:
+    """Write the MarkerSet, locations scaled with their bodies; ValueError for a marker not on ``bodies``."""
+    mset = _sub(_sub(model, "MarkerSet", name="markerset"), "objects")
+    for marker_name, body, location in markers:
+        if body not in bodies:
+            raise ValueError(f"marker {marker_name!r} is on {body!r}, which is not a body of the skeleton")
+        m = _sub(mset, "Marker", name=marker_name)
+        _sub(m, "socket_parent_frame", f"/bodyset/{body}")
+        _sub(m, "location", _fmt(np.asarray(location, np.float64) * body_scale[body]))
+        _sub(m, "fixed", "false")
+
+
+def _constraintset_xml(model: ET.Element, couplers: Sequence[tuple[str, str]]) -> None:
+    """Write one identity CoordinateCouplerConstraint per (independent, dependent) pair."""
+    cset = _sub(_sub(model, "ConstraintSet", name="constraintset"), "objects")
+    for indep, dep in couplers:
+        c = _sub(cset, "CoordinateCouplerConstraint", name=f"{dep}_coupler")
+        _sub(c, "isEnforced", "true")
+        fn = _sub(_sub(c, "coupled_coordinates_function"), "LinearFunction")
+        _sub(fn, "coefficients", "1 0")
+        _sub(c, "independent_coordinate_names", indep)
+        _sub(c, "dependent_coordinate_name", dep)
+        _sub(c, "scale_factor", "1")
+
+
 def osim_document(
     spec: SkeletonSpec,
     scales: np.ndarray | None = None,
@@ -128,105 +272,17 @@ def osim_document(
             not in it name Rajagopal's own ``.vtp`` files, which OpenSim finds only in its installation.
     """
     mesh_files = mesh_files or {}
-    seg = {s: i for i, s in enumerate(spec.segments)}
-    S = np.ones((len(spec.segments), 3)) if scales is None else np.asarray(scales, np.float64)
-    body_by_name = {b.name: b for b in spec.bodies}
-
-    def scale_of(body: str) -> np.ndarray:
-        if body == "ground":
-            return np.ones(3)
-        return S[seg[body_by_name[body].segment]]
-
-    ranges = {c.name: c.range for c in (*spec.coordinates, *spec.root_coordinates)}
-
+    body_scale = _body_scales(spec, scales)
     doc = ET.Element("OpenSimDocument", Version="40000")
-    model = _sub(doc, "Model", name=name)
-    _sub(
-        model,
-        "credits",
-        "bodyfit skeleton: Rajagopal2015 (Rajagopal et al. 2016) with spine and scapula joints",
-    )
-    _sub(model, "publications", "Rajagopal A. et al. (2016) IEEE TBME 63(10):2068-79")
-    _sub(model, "length_units", "meters")
-    _sub(model, "force_units", "N")
-    _sub(model, "gravity", "0 -9.8066500000000005 0")
+    model = _model_header(doc, name)
     bodyset = _sub(_sub(model, "BodySet", name="bodyset"), "objects")
     for b in spec.bodies:
-        _body_xml(bodyset, b, scale_of(b.name), mesh_files.get(b.name))
-
-    jointset = _sub(_sub(model, "JointSet", name="jointset"), "objects")
-    owned: set[str] = set()
-    couplers: list[tuple[str, str]] = []
-    for j in spec.joints:
-        jel = _sub(jointset, "CustomJoint", name=j.name)
-        _sub(jel, "socket_parent_frame", f"{j.parent}_offset")
-        _sub(jel, "socket_child_frame", f"{j.child}_offset")
-        # Coordinates of this joint, in order of first appearance; ones owned elsewhere get a coupled twin.
-        local: dict[str, str] = {}
-        for ax in (*j.rotations, *j.translations):
-            if ax.coordinate and ax.coordinate not in local:
-                if ax.coordinate in owned:
-                    local[ax.coordinate] = f"{ax.coordinate}_beta"
-                    couplers.append((ax.coordinate, local[ax.coordinate]))
-                else:
-                    local[ax.coordinate] = ax.coordinate
-                    owned.add(ax.coordinate)
-        coords = _sub(jel, "coordinates")
-        for src, cname in local.items():
-            c = _sub(coords, "Coordinate", name=cname)
-            _sub(c, "default_value", "0")
-            _sub(c, "range", _fmt(ranges[src]))
-            _sub(c, "clamped", "true")
-            _sub(c, "locked", "false")
-        frames = _sub(jel, "frames")
-        parent_path = "/ground" if j.parent == "ground" else f"/bodyset/{j.parent}"
-        _offset_frame(
-            frames,
-            f"{j.parent}_offset",
-            parent_path,
-            np.asarray(j.parent_offset.translation) * scale_of(j.parent),
-            j.parent_offset.orientation,
-        )
-        _offset_frame(
-            frames,
-            f"{j.child}_offset",
-            f"/bodyset/{j.child}",
-            np.asarray(j.child_offset.translation) * scale_of(j.child),
-            j.child_offset.orientation,
-        )
-        st = _sub(jel, "SpatialTransform")
-        s_f = scale_of(j.scale_segment) if j.scale_segment in seg else np.ones(3)
-        for k, (axname, ax) in enumerate(zip(AXIS_NAMES, (*j.rotations, *j.translations))):
-            ta = _sub(st, "TransformAxis", name=axname)
-            _sub(ta, "coordinates", local[ax.coordinate] if ax.coordinate else "")
-            _sub(ta, "axis", _fmt(ax.axis))
-            factor = 1.0
-            if k >= 3 and not is_identity(ax.function):
-                factor = float(np.asarray(translation_scale_weights(ax.axis, ax.function)) @ s_f)
-            rng = ranges.get(ax.coordinate, (-math.pi, math.pi)) if ax.coordinate else (-1.0, 1.0)
-            _function_xml(ta, ax.function, factor, rng)
-
+        _body_xml(bodyset, b, body_scale[b.name], mesh_files.get(b.name))
+    couplers = _jointset_xml(model, spec, body_scale)
     if markers:
-        mset = _sub(_sub(model, "MarkerSet", name="markerset"), "objects")
-        for marker_name, body, location in markers:
-            if body not in body_by_name:
-                raise ValueError(
-                    f"marker {marker_name!r} is on {body!r}, which is not a body of the skeleton"
-                )
-            m = _sub(mset, "Marker", name=marker_name)
-            _sub(m, "socket_parent_frame", f"/bodyset/{body}")
-            _sub(m, "location", _fmt(np.asarray(location, np.float64) * scale_of(body)))
-            _sub(m, "fixed", "false")
+        _markerset_xml(model, markers, {b.name for b in spec.bodies}, body_scale)
     if couplers:
-        cset = _sub(_sub(model, "ConstraintSet", name="constraintset"), "objects")
-        for indep, dep in couplers:
-            c = _sub(cset, "CoordinateCouplerConstraint", name=f"{dep}_coupler")
-            _sub(c, "isEnforced", "true")
-            fn = _sub(_sub(c, "coupled_coordinates_function"), "LinearFunction")
-            _sub(fn, "coefficients", "1 0")
-            _sub(c, "independent_coordinate_names", indep)
-            _sub(c, "dependent_coordinate_name", dep)
-            _sub(c, "scale_factor", "1")
+        _constraintset_xml(model, couplers)
     tree = ET.ElementTree(doc)
     ET.indent(tree, space="\t")
     return tree
