@@ -103,37 +103,48 @@ def load_scan(
             header where the format has one).
         ScanError: what was wrong with the file and how to fix it.
     """
-    if isinstance(path_or_bytes, bytes | bytearray):
-        if format is None:
-            raise ScanError(f"format= is required when loading bytes; one of {', '.join(FORMATS)}")
-        data, name = bytes(path_or_bytes), f"<{len(path_or_bytes)} bytes>"
-    else:
-        path = Path(path_or_bytes)
-        format = format or path.suffix.lstrip(".")
-        name = str(path)
-        if format.lower() not in FORMATS:
-            raise ScanError(f"unknown scan format {format!r} ({name}); supported: {', '.join(FORMATS)}")
-        try:
-            data = path.read_bytes()
-        except OSError as e:
-            raise ScanError(f"cannot read {name}: {e.strerror or e}") from None
+    data, name, format = _scan_bytes(path_or_bytes, format)
     fmt = format.lower()
     if fmt not in FORMATS:
         raise ScanError(f"unknown scan format {format!r}; supported: {', '.join(FORMATS)}")
     if not data.strip():
         raise ScanError(f"{name} is empty")
     caps = _Caps(max_points, None if max_points is None else FACES_PER_POINT * max_points, max_bytes)
-    try:
-        points, faces, normals = _READERS[fmt](data, caps)
-    except (ScanError, FileLimitError):
-        raise
-    except Exception as e:
-        raise ScanError(f"could not read {name} as {fmt.upper()}: {e}") from None
+    points, faces, normals = _read_format(data, fmt, name, caps)
     if len(points) == 0:
         raise ScanError(f"{name} holds no points (empty, or not a valid {fmt.upper()} file)")
     if max_points is not None and len(points) > max_points:
         raise FileLimitError(f"{name} holds {len(points):,} points; the limit is {max_points:,}: {THIN}")
     return scan_from_arrays(points, faces, normals, units=units, drop_nonfinite=drop_nonfinite)
+
+
+def _scan_bytes(path_or_bytes: str | os.PathLike[str] | bytes, format: str | None) -> tuple[bytes, str, str]:
+    """Returns the file's bytes, its name for messages, and its format as given (default: the suffix)."""
+    if isinstance(path_or_bytes, bytes | bytearray):
+        if format is None:
+            raise ScanError(f"format= is required when loading bytes; one of {', '.join(FORMATS)}")
+        return bytes(path_or_bytes), f"<{len(path_or_bytes)} bytes>", format
+    path = Path(path_or_bytes)
+    format = format or path.suffix.lstrip(".")
+    name = str(path)
+    if format.lower() not in FORMATS:
+        raise ScanError(f"unknown scan format {format!r} ({name}); supported: {', '.join(FORMATS)}")
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise ScanError(f"cannot read {name}: {e.strerror or e}") from None
+    return data, name, format
+
+
+def _read_format(data: bytes, fmt: str, name: str, caps: _Caps) -> _Arrays:
+    """Returns points (N, 3), faces (F, 3) or None and normals (N, 3) or None as the reader for ``fmt``
+    found them; a reader's own failure becomes a ScanError naming the file."""
+    try:
+        return _READERS[fmt](data, caps)
+    except (ScanError, FileLimitError):
+        raise
+    except Exception as e:
+        raise ScanError(f"could not read {name} as {fmt.upper()}: {e}") from None
 
 
 def scan_from_arrays(
@@ -161,34 +172,55 @@ def scan_from_arrays(
     nrm = None if normals is None else np.asarray(normals, dtype=np.float64)
     if nrm is not None and nrm.shape != p.shape:
         raise ScanError(f"normals must have the points' shape {p.shape}, got {nrm.shape}")
-    f = None if faces is None or len(faces) == 0 else np.asarray(faces)
-    if f is not None:
-        if f.ndim != 2 or f.shape[1] != 3 or not np.issubdtype(f.dtype, np.integer):
-            raise ScanError(f"faces must be (F, 3) integers, got {f.shape} {f.dtype}")
-        f = f.astype(np.int64)
-        if f.min() < 0 or f.max() >= n_input:
-            raise ScanError(
-                f"faces index vertices {f.min()}..{f.max()} but the scan has {n_input} points: a corrupt mesh"
-            )
-    bad = np.asarray(~np.isfinite(p).all(axis=1))
-    if bad.any():
-        if not drop_nonfinite:
-            raise ScanError(
-                f"{int(bad.sum()):,} of {n_input:,} points are NaN or infinite (depth cameras and organized "
-                "PCD clouds mark missing pixels this way); pass drop_nonfinite=True to drop them"
-            )
-        p, nrm, f = _drop_rows(p, nrm, f, bad)
+    f = _checked_faces(faces, n_input)
+    p, nrm, f = _finite_rows(p, nrm, f, drop_nonfinite)
     if len(p) < MIN_POINTS:
         raise ScanError(f"the scan has {len(p)} points; at least {MIN_POINTS} are needed to fit a body")
+    _check_not_flat(p)
+    source_units = units if units != "auto" else _detect_units(p)
+    if source_units == "mm":
+        p = p / 1000.0
+    return Scan(p, f, nrm, source_units, n_input)
+
+
+def _checked_faces(faces: np.ndarray | None, n_input: int) -> np.ndarray | None:
+    """Returns faces (F, 3) as int64 indices into ``n_input`` points, or None for no faces (None or empty)."""
+    f = None if faces is None or len(faces) == 0 else np.asarray(faces)
+    if f is None:
+        return None
+    if f.ndim != 2 or f.shape[1] != 3 or not np.issubdtype(f.dtype, np.integer):
+        raise ScanError(f"faces must be (F, 3) integers, got {f.shape} {f.dtype}")
+    f = f.astype(np.int64)
+    if f.min() < 0 or f.max() >= n_input:
+        raise ScanError(
+            f"faces index vertices {f.min()}..{f.max()} but the scan has {n_input} points: a corrupt mesh"
+        )
+    return f
+
+
+def _finite_rows(
+    p: np.ndarray, nrm: np.ndarray | None, f: np.ndarray | None, drop_nonfinite: bool
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Returns points (N', 3), normals and faces without the non-finite points (raises unless
+    ``drop_nonfinite``); the inputs themselves when every point is finite."""
+    bad = np.asarray(~np.isfinite(p).all(axis=1))
+    if not bad.any():
+        return p, nrm, f
+    if not drop_nonfinite:
+        raise ScanError(
+            f"{int(bad.sum()):,} of {len(p):,} points are NaN or infinite (depth cameras and organized "
+            "PCD clouds mark missing pixels this way); pass drop_nonfinite=True to drop them"
+        )
+    return _drop_rows(p, nrm, f, bad)
+
+
+def _check_not_flat(p: np.ndarray) -> None:
+    """Returns None; raises when the points (N, 3) lie on one point, a line or a plane."""
     sv = np.sqrt(np.clip(np.linalg.eigvalsh(np.cov(p.T)), 0.0, None))[::-1]
     if sv[0] == 0 or sv[1] < _FLAT * sv[0]:
         raise ScanError("the scan's points all lie on one point or a line (degenerate); it cannot be a body")
     if sv[2] < _FLAT * sv[0]:
         raise ScanError("the scan's points all lie on a plane (degenerate); it cannot be a body")
-    source_units = units if units != "auto" else _detect_units(p)
-    if source_units == "mm":
-        p = p / 1000.0
-    return Scan(p, f, nrm, source_units, n_input)
 
 
 def largest_extent(points: np.ndarray) -> float:
@@ -315,23 +347,7 @@ def _check_ply(data: bytes, caps: _Caps) -> None:
     form = next((line[1] for line in lines if line[:1] == ["format"] and len(line) > 1), "")
     if form not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise ValueError(f"PLY format {form!r} unknown; use ascii, binary_little_endian or binary_big_endian")
-    counts: dict[str, int] = {}
-    least: dict[str, int] = {}  # the fewest bytes one element takes
-    for line in lines:
-        if line[:1] == ["element"]:
-            if len(line) != 3 or not line[2].isdigit():
-                raise ValueError(f"PLY header line {' '.join(line)!r} should be 'element NAME COUNT'")
-            counts[line[1]], least[line[1]] = int(line[2]), 0
-        elif line[:1] == ["property"] and counts:
-            element = next(reversed(counts))
-            if form == "ascii":
-                least[element] += 2  # a digit and a separator
-            else:  # a list counts its length field only: it may be empty
-                typ = line[2] if line[1:2] == ["list"] and len(line) > 2 else " ".join(line[1:2])
-                size = _PLY_SIZES.get(typ)
-                if size is None:
-                    raise ValueError(f"PLY header line {' '.join(line)!r} has an unknown type")
-                least[element] += size
+    counts, least = _ply_elements(lines, form)
     need = sum(counts[e] * least[e] for e in counts) - (1 if form == "ascii" else 0)
     body = len(data) - stop - 1
     if need > body:
@@ -351,6 +367,33 @@ def _check_ply(data: bytes, caps: _Caps) -> None:
     caps.check(counts.get("face", 0), "faces", caps.faces)
     if caps.points is not None and caps.faces is not None:
         caps.check(sum(counts.values()), "PLY elements", caps.points + caps.faces)
+
+
+def _ply_elements(lines: list[list[str]], form: str) -> tuple[dict[str, int], dict[str, int]]:
+    """Returns each element's declared count and the fewest bytes one of it takes, from the PLY header's
+    lines (split into words) for the format ``form``."""
+    counts: dict[str, int] = {}
+    least: dict[str, int] = {}
+    for line in lines:
+        if line[:1] == ["element"]:
+            if len(line) != 3 or not line[2].isdigit():
+                raise ValueError(f"PLY header line {' '.join(line)!r} should be 'element NAME COUNT'")
+            counts[line[1]], least[line[1]] = int(line[2]), 0
+        elif line[:1] == ["property"] and counts:
+            least[next(reversed(counts))] += _ply_property_bytes(line, form)
+    return counts, least
+
+
+def _ply_property_bytes(line: list[str], form: str) -> int:
+    """Returns the fewest bytes the PLY ``property`` header line (split into words) takes in the data."""
+    if form == "ascii":
+        return 2  # a digit and a separator
+    # a list counts its length field only: it may be empty
+    typ = line[2] if line[1:2] == ["list"] and len(line) > 2 else " ".join(line[1:2])
+    size = _PLY_SIZES.get(typ)
+    if size is None:
+        raise ValueError(f"PLY header line {' '.join(line)!r} has an unknown type")
+    return size
 
 
 def _read_obj(data: bytes, caps: _Caps) -> _Arrays:
