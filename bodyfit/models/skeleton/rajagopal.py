@@ -98,14 +98,8 @@ def _joint_frame(joint: ET.Element, socket: str) -> tuple[str, Offset]:
     return body, Offset((t[0], t[1], t[2]), (o[0], o[1], o[2]))
 
 
-def parse_model(doc: ET.Element) -> tuple[list[Body], list[Joint], list[Coordinate]]:
-    """Bodies, joints (topological order) and coordinates of an OpenSim 4 document.
-
-    Coordinates made dependent by a CoordinateCouplerConstraint with the identity function (the
-    patellofemoral ``knee_angle_*_beta``) are replaced by their independent coordinate.
-    """
-    model = doc.find("Model")
-    assert model is not None
+def _identity_couplers(model: ET.Element) -> dict[str, str]:
+    """Dependent -> independent coordinate name of every CoordinateCouplerConstraint (identity only)."""
     coupled: dict[str, str] = {}
     for c in model.iter("CoordinateCouplerConstraint"):
         fn = c.find("coupled_coordinates_function")
@@ -113,7 +107,11 @@ def parse_model(doc: ET.Element) -> tuple[list[Body], list[Joint], list[Coordina
         if lin is None or _vec(lin.findtext("coefficients")) != (1.0, 0.0):
             raise AssetError("only identity coordinate couplers are supported")
         coupled[c.findtext("dependent_coordinate_name", "")] = c.findtext("independent_coordinate_names", "")
+    return coupled
 
+
+def _bodies(model: ET.Element) -> dict[str, Body]:
+    """Body name -> Body of the model's BodySet, each its own segment."""
     bodies: dict[str, Body] = {}
     for b in model.find("BodySet/objects") or []:
         meshes = tuple(m.findtext("mesh_file", "") for m in b.iter("Mesh"))
@@ -125,47 +123,60 @@ def parse_model(doc: ET.Element) -> tuple[list[Body], list[Joint], list[Coordina
             inertia=_vec(b.findtext("inertia")),  # type: ignore[arg-type]
             geometry=meshes,
         )
+    return bodies
 
-    joints: list[Joint] = []
+
+_Axes = tuple[TransformAxis, ...]
+
+
+def _joint_axes(j: ET.Element, coupled: dict[str, str]) -> tuple[_Axes, _Axes, str]:
+    """(rotation axes, translation axes, joint kind) of a joint element, by its OpenSim joint type."""
+    names = [c.get("name", "") for c in j.iter("Coordinate")]
+    kind = j.tag
+    if kind == "CustomJoint":
+        axes = [_axis(a, coupled) for a in j.iter("TransformAxis")]
+        jkind = "walker_knee" if j.get("name", "").startswith("walker_knee") else "custom"
+        return tuple(axes[:3]), tuple(axes[3:]), jkind
+    fixed_translations = (fixed_axis(X_AXIS), fixed_axis(Y_AXIS), fixed_axis(Z_AXIS))
+    if kind == "PinJoint":
+        rot = (coordinate_axis(Z_AXIS, names[0]), fixed_axis(X_AXIS), fixed_axis(Y_AXIS))
+        return rot, fixed_translations, "pin"
+    if kind == "UniversalJoint":
+        rot = (coordinate_axis(X_AXIS, names[0]), coordinate_axis(Y_AXIS, names[1]), fixed_axis(Z_AXIS))
+        return rot, fixed_translations, "universal"
+    if kind == "WeldJoint":
+        rot = (fixed_axis(X_AXIS), fixed_axis(Y_AXIS), fixed_axis(Z_AXIS))
+        return rot, rot, "weld"
+    raise AssetError(f"unsupported joint type {kind} ({j.get('name')})")
+
+
+def _joint(j: ET.Element, coupled: dict[str, str]) -> Joint:
+    """The Joint of a joint element, scaled with its parent."""
+    parent, p_off = _joint_frame(j, "socket_parent_frame")
+    child, c_off = _joint_frame(j, "socket_child_frame")
+    rot, trans, jkind = _joint_axes(j, coupled)
+    if j.get("name", "").startswith("patellofemoral"):
+        jkind = "patellofemoral"
+    return Joint(j.get("name", ""), jkind, parent, child, p_off, c_off, rot, trans, parent)  # type: ignore[arg-type]
+
+
+def _joint_coordinates(j: ET.Element, coupled: dict[str, str]) -> list[Coordinate]:
+    """The independent coordinates a joint element declares (coupled ones left out)."""
     coords: list[Coordinate] = []
-    for j in model.find("JointSet/objects") or []:
-        parent, p_off = _joint_frame(j, "socket_parent_frame")
-        child, c_off = _joint_frame(j, "socket_child_frame")
-        names = [c.get("name", "") for c in j.iter("Coordinate")]
-        kind = j.tag
-        if kind == "CustomJoint":
-            axes = [_axis(a, coupled) for a in j.iter("TransformAxis")]
-            rot, trans = tuple(axes[:3]), tuple(axes[3:])
-            jkind = "walker_knee" if j.get("name", "").startswith("walker_knee") else "custom"
-        elif kind == "PinJoint":
-            rot = (coordinate_axis(Z_AXIS, names[0]), fixed_axis(X_AXIS), fixed_axis(Y_AXIS))
-            trans = (fixed_axis(X_AXIS), fixed_axis(Y_AXIS), fixed_axis(Z_AXIS))
-            jkind = "pin"
-        elif kind == "UniversalJoint":
-            rot = (coordinate_axis(X_AXIS, names[0]), coordinate_axis(Y_AXIS, names[1]), fixed_axis(Z_AXIS))
-            trans, jkind = (fixed_axis(X_AXIS), fixed_axis(Y_AXIS), fixed_axis(Z_AXIS)), "universal"
-        elif kind == "WeldJoint":
-            rot = (fixed_axis(X_AXIS), fixed_axis(Y_AXIS), fixed_axis(Z_AXIS))
-            trans = rot
-            jkind = "weld"
-        else:
-            raise AssetError(f"unsupported joint type {kind} ({j.get('name')})")
-        if j.get("name", "").startswith("patellofemoral"):
-            jkind = "patellofemoral"
-        joints.append(
-            Joint(j.get("name", ""), jkind, parent, child, p_off, c_off, rot, trans, parent)  # type: ignore[arg-type]
+    for c in j.iter("Coordinate"):
+        name = c.get("name", "")
+        if name in coupled:
+            continue
+        lo, hi = _vec(c.findtext("range"))
+        motion = "translational" if name in ROOT_TRANSLATIONS else "rotational"
+        coords.append(
+            Coordinate(name, j.get("name", ""), motion, (lo, hi), "Rajagopal2015.osim", True)  # type: ignore[arg-type]
         )
-        for c in j.iter("Coordinate"):
-            name = c.get("name", "")
-            if name in coupled:
-                continue
-            lo, hi = _vec(c.findtext("range"))
-            motion = "translational" if name in ROOT_TRANSLATIONS else "rotational"
-            coords.append(
-                Coordinate(name, j.get("name", ""), motion, (lo, hi), "Rajagopal2015.osim", True)  # type: ignore[arg-type]
-            )
+    return coords
 
-    # Topological order: parents before children (the ground first).
+
+def _topological_order(joints: list[Joint]) -> list[Joint]:
+    """The joints with parents before children (the ground first); AssetError if they are not a tree."""
     ordered: list[Joint] = []
     placed = {"ground"}
     pending = list(joints)
@@ -177,5 +188,24 @@ def parse_model(doc: ET.Element) -> tuple[list[Body], list[Joint], list[Coordina
             ordered.append(jt)
             placed.add(jt.child)
             pending.remove(jt)
+    return ordered
+
+
+def parse_model(doc: ET.Element) -> tuple[list[Body], list[Joint], list[Coordinate]]:
+    """Bodies, joints (topological order) and coordinates of an OpenSim 4 document.
+
+    Coordinates made dependent by a CoordinateCouplerConstraint with the identity function (the
+    patellofemoral ``knee_angle_*_beta``) are replaced by their independent coordinate.
+    """
+    model = doc.find("Model")
+    assert model is not None
+    coupled = _identity_couplers(model)
+    bodies = _bodies(model)
+    joints: list[Joint] = []
+    coords: list[Coordinate] = []
+    for j in model.find("JointSet/objects") or []:
+        joints.append(_joint(j, coupled))
+        coords += _joint_coordinates(j, coupled)
+    ordered = _topological_order(joints)
     body_list = [bodies[j.child] for j in ordered]
     return body_list, ordered, coords
