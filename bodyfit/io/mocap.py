@@ -154,6 +154,17 @@ def parse_trc(
             f"{source} is not a TRC file: the first line must start with 'PathFileType' (OpenSim / Vicon "
             "TRC layout: 5 header lines, then one tab-separated row per frame)"
         )
+    rate, n_markers, unit, names = _trc_header(lines, source)
+    rows = _trc_rows(lines, 2 + 3 * n_markers, source)
+    data = np.asarray(rows, np.float64)
+    positions = _mask_zeros(data[:, 2:].reshape(len(rows), n_markers, 3), zeros_missing) * UNITS[unit]
+    trial = MarkerTrial(tuple(names), positions, rate, _times(data[:, 1], rate, len(rows)), source)
+    return trial if rotation is None else trial.rotated(rotation)
+
+
+def _trc_header(lines: list[str], source: str) -> tuple[float, int, str, list[str]]:
+    """Returns the data rate (Hz), the marker count, the lower-case unit and the marker names from a TRC
+    file's header lines (2 to 4)."""
     keys, values = lines[1].split(), lines[2].split()
     header = dict(zip(keys, values))
     for key in ("DataRate", "NumMarkers", "Units"):
@@ -172,7 +183,12 @@ def parse_trc(
         raise MocapFormatError(
             f"{source}: the header says NumMarkers={n_markers} but line 4 names {len(names)} markers"
         )
-    width = 2 + 3 * n_markers
+    return rate, n_markers, unit, names
+
+
+def _trc_rows(lines: list[str], width: int, source: str) -> list[list[float]]:
+    """Returns the TRC file's data rows (frame, time, then x y z per marker), each ``width`` numbers with
+    empty cells as NaN; blank lines are skipped and at least one row is required."""
     rows = []
     for k, line in enumerate(lines[5:], start=6):
         if not line.strip():
@@ -187,10 +203,7 @@ def parse_trc(
             raise MocapFormatError(f"{source} line {k}: not a number ({exc})") from exc
     if not rows:
         raise MocapFormatError(f"{source} holds no frames")
-    data = np.asarray(rows, np.float64)
-    positions = _mask_zeros(data[:, 2:].reshape(len(rows), n_markers, 3), zeros_missing) * UNITS[unit]
-    trial = MarkerTrial(tuple(names), positions, rate, _times(data[:, 1], rate, len(rows)), source)
-    return trial if rotation is None else trial.rotated(rotation)
+    return rows
 
 
 def parse_c3d(
