@@ -278,14 +278,9 @@ def _split_mass(
     return Body(name, name, torso.mass * fraction, com, inertia, geometry, offset)  # type: ignore[arg-type]
 
 
-def build_skeleton() -> SkeletonSpec:
-    """The bodyfit skeleton: Rajagopal2015 plus spine, scapulae and unlocked coordinates."""
-    path = rajagopal_osim_path()
-    bodies, joints, coords = parse_model(upgraded_document(path))
-    body = {b.name: b for b in bodies}
-    torso = body["torso"]
+def _added_bodies(torso: Body) -> dict[str, Body]:
+    """Name -> Body of the bodies added to Rajagopal's: the split torso, spine links and both scapulae."""
     cervical_base: Vec = (THORACOLUMBAR[0], THORACOLUMBAR[1] + THORACIC_LENGTH, THORACOLUMBAR[2])
-
     new_bodies = {
         "torso": _split_mass(
             torso, "torso", MASS_SPLIT["torso"], (-0.04, 0.09, 0.0), ("hat_spine.vtp",), (0, 0, 0)
@@ -320,15 +315,22 @@ def build_skeleton() -> SkeletonSpec:
             segment=mirror_side(b.segment),
             mass_center=(*b.mass_center[:2], -b.mass_center[2]),
         )
-    body.update(new_bodies)
+    return new_bodies
 
+
+def _added_joints() -> list[Joint]:
+    """The joints added to Rajagopal's: thoracic and cervical spine, then both scapulothoracic chains."""
     added = spine_joints("thorax", "torso", "thoracic_link", "thorax", THORACOLUMBAR, THORACIC_LENGTH)
     added += spine_joints(
         "neck", "thorax", "cervical_link", "head", (0.0, THORACIC_LENGTH, 0.0), CERVICAL_LENGTH
     )
     scap_r = scapula_joints_right(THORACOLUMBAR, SCAPULA_CONTACT_R)
     added += scap_r + [mirror_joint(j) for j in scap_r]
+    return added
 
+
+def _arms_on_scapulae(joints: list[Joint]) -> list[Joint]:
+    """Rajagopal's joints with each ``acromial_*`` joint re-hung from (and scaled with) its scapula."""
     out: list[Joint] = []
     for j in joints:
         if j.name.startswith("acromial_"):
@@ -341,15 +343,22 @@ def build_skeleton() -> SkeletonSpec:
                 scale_segment=f"scapula_{side}",
             )
         out.append(j)
-    out += added
-    ordered = _depth_first(out)
+    return out
 
-    # Coordinates: Rajagopal's (with the unlocked ranges), then the added ones after lumbar / before arms.
-    owner: dict[str, str] = {}  # added coordinate -> the sub-joint whose axes it drives first
+
+def _coordinate_owners(added: list[Joint]) -> dict[str, str]:
+    """Added coordinate -> the sub-joint whose axes it drives first."""
+    owner: dict[str, str] = {}
     for jt in added:
         for a in (*jt.rotations, *jt.translations):
             if a.coordinate:
                 owner.setdefault(a.coordinate, jt.name)
+    return owner
+
+
+def _named_coordinates(coords: list[Coordinate], owner: dict[str, str]) -> list[Coordinate]:
+    """Rajagopal's coordinates but the root translations (unlocked ranges applied), with the scapula
+    coordinates inserted before each arm_flex and the spine ones after lumbar_rotation."""
     named: list[Coordinate] = []
     for c in coords:
         if c.name in ROOT_TRANSLATIONS:
@@ -367,6 +376,20 @@ def build_skeleton() -> SkeletonSpec:
         if c.name == "lumbar_rotation":
             for name, (rng, src, desc) in SPINE_RANGES.items():
                 named.append(Coordinate(name, owner[name], "rotational", rng, src, False, desc))
+    return named
+
+
+def build_skeleton() -> SkeletonSpec:
+    """The bodyfit skeleton: Rajagopal2015 plus spine, scapulae and unlocked coordinates."""
+    path = rajagopal_osim_path()
+    bodies, joints, coords = parse_model(upgraded_document(path))
+    body = {b.name: b for b in bodies}
+    body.update(_added_bodies(body["torso"]))
+    added = _added_joints()
+    ordered = _depth_first(_arms_on_scapulae(joints) + added)
+
+    # Coordinates: Rajagopal's (with the unlocked ranges), then the added ones after lumbar / before arms.
+    named = _named_coordinates(coords, _coordinate_owners(added))
     roots = tuple(next(c for c in coords if c.name == n) for n in ROOT_TRANSLATIONS)
 
     bodies_out = tuple(body[j.child] for j in ordered)
