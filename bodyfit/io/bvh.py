@@ -228,16 +228,32 @@ def parse_bvh(
     Raises:
         MocapFormatError: malformed hierarchy or motion block, with the line.
     """
+    M = _checked_rotation(units, rotation)
+    lines = text.splitlines()
+    split = next((n for n, line in enumerate(lines) if line.strip().upper() == "MOTION"), None)
+    if split is None:
+        raise MocapFormatError(f"{source}: no MOTION section; is this a BVH file?")
+    joints = _parse_hierarchy(lines[:split], source)
+    n_frames, frame_time = _parse_motion_header(lines, split, source)
+    values = _parse_frames(lines, split, n_frames, sum(len(j.channels) for j in joints), source)
+    return BvhMotion(tuple(joints), values, frame_time, units, M, source)
+
+
+def _checked_rotation(units: float, rotation: np.ndarray | None) -> np.ndarray:
+    """Returns the (3, 3) rotation from file axes to ours (default: Y up, facing +Z), after checking
+    ``units`` and that the rotation is proper."""
     if not (np.isfinite(units) and units > 0):
         raise MocapFormatError(f"units must be a positive number of metres per file unit; got {units}")
     M = lab_rotation("y", "z") if rotation is None else np.asarray(rotation, np.float64)
     if M.shape != (3, 3) or not np.allclose(M @ M.T, np.eye(3), atol=1e-6) or np.linalg.det(M) < 0:
         raise MocapFormatError("rotation must be a proper 3x3 rotation (file axes to ours)")
-    lines = text.splitlines()
-    split = next((n for n, line in enumerate(lines) if line.strip().upper() == "MOTION"), None)
-    if split is None:
-        raise MocapFormatError(f"{source}: no MOTION section; is this a BVH file?")
-    tok = _Tokens(lines[:split], source)
+    return M
+
+
+def _parse_hierarchy(lines: list[str], source: str) -> list[BvhJoint]:
+    """Returns the joints of the HIERARCHY block (the lines before MOTION), parents before children,
+    with unique names."""
+    tok = _Tokens(lines, source)
     tok.expect("HIERARCHY")
     tok.expect("ROOT")
     joints: list[BvhJoint] = []
@@ -248,6 +264,12 @@ def parse_bvh(
     if len(set(names)) != len(names):
         dup = sorted({n for n in names if names.count(n) > 1})
         raise MocapFormatError(f"{source}: joint names must be unique; repeated: {', '.join(dup)}")
+    return joints
+
+
+def _parse_motion_header(lines: list[str], split: int, source: str) -> tuple[float, float]:
+    """Returns the frame count (a whole number >= 0, as a float) and the frame time in seconds (> 0)
+    from the two lines after MOTION (line index ``split``)."""
     header = _Tokens(lines[split + 1 : split + 3], source)
     header.items = [(t, n + split + 2) for t, n in header.items]
     header.expect("Frames:")
@@ -259,7 +281,12 @@ def parse_bvh(
         raise MocapFormatError(f"{source}: frame count must be a whole number >= 0; got {n_frames:g}")
     if frame_time <= 0:
         raise MocapFormatError(f"{source}: frame time must be positive seconds; got {frame_time:g}")
-    n_channels = sum(len(j.channels) for j in joints)
+    return n_frames, frame_time
+
+
+def _parse_frames(lines: list[str], split: int, n_frames: float, n_channels: int, source: str) -> np.ndarray:
+    """Returns the (n_frames, n_channels) finite channel values from the non-blank lines after the
+    MOTION header."""
     rows = [line for line in lines[split + 3 :] if line.strip()]
     if len(rows) != int(n_frames):
         raise MocapFormatError(f"{source}: header says {int(n_frames)} frames but {len(rows)} follow")
@@ -278,7 +305,7 @@ def parse_bvh(
     if not np.isfinite(values).all():
         k = int(np.flatnonzero(~np.isfinite(values).all(axis=1))[0])
         raise MocapFormatError(f"{source} frame {k}: values must be finite")
-    return BvhMotion(tuple(joints), values, frame_time, units, M, source)
+    return values
 
 
 def read_bvh(path: str | Path, units: float = 1.0, rotation: np.ndarray | None = None) -> BvhMotion:
