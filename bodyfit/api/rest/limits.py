@@ -29,34 +29,11 @@ class BodyLimit:
         if length is not None and (not length.isdigit() or int(length) > self.max_bytes):
             await self._refuse(send, int(length) if length.isdigit() else None)
             return
-        received = 0
-        exceeded = refused = False
-
-        async def counted() -> Message:
-            nonlocal received, exceeded
-            message = await receive()
-            if message["type"] == "http.request":
-                received += len(message.get("body", b""))
-                if received > self.max_bytes:
-                    exceeded = True
-                    raise BodyTooLargeError
-            return message
-
-        async def replaced(message: Message) -> None:
-            # Once the body ran over, whatever the app answers (its body parser turns the error into a
-            # 400) is replaced by the 413.
-            nonlocal refused
-            if not exceeded:
-                await send(message)
-            elif not refused:
-                refused = True
-                await self._refuse(send, None)
-
+        guard = _BodyGuard(self, receive, send)
         try:
-            await self.app(scope, counted, replaced)
+            await self.app(scope, guard.receive, guard.send)
         except BodyTooLargeError:
-            if not refused:
-                await self._refuse(send, None)
+            await guard.refuse_once()
 
     async def _refuse(self, send: Send, size: int | None) -> None:
         got = f"{size / 2**20:.1f} MiB" if size is not None else "more"
@@ -76,3 +53,39 @@ class BodyLimit:
             }
         )
         await send({"type": "http.response.body", "body": body})
+
+
+class _BodyGuard:
+    """One request's body counted against the limit as the app reads it; once it ran over, whatever the
+    app answers (its body parser turns the error into a 400) is replaced by one 413."""
+
+    def __init__(self, limit: BodyLimit, receive: Receive, send: Send) -> None:
+        self.limit = limit
+        self._receive = receive
+        self._send = send
+        self.received = 0
+        self.exceeded = False
+        self.refused = False
+
+    async def receive(self) -> Message:
+        """Returns the next message; raises BodyTooLargeError once the bodies so far exceed the limit."""
+        message = await self._receive()
+        if message["type"] == "http.request":
+            self.received += len(message.get("body", b""))
+            if self.received > self.limit.max_bytes:
+                self.exceeded = True
+                raise BodyTooLargeError
+        return message
+
+    async def send(self, message: Message) -> None:
+        """Returns None; passes the app's message on, or the 413 instead once the body ran over."""
+        if not self.exceeded:
+            await self._send(message)
+        else:
+            await self.refuse_once()
+
+    async def refuse_once(self) -> None:
+        """Returns None; sends the 413 unless it was sent already."""
+        if not self.refused:
+            self.refused = True
+            await self.limit._refuse(self._send, None)
