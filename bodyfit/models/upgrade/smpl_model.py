@@ -215,14 +215,17 @@ def _dense(a: Any) -> np.ndarray:
     return np.asarray(a.toarray() if hasattr(a, "toarray") else a, np.float64)
 
 
-def _model(data: dict[str, Any], source: str) -> SmplModel:
-    v = _dense(data["v_template"])
-    shapedirs = _dense(data["shapedirs"])
-    J_reg = _dense(data["J_regressor"])
-    weights = _dense(data["weights"])
-    kintree = np.asarray(data["kintree_table"]).astype(np.int64)
-    faces = np.asarray(data["f"]).astype(np.int64)
-    posedirs = _dense(data["posedirs"]) if "posedirs" in data else None
+def _shape_problems(
+    v: np.ndarray,
+    shapedirs: np.ndarray,
+    J_reg: np.ndarray,
+    weights: np.ndarray,
+    kintree: np.ndarray,
+    faces: np.ndarray,
+    posedirs: np.ndarray | None,
+) -> list[str]:
+    """What is wrong with the arrays' shapes (N vertices from ``v``, J joints from ``J_reg``); empty if
+    nothing is."""
     N, J = len(v), len(J_reg)
     problems = []
     if v.ndim != 2 or v.shape[1] != 3:
@@ -241,6 +244,19 @@ def _model(data: dict[str, Any], source: str) -> SmplModel:
         posedirs.ndim != 3 or posedirs.shape[:2] != (N, 3) or posedirs.shape[2] != 9 * (J - 1)
     ):
         problems.append(f"posedirs must be ({N}, 3, {9 * (J - 1)}), got {posedirs.shape}")
+    return problems
+
+
+def _model(data: dict[str, Any], source: str) -> SmplModel:
+    v = _dense(data["v_template"])
+    shapedirs = _dense(data["shapedirs"])
+    J_reg = _dense(data["J_regressor"])
+    weights = _dense(data["weights"])
+    kintree = np.asarray(data["kintree_table"]).astype(np.int64)
+    faces = np.asarray(data["f"]).astype(np.int64)
+    posedirs = _dense(data["posedirs"]) if "posedirs" in data else None
+    J = len(J_reg)
+    problems = _shape_problems(v, shapedirs, J_reg, weights, kintree, faces, posedirs)
     if problems:
         raise SmplModelError(f"{Path(source).name} is malformed: " + "; ".join(problems))
     parents = kintree[0].copy()
