@@ -94,28 +94,7 @@ def check_frames(
             field=field,
         )
     T = len(frames)
-    w = None
-    if weights is not None:
-        w = np.asarray(weights)
-        if w.dtype.kind not in "fiub":
-            raise InvalidInputError(f"weights must be numbers (0 = missing); got {w.dtype}", field="weights")
-        if w.shape != (T, V):
-            raise InvalidInputError(
-                f"weights must have one value per frame and vertex, shape {(T, V)}; got {w.shape}",
-                field="weights",
-            )
-        w = w.astype(np.float64)
-        if not np.isfinite(w).all() or (w < 0).any():
-            raise InvalidInputError(
-                "weights must be finite and non-negative (0 marks a missing vertex)", field="weights"
-            )
-        empty = np.flatnonzero(w.max(axis=1) <= 0)
-        if len(empty):
-            raise InvalidInputError(
-                f"{frame(int(empty[0]))} has no vertex with a positive weight ({len(empty)} such frames); "
-                "drop the frames nothing was seen in",
-                field="weights",
-            )
+    w = None if weights is None else _checked_weights(weights, T, V, frame)
     for lo in range(0, T, chunk):
         with np.errstate(over="ignore"):
             x = np.asarray(frames[lo : lo + chunk], np.float32)
@@ -130,6 +109,32 @@ def check_frames(
             )
         seen = None if w is None else w[lo : lo + chunk] > 0
         _check_bodies(x, None if seen is None or seen.all() else seen, lo, frame, field)
+
+
+def _checked_weights(weights: np.ndarray, T: int, V: int, frame: Callable[[int], str]) -> np.ndarray:
+    """Returns the weights (T, V) as float64 once they are numbers, finite, non-negative and positive
+    somewhere in every frame (``frame`` names frame t in messages)."""
+    w = np.asarray(weights)
+    if w.dtype.kind not in "fiub":
+        raise InvalidInputError(f"weights must be numbers (0 = missing); got {w.dtype}", field="weights")
+    if w.shape != (T, V):
+        raise InvalidInputError(
+            f"weights must have one value per frame and vertex, shape {(T, V)}; got {w.shape}",
+            field="weights",
+        )
+    w = w.astype(np.float64)
+    if not np.isfinite(w).all() or (w < 0).any():
+        raise InvalidInputError(
+            "weights must be finite and non-negative (0 marks a missing vertex)", field="weights"
+        )
+    empty = np.flatnonzero(w.max(axis=1) <= 0)
+    if len(empty):
+        raise InvalidInputError(
+            f"{frame(int(empty[0]))} has no vertex with a positive weight ({len(empty)} such frames); "
+            "drop the frames nothing was seen in",
+            field="weights",
+        )
+    return w
 
 
 def _check_bodies(
