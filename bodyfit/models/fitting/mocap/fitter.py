@@ -20,6 +20,7 @@ import warnings
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -149,54 +150,22 @@ def fit_markers(
     skel = model.skeleton
     names_all = [*trial.names, *(static.names if static is not None else ())]
     defn = choose_marker_set(names_all, marker_set)
-    vm = virtual_markers(defn, model)
-    if weights:
-        unknown = sorted(set(weights) - set(vm.names))
-        if unknown:
-            raise MarkerSetError(f"weights name markers not in the {defn.name} set: {', '.join(unknown)}")
-        w = vm.weights.copy()
-        for n, v in weights.items():
-            w[vm.names.index(n)] = float(v)
-        vm = replace(vm, weights=w)
+    vm = _weighted(virtual_markers(defn, model), weights, defn.name)
     in_trial = {normalise_name(n) for n in trial.names}
     window = None if static is None else static if static_window is None else static.between(*static_window)
-    in_static: set[str] = set()
-    if window is not None and mode == "static":  # every marker it shows is placed
-        in_static = {normalise_name(n) for n in window.names}
-    used = [n for n, wt in zip(vm.names, vm.weights) if wt > 0 and (n in in_trial or n in in_static)]
+    used = _used_names(vm, in_trial, window if mode == "static" else None)
     vm = vm.subset(used)
     plan = DofPlan.build(skel, defn)
     standing_plan = plan.holding(skel, static_pose) if static_pose else plan  # the static trial's pose
     scale_model = ScaleModel(model)
-    notes: list[str] = []
-    standing: np.ndarray | None = None
     if mode == "static":
         assert window is not None
-        static_frames = observed_positions(window, used)
-        cal, markers = _calibrate_static(skel, scale_model, vm, static_frames, standing_plan, defn.name)
-        standing, described = cal.q[0], "static"
-        missing = [
-            n for n in used if n in in_trial and not np.isfinite(observed_positions(window, [n])).any()
-        ]
-        if missing:
-            notes.append(f"not in the static trial, left at their default locations: {', '.join(missing)}")
+        subject = _subject_from_static(skel, scale_model, vm, window, standing_plan, defn.name, in_trial)
     else:
-        obs = observed_positions(trial, used)
-        frames = _calibration_frames(obs, calibration_frames)
-        first = solve_ik(skel, vm, scale_model.mean.numpy(), obs[frames], trial.times[frames], plan)
-        cal = calibrate(
-            skel, scale_model, vm, obs[frames], trial.times[frames], plan, ~vm.anatomical, start=first.q
+        subject = _subject_from_motion(
+            skel, scale_model, vm, trial, plan, calibration_frames, window, standing_plan, static_pose
         )
-        markers, described = cal.markers, f"motion ({len(cal.q)} frames)"
-        if window is not None and static_pose:
-            static_frames = observed_positions(window, list(markers.names))
-            markers, standing, bodies = _place_from_static(
-                skel, markers, cal.scales, static_frames, standing_plan, static_pose
-            )
-            described += (
-                f"; the markers on {', '.join(bodies)} placed from the static trial with "
-                f"{', '.join(static_pose)} held"
-            )
+    cal, markers = subject.cal, subject.markers
     t_cal = time.perf_counter()
 
     ik_names = [n for n in markers.names if n in in_trial]
@@ -205,25 +174,136 @@ def fit_markers(
     sol = solve_ik(skel, ik_markers, cal.scales, observed, trial.times, plan, max_iterations=max_iterations)
     t_end = time.perf_counter()
     report = _report(sol.q, sol.errors, observed, skel.ranges, cal.iterations + sol.iterations, t_end - t0)
-    extra = {
-        "marker_set": defn.name,
-        "calibration": described,
-        "calibration_seconds": t_cal - t0,
-        "ik_seconds": t_end - t_cal,
-        "calibration_error_mm": DistanceStats.of(cal.errors).mean,
-        "marker_mean_error_mm": {
-            n: float(np.nanmean(sol.errors[:, i]) * 1000)
-            for i, n in enumerate(ik_names)
-            if np.isfinite(sol.errors[:, i]).any()
-        },
-        "unused_markers": sorted(in_trial - set(vm.names)),
-        "notes": notes,
-    }
+    unused = sorted(in_trial - set(vm.names))
+    extra = _report_extra(defn.name, subject, t_cal - t0, t_end - t_cal, sol.errors, ik_names, unused)
     return MarkerFit(
         sol.q, sol.root, trial.times.copy(), cal.scales, markers, sol.errors,
-        standing, defn.name, list(skel.dof_names),
+        subject.standing, defn.name, list(skel.dof_names),
         replace(report, extra=extra),
     )  # fmt: skip
+
+
+def _weighted(vm: VirtualMarkers, weights: Mapping[str, float] | None, set_name: str) -> VirtualMarkers:
+    """The markers ``vm`` with their IK weights overridden by ``weights`` (marker name -> weight).
+
+    Raises:
+        MarkerSetError: a name in ``weights`` that is not a marker of the set.
+    """
+    if not weights:
+        return vm
+    unknown = sorted(set(weights) - set(vm.names))
+    if unknown:
+        raise MarkerSetError(f"weights name markers not in the {set_name} set: {', '.join(unknown)}")
+    w = vm.weights.copy()
+    for n, v in weights.items():
+        w[vm.names.index(n)] = float(v)
+    return replace(vm, weights=w)
+
+
+def _used_names(vm: VirtualMarkers, in_trial: set[str], static: MarkerTrial | None) -> list[str]:
+    """Names of the weighted markers of ``vm`` that the trial (names ``in_trial``) or, when calibrating
+    from it, the static trial ``static`` shows (every marker a static trial shows is placed)."""
+    in_static: set[str] = set()
+    if static is not None:
+        in_static = {normalise_name(n) for n in static.names}
+    return [n for n, wt in zip(vm.names, vm.weights) if wt > 0 and (n in in_trial or n in in_static)]
+
+
+@dataclass(frozen=True)
+class _Subject:
+    """A calibrated subject: the calibration, its markers, the static standing pose (n_dof,) or None, how
+    it was calibrated (for the report) and notes for the report."""
+
+    cal: Calibration
+    markers: VirtualMarkers
+    standing: np.ndarray | None
+    described: str
+    notes: list[str]
+
+
+def _subject_from_static(
+    skel: Skeleton,
+    scale_model: ScaleModel,
+    vm: VirtualMarkers,
+    window: MarkerTrial,
+    standing_plan: DofPlan,
+    set_name: str,
+    in_trial: set[str],
+) -> _Subject:
+    """The subject calibrated from the static trial ``window`` (see :func:`_calibrate_static`)."""
+    used = list(vm.names)
+    static_frames = observed_positions(window, used)
+    cal, markers = _calibrate_static(skel, scale_model, vm, static_frames, standing_plan, set_name)
+    notes: list[str] = []
+    missing = [n for n in used if n in in_trial and not np.isfinite(observed_positions(window, [n])).any()]
+    if missing:
+        notes.append(f"not in the static trial, left at their default locations: {', '.join(missing)}")
+    return _Subject(cal, markers, cal.q[0], "static", notes)
+
+
+def _subject_from_motion(
+    skel: Skeleton,
+    scale_model: ScaleModel,
+    vm: VirtualMarkers,
+    trial: MarkerTrial,
+    plan: DofPlan,
+    calibration_frames: int,
+    window: MarkerTrial | None,
+    standing_plan: DofPlan,
+    static_pose: Mapping[str, float] | None,
+) -> _Subject:
+    """The subject calibrated from ``calibration_frames`` frames of the motion; with a static trial
+    ``window`` and ``static_pose``, the markers on the bodies the held coordinates move are then placed
+    where the static trial saw them (see :func:`_place_from_static`)."""
+    obs = observed_positions(trial, list(vm.names))
+    frames = _calibration_frames(obs, calibration_frames)
+    first = solve_ik(skel, vm, scale_model.mean.numpy(), obs[frames], trial.times[frames], plan)
+    cal = calibrate(
+        skel, scale_model, vm, obs[frames], trial.times[frames], plan, ~vm.anatomical, start=first.q
+    )
+    markers, described = cal.markers, f"motion ({len(cal.q)} frames)"
+    standing: np.ndarray | None = None
+    if window is not None and static_pose:
+        static_frames = observed_positions(window, list(markers.names))
+        markers, standing, bodies = _place_from_static(
+            skel, markers, cal.scales, static_frames, standing_plan, static_pose
+        )
+        described += (
+            f"; the markers on {', '.join(bodies)} placed from the static trial with "
+            f"{', '.join(static_pose)} held"
+        )
+    return _Subject(cal, markers, standing, described, [])
+
+
+def _report_extra(
+    set_name: str,
+    subject: _Subject,
+    calibration_seconds: float,
+    ik_seconds: float,
+    errors: np.ndarray,
+    names: list[str],
+    unused: list[str],
+) -> dict[str, Any]:
+    """The marker fit's numbers for :attr:`FitReport.extra` (errors: (T, M) m of the markers ``names``)."""
+    return {
+        "marker_set": set_name,
+        "calibration": subject.described,
+        "calibration_seconds": calibration_seconds,
+        "ik_seconds": ik_seconds,
+        "calibration_error_mm": DistanceStats.of(subject.cal.errors).mean,
+        "marker_mean_error_mm": _mean_errors_mm(errors, names),
+        "unused_markers": unused,
+        "notes": subject.notes,
+    }
+
+
+def _mean_errors_mm(errors: np.ndarray, names: list[str]) -> dict[str, float]:
+    """Mean error (mm) of each marker ``names[i]`` (errors (T, M) m, NaN where missing) that has any."""
+    return {
+        n: float(np.nanmean(errors[:, i]) * 1000)
+        for i, n in enumerate(names)
+        if np.isfinite(errors[:, i]).any()
+    }
 
 
 def _calibrate_static(
