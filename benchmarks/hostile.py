@@ -255,6 +255,8 @@ def corpus(bomb_mb: int = 2048) -> list[Case]:
 
 
 def _scan_cases(bomb_mb: int) -> Iterator[Case]:
+    """Yields every hostile scan upload, always in the same order (the zip bomb inflates to ``bomb_mb``
+    MiB)."""
     pts = body_points()
     tri = pts[:999].reshape(-1, 3, 3)
     rng = np.random.default_rng(7)
@@ -266,75 +268,96 @@ def _scan_cases(bomb_mb: int) -> Iterator[Case]:
         "pcd": pcd(pts, "binary"),
         "npz": npz(points=pts),
     }
+    yield from _scan_file_cases(valid, garbage)
+    yield from _scan_count_cases(pts, tri)
+    yield from _scan_content_cases(pts, valid, rng)
+    yield from _scan_npz_cases(pts, garbage, bomb_mb)
 
-    def case(name: str, fmt: str, data: bytes, **fields: str) -> Case:
-        return Case(f"scan/{fmt}/{name}", SCAN, f"scan.{fmt}", data, fields)
 
+def _scan_case(name: str, fmt: str, data: bytes, **fields: str) -> Case:
+    """Returns the scan upload ``scan/<fmt>/<name>`` of ``data`` as ``scan.<fmt>`` with form ``fields``."""
+    return Case(f"scan/{fmt}/{name}", SCAN, f"scan.{fmt}", data, fields)
+
+
+def _scan_file_cases(valid: dict[str, bytes], garbage: bytes) -> Iterator[Case]:
+    """Yields, for every format, broken files made from its ``valid`` bytes (empty, cut, zeroed, garbage)."""
     for fmt, good in valid.items():
-        yield case("empty", fmt, b"")
-        yield case("garbage", fmt, garbage)
+        yield _scan_case("empty", fmt, b"")
+        yield _scan_case("garbage", fmt, garbage)
         if fmt != "obj":  # a text OBJ cut short is a smaller valid OBJ
-            yield case("truncated", fmt, good[: len(good) // 3])
-        yield case("header-only", fmt, good[:120])
-        yield case("zeros", fmt, bytes(len(good)))
-        yield case("text-in-binary", fmt, b"hello, this is not a scan\n" * 50)
-    # declared counts far beyond the data
-    yield case("declares-1e9-vertices-binary", "ply", ply_binary(pts, declared=10**9))
-    yield case("declares-1e9-vertices-ascii", "ply", ply_ascii(pts, declared=10**9))
-    yield case("declares-2e9-vertices", "ply", ply_binary(pts, declared=2**31 + 5))
-    yield case("negative-count", "ply", ply_ascii(pts, declared=-5))
-    yield case("faces-out-of-range", "ply", ply_ascii(pts, faces="3 0 1 999999999\n" * 10))
-    yield case("declares-1e8-triangles", "stl", stl_binary(tri, declared=10**8))
-    yield case("declares-1e9-points-binary", "pcd", pcd(pts, "binary", declared=10**9))
-    yield case("declares-1e9-points-ascii", "pcd", pcd(pts, "ascii", declared=10**9))
-    yield case("compressed-claims-3gb", "pcd", pcd_compressed(10**8, b"\0" * 16, 3 * 10**9))
-    yield case("compressed-size-mismatch", "pcd", pcd_compressed(2000, lzf_repeats(24_000), 12_000))
-    yield case("compressed-lzf-repeats-4gb", "pcd", pcd_compressed(2000, lzf_repeats(4 * 2**20), 2**32 - 1))
-    yield case("obj-face-index-1e9", "obj", obj_text(pts, "f 1 2 1000000000\n"))
-    yield case("obj-inf", "obj", obj_text(np.full((500, 3), np.inf)))
-    yield case("obj-cut-mid-line", "obj", obj_text(pts[:100])[:-7])
-    # content: non-finite, degenerate, not human-sized, wrong units
-    yield case("all-nan", "npz", npz(points=np.full((2000, 3), np.nan)))
-    yield case("inf-points", "ply", ply_binary(np.full((2000, 3), np.inf)))
-    yield case("all-zero", "npz", npz(points=np.zeros((2000, 3))))
-    yield case("one-point-repeated", "ply", ply_binary(np.tile([[0.1, 0.2, 0.3]], (2000, 1))))
-    yield case("collinear", "npz", npz(points=np.outer(np.linspace(0, 1.7, 2000), [0, 1, 0])))
-    yield case("planar", "pcd", pcd(np.c_[rng.random((2000, 2)) * 1.7, np.zeros(2000)], "binary"))
-    yield case("too-few-points", "npz", npz(points=pts[:20]))
-    yield case("building-sized", "npz", npz(points=pts * 40.0))
-    yield case("centimetres", "npz", npz(points=pts * 100.0))
-    yield case("metres-sent-as-mm", "npz", npz(points=pts), units="mm")
-    yield case("unknown-units", "npz", npz(points=pts), units="furlongs")
-    yield case("ply-sent-as-stl", "stl", valid["ply"])
-    yield case("unknown-format", "xyz", valid["ply"], format="xyz")
-    # npz members: types, keys, pickles, zip tricks
-    yield case("wrong-keys", "npz", npz(cloud=pts))
-    yield case("points-2d-wrong-width", "npz", npz(points=pts[:, :2]))
-    yield case("points-scalar", "npz", npz(points=np.array(3.0)))
-    yield case("points-strings", "npz", npz(points=np.array(["a", "b", "c"] * 700)))
-    yield case("points-structured", "npz", npz(points=np.zeros(2000, dtype=[("x", "f4"), ("y", "f4")])))
-    yield case("points-complex", "npz", npz(points=pts.astype(np.complex64)))
-    yield case("faces-float", "npz", npz(points=pts, faces=np.zeros((10, 3))))
-    yield case("pickled-object-array", "npz", _pickle_npz())
-    yield case("pickle-as-npz", "npz", pickle.dumps(_Pwned()))
-    yield case("lying-header-1e9-rows", "npz", lying_npz("points", (10**9, 3), 1024))
-    yield case("lying-header-short", "npz", lying_npz("points", (2000, 3), 24_000 * 2, "<f8"))
-    yield case("lying-header-huge-dims", "npz", lying_npz("points", (2**40, 2**40), 64))
-    yield case("fortran-huge", "npz", zip_members({"points.npy": npy_header((3, 10**9), "<f8", True)}))
-    yield case("zip-bomb", "npz", bomb_npz("points", (bomb_mb * 2**20 // 12, 3)))
-    yield case(
+            yield _scan_case("truncated", fmt, good[: len(good) // 3])
+        yield _scan_case("header-only", fmt, good[:120])
+        yield _scan_case("zeros", fmt, bytes(len(good)))
+        yield _scan_case("text-in-binary", fmt, b"hello, this is not a scan\n" * 50)
+
+
+def _scan_count_cases(pts: np.ndarray, tri: np.ndarray) -> Iterator[Case]:
+    """Yields files whose declared counts lie about the data, from body points (N, 3) and triangles
+    (K, 3, 3)."""
+    yield _scan_case("declares-1e9-vertices-binary", "ply", ply_binary(pts, declared=10**9))
+    yield _scan_case("declares-1e9-vertices-ascii", "ply", ply_ascii(pts, declared=10**9))
+    yield _scan_case("declares-2e9-vertices", "ply", ply_binary(pts, declared=2**31 + 5))
+    yield _scan_case("negative-count", "ply", ply_ascii(pts, declared=-5))
+    yield _scan_case("faces-out-of-range", "ply", ply_ascii(pts, faces="3 0 1 999999999\n" * 10))
+    yield _scan_case("declares-1e8-triangles", "stl", stl_binary(tri, declared=10**8))
+    yield _scan_case("declares-1e9-points-binary", "pcd", pcd(pts, "binary", declared=10**9))
+    yield _scan_case("declares-1e9-points-ascii", "pcd", pcd(pts, "ascii", declared=10**9))
+    yield _scan_case("compressed-claims-3gb", "pcd", pcd_compressed(10**8, b"\0" * 16, 3 * 10**9))
+    yield _scan_case("compressed-size-mismatch", "pcd", pcd_compressed(2000, lzf_repeats(24_000), 12_000))
+    yield _scan_case(
+        "compressed-lzf-repeats-4gb", "pcd", pcd_compressed(2000, lzf_repeats(4 * 2**20), 2**32 - 1)
+    )
+    yield _scan_case("obj-face-index-1e9", "obj", obj_text(pts, "f 1 2 1000000000\n"))
+    yield _scan_case("obj-inf", "obj", obj_text(np.full((500, 3), np.inf)))
+    yield _scan_case("obj-cut-mid-line", "obj", obj_text(pts[:100])[:-7])
+
+
+def _scan_content_cases(pts: np.ndarray, valid: dict[str, bytes], rng: np.random.Generator) -> Iterator[Case]:
+    """Yields readable files whose points are no body in metres, or whose units or format are wrong."""
+    yield _scan_case("all-nan", "npz", npz(points=np.full((2000, 3), np.nan)))
+    yield _scan_case("inf-points", "ply", ply_binary(np.full((2000, 3), np.inf)))
+    yield _scan_case("all-zero", "npz", npz(points=np.zeros((2000, 3))))
+    yield _scan_case("one-point-repeated", "ply", ply_binary(np.tile([[0.1, 0.2, 0.3]], (2000, 1))))
+    yield _scan_case("collinear", "npz", npz(points=np.outer(np.linspace(0, 1.7, 2000), [0, 1, 0])))
+    yield _scan_case("planar", "pcd", pcd(np.c_[rng.random((2000, 2)) * 1.7, np.zeros(2000)], "binary"))
+    yield _scan_case("too-few-points", "npz", npz(points=pts[:20]))
+    yield _scan_case("building-sized", "npz", npz(points=pts * 40.0))
+    yield _scan_case("centimetres", "npz", npz(points=pts * 100.0))
+    yield _scan_case("metres-sent-as-mm", "npz", npz(points=pts), units="mm")
+    yield _scan_case("unknown-units", "npz", npz(points=pts), units="furlongs")
+    yield _scan_case("ply-sent-as-stl", "stl", valid["ply"])
+    yield _scan_case("unknown-format", "xyz", valid["ply"], format="xyz")
+
+
+def _scan_npz_cases(pts: np.ndarray, garbage: bytes, bomb_mb: int) -> Iterator[Case]:
+    """Yields hostile NPZ archives: wrong keys and types, pickles, lying headers and zip tricks."""
+    yield _scan_case("wrong-keys", "npz", npz(cloud=pts))
+    yield _scan_case("points-2d-wrong-width", "npz", npz(points=pts[:, :2]))
+    yield _scan_case("points-scalar", "npz", npz(points=np.array(3.0)))
+    yield _scan_case("points-strings", "npz", npz(points=np.array(["a", "b", "c"] * 700)))
+    yield _scan_case("points-structured", "npz", npz(points=np.zeros(2000, dtype=[("x", "f4"), ("y", "f4")])))
+    yield _scan_case("points-complex", "npz", npz(points=pts.astype(np.complex64)))
+    yield _scan_case("faces-float", "npz", npz(points=pts, faces=np.zeros((10, 3))))
+    yield _scan_case("pickled-object-array", "npz", _pickle_npz())
+    yield _scan_case("pickle-as-npz", "npz", pickle.dumps(_Pwned()))
+    yield _scan_case("lying-header-1e9-rows", "npz", lying_npz("points", (10**9, 3), 1024))
+    yield _scan_case("lying-header-short", "npz", lying_npz("points", (2000, 3), 24_000 * 2, "<f8"))
+    yield _scan_case("lying-header-huge-dims", "npz", lying_npz("points", (2**40, 2**40), 64))
+    yield _scan_case("fortran-huge", "npz", zip_members({"points.npy": npy_header((3, 10**9), "<f8", True)}))
+    yield _scan_case("zip-bomb", "npz", bomb_npz("points", (bomb_mb * 2**20 // 12, 3)))
+    yield _scan_case(
         "encrypted-member",
         "npz",
         _raw_zip({}, {"points.npy": npy_header((10, 3), "<f8") + bytes(240)}, flags=1),
     )
-    yield case("unknown-compression", "npz", _raw_zip({"points.npy": (b"\0" * 64, 0, 64, 99)}, {}))
-    yield case(
+    yield _scan_case("unknown-compression", "npz", _raw_zip({"points.npy": (b"\0" * 64, 0, 64, 99)}, {}))
+    yield _scan_case(
         "bzip2-member",
         "npz",
         zip_members({"points.npy": npy_header((10, 3)) + bytes(120)}, zipfile.ZIP_BZIP2),
     )
-    yield case("nested-zip", "npz", zip_members({"points.npy": npz(points=pts)}))
-    yield case("not-a-zip-with-pk", "npz", b"PK\x03\x04" + garbage)
+    yield _scan_case("nested-zip", "npz", zip_members({"points.npy": npz(points=pts)}))
+    yield _scan_case("not-a-zip-with-pk", "npz", b"PK\x03\x04" + garbage)
 
 
 def _sequence_cases(bomb_mb: int) -> Iterator[Case]:
