@@ -6,11 +6,14 @@ import json
 import os
 import sys
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
 from bodyfit.clients.mesh_cli import HELPER_SCANS
+
+if TYPE_CHECKING:
+    from bodyfit.clients.marker_cli import MarkerOptions
 
 app = typer.Typer(
     no_args_is_help=True,
@@ -155,12 +158,19 @@ def fit(
     frame is solved. Writes <trial>.mot, <trial>.osim (the scaled subject with its markers, for OpenSim) and
     fit.json (one error report per trial: marker distances in mm, joint-limit violations, confidence).
     """
-    from bodyfit.clients.marker_cli import MarkerOptions, fit_marker_trials, is_marker_file
-    from bodyfit.clients.mesh_cli import fit_mesh_files
-    from bodyfit.clients.sequence_cli import fit_sequence_files, is_sequence_file
-    from bodyfit.models.errors import BodyfitError
-    from bodyfit.service.core import BodyService
-    from bodyfit.service.errors import ServiceError
+    from bodyfit.clients.marker_cli import MarkerOptions
+
+    trials, sequences = _split_inputs(meshes)
+    markers = MarkerOptions(static, tuple(static_pose or ()), calibration, marker_set, up, forward)
+    wrote = _fit_files(meshes, trials, sequences, out, units, processes, fps, markers)
+    typer.echo(f"wrote {wrote}")
+
+
+def _split_inputs(meshes: list[Path]) -> tuple[list[Path], list[Path]]:
+    """Returns the marker trials and the registered sequences among the inputs; exits with status 2 when
+    the inputs mix trials, sequences and meshes."""
+    from bodyfit.clients.marker_cli import is_marker_file
+    from bodyfit.clients.sequence_cli import is_sequence_file
 
     trials = [path for path in meshes if is_marker_file(path)]
     sequences = [path for path in meshes if is_sequence_file(path)]
@@ -170,22 +180,41 @@ def fit(
             err=True,
         )
         raise typer.Exit(2)
+    return trials, sequences
+
+
+def _fit_files(
+    meshes: list[Path],
+    trials: list[Path],
+    sequences: list[Path],
+    out: Path,
+    units: str,
+    processes: int | None,
+    fps: float,
+    markers: MarkerOptions,
+) -> str:
+    """Returns what was written, once the marker trials, else the sequences, else the meshes are fitted;
+    an error in the input is printed and exits with status 2."""
+    from bodyfit.clients.marker_cli import fit_marker_trials
+    from bodyfit.clients.mesh_cli import fit_mesh_files
+    from bodyfit.clients.sequence_cli import fit_sequence_files
+    from bodyfit.models.errors import BodyfitError
+    from bodyfit.service.core import BodyService
+    from bodyfit.service.errors import ServiceError
+
     try:
         if trials:
-            options = MarkerOptions(static, tuple(static_pose or ()), calibration, marker_set, up, forward)
-            fit_marker_trials(trials, out, options, typer.echo)
-            wrote = f"{len(trials)} marker fits to {out}/ (fit.json, <trial>.mot, <trial>.osim)"
-        elif sequences:
+            fit_marker_trials(trials, out, markers, typer.echo)
+            return f"{len(trials)} marker fits to {out}/ (fit.json, <trial>.mot, <trial>.osim)"
+        if sequences:
             fit_sequence_files(BodyService.load(fitters=False), sequences, out, fps, typer.echo)
-            wrote = f"{len(sequences)} sequence fits to {out}/ (fit.json, <name>.npz, <name>.mot)"
-        else:
-            service = BodyService.load(fitters=False)
-            fit_mesh_files(service, meshes, out, units, processes, typer.echo, _to_stderr)
-            wrote = f"{len(meshes)} fits to {out}/ (fit.npz, fit.json, registration_*.ply, fit.mot)"
+            return f"{len(sequences)} sequence fits to {out}/ (fit.json, <name>.npz, <name>.mot)"
+        service = BodyService.load(fitters=False)
+        fit_mesh_files(service, meshes, out, units, processes, typer.echo, _to_stderr)
+        return f"{len(meshes)} fits to {out}/ (fit.npz, fit.json, registration_*.ply, fit.mot)"
     except (BodyfitError, ServiceError, ValueError, OSError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
-    typer.echo(f"wrote {wrote}")
 
 
 def _to_stderr(line: str) -> None:
