@@ -150,11 +150,43 @@ def marker_jacobian(
         positions (B, M, 3), Jacobian (B, M, 3, n_dof + 3) and, with ``with_scales``, the scale
         Jacobian (B, M, 3, n_seg, 3) (else None).
     """
-    B = q.shape[0]
-    J_n = len(fk.spec.joints)
     frames = fk(q, root, scales).frames
     x = body_points(frames, scales, chain.body, chain.segment, local)  # (B, M, 3)
+    axes = _joint_axes(fk, q, root, scales, frames)
+    jac_q = _coordinate_jacobian(chain, x, axes)
+    if not with_scales:
+        return x, jac_q, None
+    return x, jac_q, _scale_jacobian(fk, chain, local, x, scales, frames, axes)
 
+
+@dataclass(frozen=True)
+class _JointAxes:
+    """Every joint's transform axes at one pose (B frames, J joints).
+
+    Attributes:
+        df: (B, J, 6) derivative of each axis' function at its coordinate.
+        d: (B, J, 3) translation function values (before scaling).
+        Rp: (B, J, 3, 3) rotation of the parent frame (ground = identity).
+        R_F: (B, J, 3, 3) rotation of the joint's F frame.
+        moving_origin: (B, J, 3) origin o_M of the joint's moving frame.
+        dirs: (B, J, 6, 3) world direction of each axis (3 rotation axes, then 3 scaled translations).
+    """
+
+    df: torch.Tensor
+    d: torch.Tensor
+    Rp: torch.Tensor
+    R_F: torch.Tensor
+    moving_origin: torch.Tensor
+    dirs: torch.Tensor
+
+
+def _joint_axes(
+    fk: SkeletonKinematics, q: torch.Tensor, root: torch.Tensor, scales: torch.Tensor, frames: torch.Tensor
+) -> _JointAxes:
+    """The joint axes at ``q`` (B, n_dof), ``root`` (B, 3), ``scales`` (B, n_seg, 3) with body ``frames``
+    (B, J, 4, 4)."""
+    B = q.shape[0]
+    J_n = len(fk.spec.joints)
     # Function values and derivatives of every transform axis (each depends on one input only).
     q_ext = torch.cat([q, root, q.new_zeros(B, 1)], dim=-1)[:, fk.cols]
 
@@ -175,6 +207,19 @@ def marker_jacobian(
     R_F = Rp @ fk.p_rot
     o_F = tp + (Rp @ (fk.p_trans * s_p).unsqueeze(-1)).squeeze(-1)
     o_M = o_F + (R_F @ p.unsqueeze(-1)).squeeze(-1)
+    return _JointAxes(df, d, Rp, R_F, o_M, _world_directions(fk, R_F, theta, mult))
+
+
+def _world_directions(
+    fk: SkeletonKinematics, R_F: torch.Tensor, theta: torch.Tensor, mult: torch.Tensor
+) -> torch.Tensor:
+    """(B, J, 6, 3) world directions of every joint's axes: the rotation axes as the earlier rotations
+    turn them, then the translation axes times their scale multipliers.
+
+    Args:
+        R_F: (B, J, 3, 3) the joints' F frames; theta: (B, J, 3) rotation angles; mult: (B, J, 3)
+            translation scale multipliers.
+    """
     Rk = axis_angle_matrix(fk.rot_axes, theta)  # (B, J, 3, 3, 3)
     a = fk.rot_axes  # (J, 3, 3): axis k of joint j
     R01 = Rk[:, :, 0] @ Rk[:, :, 1]
@@ -187,26 +232,43 @@ def marker_jacobian(
         dim=2,
     )  # (B, J, 3, 3) world rotation axes
     tdir = torch.einsum("bjxy,bjky->bjkx", R_F, mult.unsqueeze(-1) * fk.trans_axes)  # (B, J, 3, 3)
-    dirs = torch.cat([w, tdir], dim=2)  # (B, J, 6, 3)
+    return torch.cat([w, tdir], dim=2)
 
+
+def _coordinate_jacobian(chain: MarkerChain, x: torch.Tensor, axes: _JointAxes) -> torch.Tensor:
+    """(B, M, 3, n_dof + 3) Jacobian of the marker positions ``x`` (B, M, 3) with respect to ``[q, root]``."""
     pm, pj, ps = chain.pair_marker, chain.pair_joint, chain.pair_slot
-    direction = dirs[:, pj, ps]  # (B, P, 3)
-    lever = x[:, pm] - o_M[:, pj]
+    direction = axes.dirs[:, pj, ps]  # (B, P, 3)
+    lever = x[:, pm] - axes.moving_origin[:, pj]
     rot = torch.linalg.cross(direction, lever, dim=-1)
-    contrib = torch.where((ps < 3).unsqueeze(-1), rot, direction) * df[:, pj, ps].unsqueeze(-1)
-    M, C = x.shape[1], chain.n_columns
+    contrib = torch.where((ps < 3).unsqueeze(-1), rot, direction) * axes.df[:, pj, ps].unsqueeze(-1)
+    B, M, C = x.shape[0], x.shape[1], chain.n_columns
     jac = x.new_zeros(B, M * C, 3)
     jac.index_add_(1, pm * C + chain.pair_column, contrib)
-    jac_q = jac.reshape(B, M, C, 3).transpose(-1, -2)
-    if not with_scales:
-        return x, jac_q, None
+    return jac.reshape(B, M, C, 3).transpose(-1, -2)
 
-    # d x / d s: blocks (B, J, 3 [x], 3 [scale axis]) per joint and the marker's own term.
+
+def _scale_jacobian(
+    fk: SkeletonKinematics,
+    chain: MarkerChain,
+    local: torch.Tensor,
+    x: torch.Tensor,
+    scales: torch.Tensor,
+    frames: torch.Tensor,
+    axes: _JointAxes,
+) -> torch.Tensor:
+    """(B, M, 3, n_seg, 3) Jacobian of the marker positions ``x`` (B, M, 3) with respect to ``scales``
+    (B, n_seg, 3): blocks (B, J, 3 [x], 3 [scale axis]) per ancestor joint and the marker's own term.
+
+    Args:
+        local: (M, 3) marker points before scaling; frames: (B, J, 4, 4) body frames.
+    """
+    B, M = x.shape[0], x.shape[1]
     n_seg = scales.shape[1]
     R_c = frames[..., :3, :3]
-    block_p = Rp * fk.p_trans.unsqueeze(-2)
+    block_p = axes.Rp * fk.p_trans.unsqueeze(-2)
     block_c = -R_c * fk.c_trans.unsqueeze(-2)
-    block_f = R_F @ torch.einsum("bjk,jka,jkx->bjxa", d, fk.trans_scale_w, fk.trans_axes)
+    block_f = axes.R_F @ torch.einsum("bjk,jka,jkx->bjxa", axes.d, fk.trans_scale_w, fk.trans_axes)
     am, aj = chain.anc_marker, chain.anc_joint
     S1 = n_seg + 1  # a last, discarded column takes the "no segment" (-1) entries
     jac_s = x.new_zeros(B, M * S1, 3, 3)
@@ -219,8 +281,7 @@ def marker_jacobian(
     jac_s.index_add_(1, am * S1 + seg_index(fk.f_seg[aj]), block_f[:, aj])
     own = frames[:, chain.body, :3, :3] * local.unsqueeze(-2)  # (B, M, 3, 3)
     jac_s.index_add_(1, torch.arange(M) * S1 + chain.segment, own)
-    jac_s = jac_s.reshape(B, M, S1, 3, 3)[:, :, :n_seg].permute(0, 1, 3, 2, 4)
-    return x, jac_q, jac_s
+    return jac_s.reshape(B, M, S1, 3, 3)[:, :, :n_seg].permute(0, 1, 3, 2, 4)
 
 
 ResidualFn = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
