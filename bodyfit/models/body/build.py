@@ -24,8 +24,8 @@ from bodyfit.models.body.anny_posed import pose_anny, random_poses, template_lan
 from bodyfit.models.body.anny_source import AnnySource, Population
 from bodyfit.models.body.lbs import linear_blend, skinning_transforms
 from bodyfit.models.body.model import ANATOMICAL_JOINTS, body_points, joint_anchors
-from bodyfit.models.body.shape_space import fit_correctives, fit_joint_regressor, fit_pca, vertex_errors
-from bodyfit.models.body.skeleton_fit import place_skeletons
+from bodyfit.models.body.shape_space import PCA, fit_correctives, fit_joint_regressor, fit_pca, vertex_errors
+from bodyfit.models.body.skeleton_fit import SkeletonFit, place_skeletons
 from bodyfit.models.body.skinning_fit import QuadraticSkinningLoss, refine_weights, support_mask
 from bodyfit.models.skeleton.model import PELVIS_ROTATIONS, Skeleton
 
@@ -59,13 +59,74 @@ def build_body(
     src = AnnySource(cache_dir)
     landmarks, mirror = template_landmarks(src)
     names = lmk.landmark_names()
-    body_names = skeleton.body_names
     twin = skeleton.twin_bodies()
-    W0 = _symmetric_weights(src.skinning_weights(body_names), mirror, twin)
+    W0 = _symmetric_weights(src.skinning_weights(skeleton.body_names), mirror, twin)
     metrics["template"] = {**src.info, "landmarks": len(landmarks)}
 
     # b. population -------------------------------------------------------------------------------------
     clock.start("population", f"sampling {config.n_bodies} adults (seed {config.seed})")
+    pop, held = _population(src, config)
+    A_pose = src.rest(pop)["vertices"]
+    metrics["population"] = {"bodies": len(pop), "held_out": int(held.sum()), "children": config.children}
+
+    # c. skeleton inside each body, bind pose, joint regressor -------------------------------------------
+    clock.start("skeleton_fit", "placing the skeleton inside every body from its landmarks")
+    fit = place_skeletons(skeleton, A_pose[:, landmarks], config.skeleton_iterations)
+    metrics["skeleton_fit_mm"] = {k: _stats(v) for k, v in fit.errors.items()}
+    bound = _bind(skeleton, fit, held, A_pose, W0, mirror)
+
+    clock.start("joint_regressor", "non-negative joint regressor (NNLS per joint)")
+    regressor = fit_joint_regressor(bound.vertices[~held], bound.joints[~held])
+    metrics["joint_regressor_heldout_mm"] = _regressor_errors(
+        regressor, bound.vertices[held], bound.joints[held]
+    )
+
+    # d. shape spaces ------------------------------------------------------------------------------------
+    clock.start("shape_space", "bone PCA, bone correctives, identity PCA")
+    shape = _shape_space(fit.scales, bound.vertices, held, config)
+    metrics["bone_pca_explained"] = [round(float(x), 5) for x in shape.bone.explained]
+    metrics["identity_pca_explained"] = [round(float(x), 5) for x in shape.identity.explained]
+    V = shape.n_vertices
+    metrics["heldout_reconstruction_mm"] = _reconstruction_curve(
+        shape.flat, held, shape.c_bone, shape.correctives, shape.vertices_mean, config, V
+    )
+
+    # e. skinning ----------------------------------------------------------------------------------------
+    clock.start("skinning", f"posing {config.n_posed} anny bodies and refining the weights")
+    mask = support_mask(W0, skeleton.spec.body_parent_index)
+    loss, evaluation, n_test = _skinning_samples(src, pop, skeleton, fit, bound, held, config)
+    W = _symmetric_weights(refine_weights(loss, W0, mask), mirror, twin)
+    before, after = _posed_error(evaluation, W0), _posed_error(evaluation, W)
+    metrics["skinning_heldout_mm"] = _skinning_metrics(n_test, before, after)
+    log(f"skinning: held-out posed-vertex error {before[0]:.2f} -> {after[0]:.2f} mm (mean)")
+    clock.stop()
+
+    n_seg = len(skeleton.segments)
+    data = {
+        "vertices_mean": shape.vertices_mean.reshape(V, 3),
+        "faces": src.faces.astype(np.int32),
+        "scale_mean": shape.bone.mean.reshape(n_seg, 3),
+        "scale_basis": shape.bone.basis.reshape(-1, n_seg, 3),
+        "bone_correctives": shape.correctives.reshape(-1, V, 3),
+        "identity_basis": shape.identity.basis.reshape(-1, V, 3),
+        "weights": W,
+        "bind_q": bound.q,
+        "landmarks": landmarks.astype(np.int32),
+        "landmark_names": np.asarray(names),
+        "joint_regressor": regressor,
+        "joint_names": np.asarray([n for n, _, _ in ANATOMICAL_JOINTS]),
+        "mirror": mirror.astype(np.int32),
+        "heldout_shape": np.concatenate(
+            [shape.c_bone[held], shape.identity.project(shape.residual[held])], axis=1
+        ),
+    }
+    return data, metrics
+
+
+# -- helpers ------------------------------------------------------------------------------------------------
+def _population(src: AnnySource, config: BuildConfig) -> tuple[Population, np.ndarray]:
+    """The sampled population (adults, then children with ``config.children``) and its (N,) held-out mask
+    (a seeded tenth of it)."""
     pop = src.sample(config.n_bodies, config.seed)
     if config.children:
         kids = src.sample(config.n_bodies // 4, config.seed + 1, min_age=5.0, max_age=18.0)
@@ -75,19 +136,35 @@ def build_body(
         )
     held = np.zeros(len(pop), bool)
     held[np.random.default_rng(config.seed).permutation(len(pop))[: len(pop) // 10]] = True
-    rest = src.rest(pop)
-    A_pose = rest["vertices"]
-    metrics["population"] = {"bodies": len(pop), "held_out": int(held.sum()), "children": config.children}
+    return pop, held
 
-    # c. skeleton inside each body, bind pose, joint regressor -------------------------------------------
-    clock.start("skeleton_fit", "placing the skeleton inside every body from its landmarks")
-    fit = place_skeletons(skeleton, A_pose[:, landmarks], config.skeleton_iterations)
-    metrics["skeleton_fit_mm"] = {k: _stats(v) for k, v in fit.errors.items()}
+
+@dataclass(frozen=True)
+class _Bound:
+    """The population in the bind pose (N meshes of V vertices, B skeleton bodies, J anatomical joints)."""
+
+    q: np.ndarray  # (n_dof,) the bind pose
+    frames_a: torch.Tensor  # (N, B, 4, 4) body frames of the fitted skeletons in the sampled A-pose
+    frames_bind: torch.Tensor  # (N, B, 4, 4) body frames of the same skeletons in the bind pose
+    vertices: np.ndarray  # (N, V, 3) meshes unposed to the bind pose, averaged with their mirror images
+    joints: np.ndarray  # (N, J, 3) anatomical joint centres in the bind pose
+
+
+def _bind(
+    skeleton: Skeleton,
+    fit: SkeletonFit,
+    held: np.ndarray,
+    A_pose: np.ndarray,
+    W0: np.ndarray,
+    mirror: np.ndarray,
+) -> _Bound:
+    """Every body unposed from its A-pose (N, V, 3) to the bind pose (the training bodies' mean pose) with
+    the weights W0 (V, B)."""
     bind_q = _bind_pose(skeleton, fit.q[~held])
     fk = skeleton.kinematics(torch.float64)
     scales = torch.as_tensor(fit.scales)
     frames_a = fk(torch.as_tensor(fit.q), torch.as_tensor(fit.root), scales).frames
-    frames_bind = fk(torch.as_tensor(bind_q).expand(len(pop), -1), None, scales).frames
+    frames_bind = fk(torch.as_tensor(bind_q).expand(len(A_pose), -1), None, scales).frames
     Y = linear_blend(torch.as_tensor(A_pose), torch.as_tensor(W0), skinning_transforms(frames_bind, frames_a))
     Y_np = _symmetric_vertices(Y.numpy(), mirror)
     jb, jl = joint_anchors(skeleton.spec)
@@ -95,89 +172,104 @@ def build_body(
     joints_bind = body_points(
         frames_bind, scales, torch.as_tensor(jb), torch.as_tensor(seg_of_body[jb]), torch.as_tensor(jl)
     ).numpy()
+    return _Bound(bind_q, frames_a, frames_bind, Y_np, joints_bind)
 
-    clock.start("joint_regressor", "non-negative joint regressor (NNLS per joint)")
-    regressor = fit_joint_regressor(Y_np[~held], joints_bind[~held])
-    reg_err = np.linalg.norm(np.einsum("jv,nvc->njc", regressor, Y_np[held]) - joints_bind[held], axis=-1)
-    metrics["joint_regressor_heldout_mm"] = {
-        name: _stats(reg_err[:, j]) for j, (name, _, _) in enumerate(ANATOMICAL_JOINTS)
-    }
 
-    # d. shape spaces ------------------------------------------------------------------------------------
-    clock.start("shape_space", "bone PCA, bone correctives, identity PCA")
-    n_seg = len(skeleton.segments)
-    bone = fit_pca(fit.scales[~held].reshape(-1, n_seg * 3), config.n_bone)
-    c_bone = bone.project(fit.scales.reshape(-1, n_seg * 3))
-    V = Y_np.shape[1]
-    flat = Y_np.reshape(len(pop), V * 3)
+def _regressor_errors(
+    regressor: np.ndarray, Y: np.ndarray, joints: np.ndarray
+) -> dict[str, dict[str, float]]:
+    """Joint name -> mean / max error (mm) of the regressor (J, V) on the meshes Y (n, V, 3), against the
+    joints (n, J, 3)."""
+    err = np.linalg.norm(np.einsum("jv,nvc->njc", regressor, Y) - joints, axis=-1)
+    return {name: _stats(err[:, j]) for j, (name, _, _) in enumerate(ANATOMICAL_JOINTS)}
+
+
+@dataclass(frozen=True)
+class _ShapeSpace:
+    """Bone and identity shape spaces of the population (N bodies, V vertices)."""
+
+    bone: PCA  # of the (N, n_seg * 3) segment scales
+    c_bone: np.ndarray  # (N, n_bone) bone coefficients of every body
+    flat: np.ndarray  # (N, V * 3) the bind-pose meshes
+    vertices_mean: np.ndarray  # (V * 3,) mean training mesh
+    correctives: np.ndarray  # (n_bone, V * 3) bone-corrective blendshapes
+    residual: np.ndarray  # (N, V * 3) what the mean and the correctives leave
+    identity: PCA  # of the training bodies' residual
+
+    @property
+    def n_vertices(self) -> int:
+        return self.flat.shape[1] // 3
+
+
+def _shape_space(scales: np.ndarray, Y: np.ndarray, held: np.ndarray, config: BuildConfig) -> _ShapeSpace:
+    """Bone PCA of the segment scales (N, n_seg, 3), bone correctives and identity PCA of the bind-pose
+    meshes Y (N, V, 3), all fitted on the training bodies (``~held``)."""
+    n_seg = scales.shape[1]
+    bone = fit_pca(scales[~held].reshape(-1, n_seg * 3), config.n_bone)
+    c_bone = bone.project(scales.reshape(-1, n_seg * 3))
+    flat = Y.reshape(len(Y), Y.shape[1] * 3)
     correctives = fit_correctives(flat[~held], c_bone[~held])
     vertices_mean = flat[~held].mean(axis=0)
     residual = flat - vertices_mean - c_bone @ correctives
     identity = fit_pca(residual[~held], config.n_identity)
-    metrics["bone_pca_explained"] = [round(float(x), 5) for x in bone.explained]
-    metrics["identity_pca_explained"] = [round(float(x), 5) for x in identity.explained]
-    metrics["heldout_reconstruction_mm"] = _reconstruction_curve(
-        flat, held, c_bone, correctives, vertices_mean, config, V
-    )
+    return _ShapeSpace(bone, c_bone, flat, vertices_mean, correctives, residual, identity)
 
-    # e. skinning ----------------------------------------------------------------------------------------
-    clock.start("skinning", f"posing {config.n_posed} anny bodies and refining the weights")
+
+# (rest, posed frames, bind frames, target) of a chunk of held-out posed bodies
+_Sample = tuple[torch.Tensor, torch.Tensor, torch.Tensor, np.ndarray]
+
+
+def _skinning_samples(
+    src: AnnySource,
+    pop: Population,
+    skeleton: Skeleton,
+    fit: SkeletonFit,
+    bound: _Bound,
+    held: np.ndarray,
+    config: BuildConfig,
+) -> tuple[QuadraticSkinningLoss, list[_Sample], int]:
+    """Posed anny bodies: the skinning loss over ``config.n_posed`` training poses, the held-out samples
+    (rest (n, V, 3), posed frames, bind frames, target (n, V, 3)) and how many held-out poses they hold."""
     rng = np.random.default_rng(config.seed + 2)
     n_hold_pose = max(config.n_posed // 10, 4)
     train_ids = rng.choice(np.flatnonzero(~held), config.n_posed, replace=config.n_posed > (~held).sum())
     test_ids = rng.choice(np.flatnonzero(held), n_hold_pose, replace=n_hold_pose > held.sum())
-    mask = support_mask(W0, skeleton.spec.body_parent_index)
-    loss = QuadraticSkinningLoss(V, len(body_names))
-    evaluation = []
+    loss = QuadraticSkinningLoss(bound.vertices.shape[1], len(skeleton.body_names))
+    evaluation: list[_Sample] = []
     for ids, train in ((train_ids, True), (test_ids, False)):
         for chunk in np.array_split(ids, max(1, len(ids) // 16)):
             q = random_poses(skeleton, len(chunk), rng)
-            target, posed_frames = pose_anny(src, pop, skeleton, fit, chunk, q, frames_a)
-            rest_t = torch.as_tensor(Y_np[chunk])
+            target, posed_frames = pose_anny(src, pop, skeleton, fit, chunk, q, bound.frames_a)
+            rest_t = torch.as_tensor(bound.vertices[chunk])
             if train:
-                loss.add(rest_t, posed_frames, frames_bind[chunk], torch.as_tensor(target))
+                loss.add(rest_t, posed_frames, bound.frames_bind[chunk], torch.as_tensor(target))
             else:
-                evaluation.append((rest_t, posed_frames, frames_bind[chunk], target))
-    W = _symmetric_weights(refine_weights(loss, W0, mask), mirror, twin)
+                evaluation.append((rest_t, posed_frames, bound.frames_bind[chunk], target))
+    return loss, evaluation, len(test_ids)
 
-    def posed_error(weights: np.ndarray) -> tuple[float, float]:
-        errs = [
-            vertex_errors(linear_blend(r, torch.as_tensor(weights), skinning_transforms(f, b)).numpy(), t)
-            for r, f, b, t in evaluation
-        ]
-        return float(np.mean([e[0] for e in errs])), float(np.max([e[1] for e in errs]))
 
-    before, after = posed_error(W0), posed_error(W)
-    metrics["skinning_heldout_mm"] = {
-        "poses": len(test_ids),
+def _posed_error(evaluation: list[_Sample], weights: np.ndarray) -> tuple[float, float]:
+    """Mean and max vertex error (mm) of the held-out posed bodies skinned with ``weights`` (V, B)."""
+    errs = [
+        vertex_errors(linear_blend(r, torch.as_tensor(weights), skinning_transforms(f, b)).numpy(), t)
+        for r, f, b, t in evaluation
+    ]
+    return float(np.mean([e[0] for e in errs])), float(np.max([e[1] for e in errs]))
+
+
+def _skinning_metrics(
+    n_poses: int, before: tuple[float, float], after: tuple[float, float]
+) -> dict[str, Any]:
+    """The manifest's held-out skinning errors (mean, max mm) before and after the refinement."""
+    return {
+        "poses": n_poses,
         "before_mean": round(before[0], 2),
         "before_max": round(before[1], 2),
         "after_mean": round(after[0], 2),
         "after_max": round(after[1], 2),
     }
-    log(f"skinning: held-out posed-vertex error {before[0]:.2f} -> {after[0]:.2f} mm (mean)")
-    clock.stop()
-
-    data = {
-        "vertices_mean": vertices_mean.reshape(V, 3),
-        "faces": src.faces.astype(np.int32),
-        "scale_mean": bone.mean.reshape(n_seg, 3),
-        "scale_basis": bone.basis.reshape(-1, n_seg, 3),
-        "bone_correctives": correctives.reshape(-1, V, 3),
-        "identity_basis": identity.basis.reshape(-1, V, 3),
-        "weights": W,
-        "bind_q": bind_q,
-        "landmarks": landmarks.astype(np.int32),
-        "landmark_names": np.asarray(names),
-        "joint_regressor": regressor,
-        "joint_names": np.asarray([n for n, _, _ in ANATOMICAL_JOINTS]),
-        "mirror": mirror.astype(np.int32),
-        "heldout_shape": np.concatenate([c_bone[held], identity.project(residual[held])], axis=1),
-    }
-    return data, metrics
 
 
-# -- helpers ------------------------------------------------------------------------------------------------
 class _Clock:
     def __init__(self, seconds: dict[str, float], log: Callable[[str], None]) -> None:
         self.seconds, self.log = seconds, log
