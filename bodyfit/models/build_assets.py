@@ -27,6 +27,7 @@ from bodyfit.models.skeleton.build import build_skeleton
 from bodyfit.models.skeleton.docs import skeleton_markdown
 from bodyfit.models.skeleton.model import SKELETON_ASSET, Skeleton
 from bodyfit.models.skeleton.rajagopal import nimblephysics_data_dir
+from bodyfit.models.skeleton.spec import SkeletonSpec
 from bodyfit.models.upgrade.proxy import PROXY_ASSET, build_proxy
 
 
@@ -89,6 +90,76 @@ def build_proxy_asset(folder: Path | None = None, model: BodyModel | None = None
     return write_manifest(folder, {PROXY_ASSET: entry}, {})
 
 
+def _write_skeleton(out: Path, docs: Path | None) -> SkeletonSpec:
+    """Build the skeleton and save it into ``out`` (and its page into ``docs``); returns it."""
+    spec = build_skeleton()
+    spec.save(out / SKELETON_ASSET)
+    if docs is not None:
+        docs.mkdir(parents=True, exist_ok=True)
+        (docs / "skeleton.md").write_text(skeleton_markdown(spec))
+    return spec
+
+
+def _write_bones(out: Path, spec: SkeletonSpec) -> dict[str, np.ndarray]:
+    """Attach Rajagopal2015's bone geometry to the skeleton's bodies and save it into ``out``; returns the
+    bone mesh's arrays."""
+    bones = build_bone_mesh(spec, nimblephysics_data_dir() / "Geometry")
+    np.savez_compressed(
+        out / BONES_ASSET,
+        vertices=bones["vertices"],
+        faces=bones["faces"],
+        vertex_body=bones["vertex_body"],
+        body_names=bones["body_names"],
+    )
+    return bones
+
+
+def _skeleton_entries(
+    spec: SkeletonSpec, bones: dict[str, np.ndarray], timings: dict[str, float]
+) -> dict[str, dict[str, Any]]:
+    """The manifest entries of the skeleton and bone assets."""
+    return {
+        SKELETON_ASSET: {
+            "n_dof": len(spec.coordinates),
+            "n_body": len(spec.bodies),
+            "n_segment": len(spec.segments),
+            "build_seconds": round(timings["skeleton"], 2),
+        },
+        BONES_ASSET: {
+            "vertices": len(bones["vertices"]),
+            "faces": len(bones["faces"]),
+            "build_seconds": round(timings["bones"], 2),
+        },
+    }
+
+
+def _write_body(
+    out: Path, spec: SkeletonSpec, config: BuildConfig, log: Callable[[str], None]
+) -> tuple[BodyModel, dict[str, Any]]:
+    """Build the body model on the skeleton saved in ``out`` and save it there (float32, with the template
+    mesh); returns the model and the build's metrics."""
+    skeleton = Skeleton(spec, out)
+    body, metrics = build_body(skeleton, default_cache_dir(), config, log)
+    body = _float32(body)
+    model = BodyModel(skeleton, body)
+    # The mesh users get at zero parameters (zero shape, zero coordinates, zero root).
+    body["template"] = model.forward(dtype=torch.float64).vertices[0].numpy().astype(np.float32)
+    np.savez_compressed(out / BODY_ASSET, allow_pickle=False, **body)
+    return model, metrics
+
+
+def _body_entry(model: BodyModel, metrics: dict[str, Any], seconds: float) -> dict[str, Any]:
+    """The manifest entry of the body asset."""
+    return {
+        "vertices": model.n_vertices,
+        "faces": len(model.faces),
+        "bone_coefficients": model.n_bone,
+        "identity_coefficients": model.n_identity,
+        "build_seconds": round(seconds, 2),
+        "metrics": metrics,
+    }
+
+
 def build_all(
     out: Path | None = None,
     docs: Path | None = None,
@@ -103,37 +174,14 @@ def build_all(
 
     t0 = time.perf_counter()
     log("skeleton: reading Rajagopal2015.osim and adding spine and scapula joints")
-    spec = build_skeleton()
-    spec.save(out / SKELETON_ASSET)
-    if docs is not None:
-        docs.mkdir(parents=True, exist_ok=True)
-        (docs / "skeleton.md").write_text(skeleton_markdown(spec))
+    spec = _write_skeleton(out, docs)
     timings["skeleton"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     log("bones: Rajagopal2015 bone geometry attached to the skeleton's bodies")
-    bones = build_bone_mesh(spec, nimblephysics_data_dir() / "Geometry")
-    np.savez_compressed(
-        out / BONES_ASSET,
-        vertices=bones["vertices"],
-        faces=bones["faces"],
-        vertex_body=bones["vertex_body"],
-        body_names=bones["body_names"],
-    )
+    bones = _write_bones(out, spec)
     timings["bones"] = time.perf_counter() - t0
-    entries: dict[str, dict[str, Any]] = {
-        SKELETON_ASSET: {
-            "n_dof": len(spec.coordinates),
-            "n_body": len(spec.bodies),
-            "n_segment": len(spec.segments),
-            "build_seconds": round(timings["skeleton"], 2),
-        },
-        BONES_ASSET: {
-            "vertices": len(bones["vertices"]),
-            "faces": len(bones["faces"]),
-            "build_seconds": round(timings["bones"], 2),
-        },
-    }
+    entries = _skeleton_entries(spec, bones, timings)
     info: dict[str, Any] = {
         "format": "bodyfit-assets/1",
         "sources": {p: _version(p) for p in ("nimblephysics", "opensim", "anny", "torch")},
@@ -141,27 +189,14 @@ def build_all(
     write_manifest(out, entries, info)  # the body build reads the skeleton assets back, hash-checked
 
     t0 = time.perf_counter()
-    skeleton = Skeleton(spec, out)
-    body, metrics = build_body(skeleton, default_cache_dir(), config, log)
-    body = _float32(body)
-    model = BodyModel(skeleton, body)
-    # The mesh users get at zero parameters (zero shape, zero coordinates, zero root).
-    body["template"] = model.forward(dtype=torch.float64).vertices[0].numpy().astype(np.float32)
-    np.savez_compressed(out / BODY_ASSET, allow_pickle=False, **body)
+    model, metrics = _write_body(out, spec, config, log)
     timings["body"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     log("onnx: exporting the body forward (float32, dynamic batch)")
     export_onnx(out, model)
     timings["onnx"] = time.perf_counter() - t0
-    entries[BODY_ASSET] = {
-        "vertices": model.n_vertices,
-        "faces": len(model.faces),
-        "bone_coefficients": model.n_bone,
-        "identity_coefficients": model.n_identity,
-        "build_seconds": round(timings["body"], 2),
-        "metrics": metrics,
-    }
+    entries[BODY_ASSET] = _body_entry(model, metrics, timings["body"])
     t0 = time.perf_counter()
     log("smpl topology: fitting the CC BY bodies in SMPL topology for the dense correspondence")
     entries[SMPL_ASSET] = build_smpl_asset(out, model)
