@@ -262,6 +262,47 @@ def retarget(
     if s.shape != (n_seg, 3):
         raise ShapeError(f"scales must have shape ({n_seg}, 3); got {s.shape}")
     pos, rot, names = motion.world(end_sites=True)
+    _check_joints(motion, seg_map, names)
+    chain = _Chain(skeleton, s, seg_map, names)
+
+    # Rest pose (every channel zero) in our axes.
+    rest = BvhMotion(motion.joints, np.zeros((1, motion.values.shape[1])), motion.frame_time, motion.units,
+                     motion.rotation, motion.source)  # fmt: skip
+    pos0, rot0, _ = rest.world(end_sites=True)
+    M = rot0[0, 0]  # the file-to-ours rotation (every rest rotation equals it)
+    a, b = chain.dir_bvh[:, 0], chain.dir_bvh[:, 1]
+    # Directions in the root's frame (ours after calibration: the root's rest frame is M).
+    d_rest = _unit(pos0[0, b] - pos0[0, a])  # our axes; the pelvis is upright and faces +X at rest
+    q_ref, local, C = _calibrate(chain, d_rest, M)
+
+    # Per frame, in the root's frame.
+    R_root = rot[:, names.index(seg_map.root)]  # (T, 3, 3) ours; equals M at rest
+    R_pelvis = R_root @ M.T  # our pelvis orientation (upright, facing +X at rest)
+    to_local = np.swapaxes(R_pelvis, -1, -2)
+    d_t = np.einsum("tij,tkj->tki", to_local, _unit(pos[:, b] - pos[:, a]))
+    R_t = np.einsum("tij,tkjl,klm->tkim", to_local, rot[:, chain.rot_joints], C)
+    q_free = _solve_frames(chain, q_ref, torch.as_tensor(d_t), torch.as_tensor(R_t), local, iterations)
+    q = np.zeros((motion.n_frames, skeleton.n_dof))
+    q[:, chain.free] = q_free
+    pelvis = [skeleton.dof_index(n) for n in PELVIS_ROTATIONS]
+    q[:, pelvis] = zxy_angles(R_pelvis)
+    q = unwrap_pelvis(q, skeleton)
+    residual = _residual_degrees(chain, q_free, local, d_t)
+
+    # Root: our hip-joint midpoint on the BVH's, scaled by leg length.
+    scale, hip_ours = _leg_scale(chain, pos0[0], names, seg_map)
+    hips = 0.5 * (pos[:, names.index(seg_map.hips[0])] + pos[:, names.index(seg_map.hips[1])])
+    root_t = scale * hips - np.einsum("tij,j->ti", R_pelvis, hip_ours)
+    return Retargeted(q, root_t, motion.rate, residual, scale)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    """``v`` (..., 3) scaled to unit length along its last axis."""
+    return v / np.linalg.norm(v, axis=-1, keepdims=True).clip(1e-12)
+
+
+def _check_joints(motion: BvhMotion, seg_map: SegmentMap, names: list[str]) -> None:
+    """Nothing; raises MocapFormatError when the BVH (joint ``names``) lacks a joint ``seg_map`` needs."""
     needed = {seg_map.root, *seg_map.hips, *(j for leg in seg_map.legs for j in leg)}
     for seg in seg_map.segments:
         needed.update([seg.joint] if seg.joint else [])
@@ -272,27 +313,23 @@ def retarget(
             f"{motion.source} lacks joints the retarget map needs: {', '.join(missing)} "
             f"(joints: {', '.join(names)})"
         )
-    chain = _Chain(skeleton, s, seg_map, names)
-    body = skeleton.body_names.index
 
-    # Rest pose (every channel zero) in our axes.
-    rest = BvhMotion(motion.joints, np.zeros((1, motion.values.shape[1])), motion.frame_time, motion.units,
-                     motion.rotation, motion.source)  # fmt: skip
-    pos0, rot0, _ = rest.world(end_sites=True)
-    M = rot0[0, 0]  # the file-to-ours rotation (every rest rotation equals it)
-    root = names.index(seg_map.root)
-    a, b = chain.dir_bvh[:, 0], chain.dir_bvh[:, 1]
 
-    def unit(v: np.ndarray) -> np.ndarray:
-        return v / np.linalg.norm(v, axis=-1, keepdims=True).clip(1e-12)
+def _calibrate(
+    chain: _Chain, d_rest: np.ndarray, M: np.ndarray
+) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
+    """Our pose matching the BVH rest pose and each driven body's attachment to its BVH segment.
 
-    # Directions in the root's frame (ours after calibration: the root's rest frame is M).
-    d_rest = unit(pos0[0, b] - pos0[0, a])  # our axes; the pelvis is upright and faces +X at rest
-    # Bodies without an origin pair carry their rest direction in their own frame at q_ref (found below).
+    Args:
+        d_rest: (n_dir, 3) unit BVH rest directions in our axes; M: (3, 3) the file-to-ours rotation.
+    Returns:
+        q_ref (1, n_free); the local directions (n_dir, 3) of the segments without an origin pair (in
+        their body's frame at q_ref, zero for the others); C (n_rot, 3, 3) = M^T R_b(q_ref).
+    """
     n_free = len(chain.free)
     # Directions without an origin pair (the head's) are ignored here (zero local vector), then carried by
     # their body from q_ref on.
-    local = torch.zeros(len(a), 3, dtype=torch.float64)
+    local = torch.zeros(len(d_rest), 3, dtype=torch.float64)
     zero = torch.zeros(1, n_free, dtype=torch.float64)
     q_ref = _solve(chain, zero, torch.as_tensor(d_rest[None]), None, local, 150)
     F_ref = chain.frames(q_ref)
@@ -301,36 +338,46 @@ def retarget(
             local[k] = F_ref[0, chain.dir_body_index[k], :3, :3].T @ torch.as_tensor(d_rest[k])
     R_ref = chain.frames(q_ref)[0, chain.rot_bodies, :3, :3].numpy()
     C = np.einsum("ji,bjk->bik", M, R_ref)  # (n_rot, 3, 3) M^T R_b(q_ref)
+    return q_ref, local, C
 
-    # Per frame, in the root's frame.
-    R_root = rot[:, root]  # (T, 3, 3) ours; equals M at rest
-    R_pelvis = R_root @ M.T  # our pelvis orientation (upright, facing +X at rest)
-    to_local = np.swapaxes(R_pelvis, -1, -2)
-    d_t = np.einsum("tij,tkj->tki", to_local, unit(pos[:, b] - pos[:, a]))
-    R_t = np.einsum("tij,tkjl,klm->tkim", to_local, rot[:, chain.rot_joints], C)
-    T = motion.n_frames
-    d_all, R_all = torch.as_tensor(d_t), torch.as_tensor(R_t)
-    # Every frame from the calibrated pose; then again from a median over time of that answer and pulled
-    # to it, which keeps each frame on the same branch as its neighbours where the fit is ambiguous (an arm
-    # near gimbal lock) without lagging: the median is centred.
-    first = _solve(chain, q_ref.expand(T, -1), d_all, R_all, local, iterations).numpy()
+
+def _solve_frames(
+    chain: _Chain,
+    q_ref: torch.Tensor,
+    d_all: torch.Tensor,
+    R_all: torch.Tensor,
+    local: torch.Tensor,
+    iterations: int,
+) -> np.ndarray:
+    """(T, n_free) free coordinates of every frame fitted to directions (T, n_dir, 3) and rotations
+    (T, n_rot, 3, 3) in the pelvis frame, from q_ref (1, n_free); local: (n_dir, 3) as :func:`_calibrate`.
+
+    Every frame from the calibrated pose; then again from a median over time of that answer and pulled
+    to it, which keeps each frame on the same branch as its neighbours where the fit is ambiguous (an arm
+    near gimbal lock) without lagging: the median is centred.
+    """
+    first = _solve(chain, q_ref.expand(len(d_all), -1), d_all, R_all, local, iterations).numpy()
     centre = torch.as_tensor(_running_median(first, TEMPORAL_WINDOW))
-    q_free = _solve(chain, centre, d_all, R_all, local, iterations, centre, TEMPORAL_PULL).numpy()
-    q = np.zeros((T, skeleton.n_dof))
-    q[:, chain.free] = q_free
-    pelvis = [skeleton.dof_index(n) for n in PELVIS_ROTATIONS]
-    q[:, pelvis] = zxy_angles(R_pelvis)
-    q = unwrap_pelvis(q, skeleton)
+    return _solve(chain, centre, d_all, R_all, local, iterations, centre, TEMPORAL_PULL).numpy()
 
-    # Residual: angle between our directions and the targets.
+
+def _residual_degrees(chain: _Chain, q_free: np.ndarray, local: torch.Tensor, d_t: np.ndarray) -> np.ndarray:
+    """(T,) RMS angle (degrees) between our directions at q_free (T, n_free) and the targets d_t
+    (T, n_dir, 3)."""
     with torch.no_grad():
         F = chain.frames(torch.as_tensor(q_free))
         D = chain.directions(F, local).numpy()
     cos = np.clip((D * d_t).sum(-1), -1.0, 1.0)
-    residual = np.degrees(np.sqrt((np.arccos(cos) ** 2).mean(-1)))
+    return np.degrees(np.sqrt((np.arccos(cos) ** 2).mean(-1)))
 
-    # Root: our hip-joint midpoint on the BVH's, scaled by leg length.
-    F_ours = chain.frames(torch.zeros(1, n_free, dtype=torch.float64))[0].numpy()
+
+def _leg_scale(
+    chain: _Chain, rest_pos: np.ndarray, names: list[str], seg_map: SegmentMap
+) -> tuple[float, np.ndarray]:
+    """Our leg length over the BVH's (rest joint positions rest_pos (n_joints, 3), joints ``names``) and
+    our hip-joint midpoint (3,) in the pelvis frame at the zero pose."""
+    body = chain.skel.body_names.index
+    F_ours = chain.frames(torch.zeros(1, len(chain.free), dtype=torch.float64))[0].numpy()
     hip_ours = 0.5 * (F_ours[body("femur_l"), :3, 3] + F_ours[body("femur_r"), :3, 3])
     leg_ours = np.mean([
         np.linalg.norm(F_ours[body(f"femur_{x}"), :3, 3] - F_ours[body(f"tibia_{x}"), :3, 3])
@@ -338,11 +385,8 @@ def retarget(
         for x in "lr"
     ])  # fmt: skip
     leg_bvh = np.mean([
-        np.linalg.norm(pos0[0, names.index(h)] - pos0[0, names.index(k)])
-        + np.linalg.norm(pos0[0, names.index(k)] - pos0[0, names.index(an)])
+        np.linalg.norm(rest_pos[names.index(h)] - rest_pos[names.index(k)])
+        + np.linalg.norm(rest_pos[names.index(k)] - rest_pos[names.index(an)])
         for h, k, an in seg_map.legs
     ])  # fmt: skip
-    scale = float(leg_ours / leg_bvh)
-    hips = 0.5 * (pos[:, names.index(seg_map.hips[0])] + pos[:, names.index(seg_map.hips[1])])
-    root_t = scale * hips - np.einsum("tij,j->ti", R_pelvis, hip_ours)
-    return Retargeted(q, root_t, motion.rate, residual, scale)
+    return float(leg_ours / leg_bvh), hip_ours
