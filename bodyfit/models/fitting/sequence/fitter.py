@@ -34,7 +34,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from bodyfit.models.body.model import BodyModel
+from bodyfit.models.body.model import BodyModel, PosedSkin
 from bodyfit.models.errors import ShapeError
 from bodyfit.models.fitting.common.report import DistanceStats, FitReport
 from bodyfit.models.fitting.registered.fitter import (
@@ -245,6 +245,21 @@ class _Totals:
         self.jitter_fit.add(fitted, w)
 
 
+class _FrameArrays:
+    """What the frame pass fills in chunk by chunk, for T frames: canonical-frame poses q_c (T, n_dof) and
+    root_c (T, 3); blended world poses q (T, n_dof) and root (T, 3); canonical frames G (T, 3, 3) and
+    origin (T, 3); skins verts (T, V, 3) float32 (None unless kept); joints (T, n_joints, 3); totals."""
+
+    def __init__(self, T: int, model: BodyModel, keep_vertices: bool) -> None:
+        n_dof = model.skeleton.n_dof
+        self.q_c, self.root_c = np.empty((T, n_dof)), np.empty((T, 3))
+        self.q, self.root = np.empty((T, n_dof)), np.empty((T, 3))  # blended, in the world
+        self.G, self.origin = np.empty((T, 3, 3)), np.empty((T, 3))
+        self.verts = np.empty((T, model.n_vertices, 3), np.float32) if keep_vertices else None
+        self.joints = np.empty((T, len(model.joint_names), 3))
+        self.totals = _Totals()
+
+
 def jitter(x: np.ndarray, weights: np.ndarray | None = None) -> float:
     """Mean second difference in time of trajectories x (T, N, 3) metres, in mm; over points with positive
     weight (T, N) in all three frames; NaN for fewer than 3 frames."""
@@ -388,78 +403,20 @@ class SequenceFitter:
         T = int(n_frames)
         if T < 1:
             raise ShapeError(f"a sequence needs at least one frame; got {T}")
-        cfg = self.config
-        n_dof = self.model.skeleton.n_dof
-
         # Shape on keyframes spread over the sequence, then frozen.
-        shape_keys = np.unique(np.linspace(0, T - 1, min(cfg.keyframes, T)).round().astype(np.int64))
-        x_s, w_s, G_s, o_s = self._frames(source, shape_keys)
-        x_c = _turn(x_s, G_s, o_s)
-        shaped = self.fitter.fit(x_c, w_s, shared_shape=True)
-        c = shaped.shape[:1]
-        offsets, pose_fitter = None, self.pose_fitter
-        if cfg.offsets is not None:
-            offsets = self._offsets(shaped, x_c, w_s, cfg.offsets)
-            pose_fitter = pose_fitter.with_offsets(offsets)
-
+        shape_keys = np.unique(np.linspace(0, T - 1, min(self.config.keyframes, T)).round().astype(np.int64))
+        c, offsets, pose_fitter = self._fit_shape(source, shape_keys)
         # Pose keyframes with the frozen shape, then every frame from their interpolation.
-        keys = np.unique(np.r_[np.arange(0, T, cfg.stride), T - 1])
-        q_key, r_key = np.empty((len(keys), n_dof)), np.empty((len(keys), 3))
-        for lo in range(0, len(keys), cfg.chunk):
-            k = keys[lo : lo + cfg.chunk]
-            x_k, w_k, G_k, o_k = self._frames(source, k)
-            q0, r0 = self.fitter.bone_start(_turn(x_k, G_k, o_k), w_k)
-            q_key[lo : lo + len(k)], r_key[lo : lo + len(k)] = self._pose(
-                pose_fitter, x_k, w_k, G_k, o_k, c, q0, r0, cfg.key_stages
-            )
-        q_init = np.stack([np.interp(np.arange(T), keys, q_key[:, j]) for j in range(n_dof)], 1)
-        r_init = np.stack([np.interp(np.arange(T), keys, r_key[:, j]) for j in range(3)], 1)
+        q_init, r_init = self._key_poses(source, T, c, pose_fitter)
+        out = _FrameArrays(T, self.model, keep_vertices)
+        self._fit_every_frame(source, out, pose_fitter, c, q_init, r_init, progress)
+        iterations = sum(st.iterations for st in self.config.frame_stages)
 
-        q_c, root_c = np.empty_like(q_init), np.empty((T, 3))
-        q, root = np.empty_like(q_init), np.empty((T, 3))  # blended, in the world
-        G, origin = np.empty((T, 3, 3)), np.empty((T, 3))
-        verts = np.empty((T, self.model.n_vertices, 3), np.float32) if keep_vertices else None
-        joints = np.empty((T, len(self.model.joint_names), 3))
-        totals = _Totals()
-        dtype = pose_fitter.config.dtype
-        skin = pose_fitter.decoder.posed(torch.as_tensor(c, dtype=dtype))
-
-        def finish(lo: int, hi: int, x: np.ndarray, w: np.ndarray) -> None:
-            """Blend, turn back to the world, skin and measure frames lo:hi (every neighbour's pose is known
-            by now)."""
-            q[lo:hi], root[lo:hi] = self._world(
-                self._blend(q_c, lo, hi), root_c[lo:hi], G[lo:hi], origin[lo:hi]
-            )
-            with torch.no_grad():
-                v, j = skin.with_joints(
-                    torch.as_tensor(q[lo:hi], dtype=dtype), torch.as_tensor(root[lo:hi], dtype=dtype)
-                )
-            v_world = v.numpy().astype(np.float32, copy=False)  # float32 whatever the fitter's dtype
-            joints[lo:hi] = j.double().numpy()
-            if verts is not None:
-                verts[lo:hi] = v_world
-            totals.add(x, v_world, w)
-            if progress is not None:
-                progress(hi, T)
-
-        pending: tuple[int, int, np.ndarray, np.ndarray] | None = None
-        for lo in range(0, T, cfg.chunk):
-            hi = min(T, lo + cfg.chunk)
-            x, w, G[lo:hi], origin[lo:hi] = self._frames(source, np.arange(lo, hi))
-            q_c[lo:hi], root_c[lo:hi] = self._pose(
-                pose_fitter, x, w, G[lo:hi], origin[lo:hi], c, q_init[lo:hi], r_init[lo:hi], cfg.frame_stages
-            )
-            if pending is not None:  # one chunk behind: its last frame's blend needs this chunk's first
-                finish(*pending)
-            pending = (lo, hi, x, w)
-        if pending is not None:
-            finish(*pending)
-        iterations = sum(st.iterations for st in cfg.frame_stages)
-
-        q = unwrap_pelvis(q, self.model.skeleton)
+        q = unwrap_pelvis(out.q, self.model.skeleton)
         seconds = time.perf_counter() - start
 
         q_range = wrap_pelvis(q, self.model.skeleton)
+        totals = out.totals
         reports = [
             self._report(st, q_range[t], iterations, seconds / T) for t, st in enumerate(totals.frames)
         ]
@@ -472,8 +429,108 @@ class SequenceFitter:
             shape_keyframes=tuple(int(k) for k in shape_keys),
         )
         return SequenceFit(
-            c[0], q, root, verts, joints, reports, stats, offsets, tuple(self.model.dof_names), q_range
+            c[0],
+            q,
+            out.root,
+            out.verts,
+            out.joints,
+            reports,
+            stats,
+            offsets,
+            tuple(self.model.dof_names),
+            q_range,
         )
+
+    def _fit_shape(
+        self, source: FrameSource, shape_keys: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray | None, RegisteredFitter]:
+        """The shared shape c (1, n_shape) fitted to the frames ``shape_keys`` (K,), the rest-pose offsets
+        (V, 3) fitted with it (None unless ``config.offsets``) and the pose fitter that carries them."""
+        x_s, w_s, G_s, o_s = self._frames(source, shape_keys)
+        x_c = _turn(x_s, G_s, o_s)
+        shaped = self.fitter.fit(x_c, w_s, shared_shape=True)
+        c = shaped.shape[:1]
+        offsets, pose_fitter = None, self.pose_fitter
+        if self.config.offsets is not None:
+            offsets = self._offsets(shaped, x_c, w_s, self.config.offsets)
+            pose_fitter = pose_fitter.with_offsets(offsets)
+        return c, offsets, pose_fitter
+
+    def _key_poses(
+        self, source: FrameSource, T: int, c: np.ndarray, pose_fitter: RegisteredFitter
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Starting coordinates (T, n_dof) and roots (T, 3) of every frame: the poses of every
+        ``config.stride``-th frame (and the last) fitted with the shape c (1, n_shape), interpolated."""
+        cfg = self.config
+        n_dof = self.model.skeleton.n_dof
+        keys = np.unique(np.r_[np.arange(0, T, cfg.stride), T - 1])
+        q_key, r_key = np.empty((len(keys), n_dof)), np.empty((len(keys), 3))
+        for lo in range(0, len(keys), cfg.chunk):
+            k = keys[lo : lo + cfg.chunk]
+            x_k, w_k, G_k, o_k = self._frames(source, k)
+            q0, r0 = self.fitter.bone_start(_turn(x_k, G_k, o_k), w_k)
+            q_key[lo : lo + len(k)], r_key[lo : lo + len(k)] = self._pose(
+                pose_fitter, x_k, w_k, G_k, o_k, c, q0, r0, cfg.key_stages
+            )
+        q_init = np.stack([np.interp(np.arange(T), keys, q_key[:, j]) for j in range(n_dof)], 1)
+        r_init = np.stack([np.interp(np.arange(T), keys, r_key[:, j]) for j in range(3)], 1)
+        return q_init, r_init
+
+    def _fit_every_frame(
+        self,
+        source: FrameSource,
+        out: _FrameArrays,
+        pose_fitter: RegisteredFitter,
+        c: np.ndarray,
+        q_init: np.ndarray,
+        r_init: np.ndarray,
+        progress: Callable[[int, int], None] | None,
+    ) -> None:
+        """Nothing; fills ``out`` with the pose fit of every frame, in chunks, from q_init (T, n_dof) and
+        r_init (T, 3) with the shape c (1, n_shape)."""
+        T, chunk, stages = len(q_init), self.config.chunk, self.config.frame_stages
+        dtype = pose_fitter.config.dtype
+        skin = pose_fitter.decoder.posed(torch.as_tensor(c, dtype=dtype))
+        pending: tuple[int, int, np.ndarray, np.ndarray] | None = None
+        for lo in range(0, T, chunk):
+            hi = min(T, lo + chunk)
+            x, w, out.G[lo:hi], out.origin[lo:hi] = self._frames(source, np.arange(lo, hi))
+            out.q_c[lo:hi], out.root_c[lo:hi] = self._pose(
+                pose_fitter, x, w, out.G[lo:hi], out.origin[lo:hi], c, q_init[lo:hi], r_init[lo:hi], stages
+            )
+            if pending is not None:  # one chunk behind: its last frame's blend needs this chunk's first
+                self._finish(out, skin, dtype, *pending, progress)
+            pending = (lo, hi, x, w)
+        if pending is not None:
+            self._finish(out, skin, dtype, *pending, progress)
+
+    def _finish(
+        self,
+        out: _FrameArrays,
+        skin: PosedSkin,
+        dtype: torch.dtype,
+        lo: int,
+        hi: int,
+        x: np.ndarray,
+        w: np.ndarray,
+        progress: Callable[[int, int], None] | None,
+    ) -> None:
+        """Nothing; blends, turns back to the world, skins and measures frames lo:hi of ``out`` (every
+        neighbour's pose is known by now). x: (k, V, 3) the input frames, w: (k, V) their weights."""
+        out.q[lo:hi], out.root[lo:hi] = self._world(
+            self._blend(out.q_c, lo, hi), out.root_c[lo:hi], out.G[lo:hi], out.origin[lo:hi]
+        )
+        with torch.no_grad():
+            v, j = skin.with_joints(
+                torch.as_tensor(out.q[lo:hi], dtype=dtype), torch.as_tensor(out.root[lo:hi], dtype=dtype)
+            )
+        v_world = v.numpy().astype(np.float32, copy=False)  # float32 whatever the fitter's dtype
+        out.joints[lo:hi] = j.double().numpy()
+        if out.verts is not None:
+            out.verts[lo:hi] = v_world
+        out.totals.add(x, v_world, w)
+        if progress is not None:
+            progress(hi, len(out.q))
 
     def _offsets(self, shaped: BodyFit, x: np.ndarray, w: np.ndarray, config: OffsetConfig) -> np.ndarray:
         """Rest-pose offsets (V, 3) from the shape fit ``shaped`` of keyframes x (K, V, 3) (canonical frames)
