@@ -38,6 +38,42 @@ def _cm(constant: torch.Tensor) -> torch.Tensor:
     return constant.permute(*range(1, constant.dim()), 0).unsqueeze(-1)
 
 
+
+def pointer_jumps(parents: list[int]) -> list[np.ndarray]:
+    """The rounds of pointer jumping that compose a tree's transforms: bodies compose by replacing each
+    body's transform (into its current ancestor's frame) by the ancestor's transform composed with it, and
+    its ancestor by the ancestor's ancestor; index n (the body count) is the ground (identity).
+
+    Args:
+        parents: (n,) each body's parent index, -1 for the root.
+    Returns:
+        ceil(log2(depth + 1)) arrays (n + 1,): each round's ancestor index per body.
+    """
+    n = len(parents)
+    pointer = np.array([n if p < 0 else p for p in parents] + [n])
+    jumps = []
+    while (pointer[:n] != n).any():
+        jumps.append(pointer)
+        pointer = pointer[pointer]
+    return jumps
+
+
+def rodrigues_tables(axes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rodrigues' R = u u^T + (I - u u^T) cos + [u]x sin, component-major, for every joint's three axes.
+
+    Args:
+        axes: (J, 3, 3) unit axis k of joint j.
+    Returns:
+        u u^T, I - u u^T and [u]x, each (3, 3, 3, J, 1): (axis k, row, column, joint, batch).
+    """
+    outer = np.einsum("jka,jkb->kabj", axes, axes)[..., None]
+    cross = np.zeros((3, 3, 3, len(axes)))
+    x, y, z = axes.transpose(2, 1, 0)  # (3, J) each
+    cross[:, 0, 1], cross[:, 0, 2], cross[:, 1, 2] = -z, y, -x
+    cross[:, 1, 0], cross[:, 2, 0], cross[:, 2, 1] = z, -y, x
+    return outer, np.eye(3)[None, :, :, None, None] - outer, cross[..., None]
+
+
 class SkeletonKinematics(nn.Module):
     """Forward kinematics: coordinates (B, n_dof), root translation (B, 3), per-segment scale factors
     (B, n_seg, 3) -> body frames (B, n_body, 4, 4) and joint centres (B, n_joint, 3)."""
@@ -89,17 +125,8 @@ class SkeletonKinematics(nn.Module):
             trans_w.append([translation_scale_weights(a.axis, a.function) for a in j.translations])
         table = FunctionTable.compile(fns)
 
-        # Bodies compose by pointer jumping: each round replaces a body's transform (into its current
-        # ancestor's frame) by the ancestor's transform composed with it, and its ancestor by the
-        # ancestor's ancestor; index n_body is the ground (identity). ceil(log2(depth + 1)) rounds.
         parents = spec.body_parent_index
-        n = self.n_body
-        pointer = np.array([n if p < 0 else p for p in parents] + [n])
-        jumps = []
-        while (pointer[:n] != n).any():
-            jumps.append(pointer)
-            pointer = pointer[pointer]
-        self._jumps = [torch.as_tensor(j) for j in jumps]
+        self._jumps = [torch.as_tensor(j) for j in pointer_jumps(parents)]
 
         def buf(name: str, value: np.ndarray | torch.Tensor, as_dtype: bool = True) -> None:
             t = torch.as_tensor(value)
@@ -110,15 +137,10 @@ class SkeletonKinematics(nn.Module):
             buf(f"fn_{k}", v, as_dtype=k != "multi")
         axes = np.array(rot_axes, np.float64)  # (J, 3, 3): axis k of joint j
         buf("rot_axes", axes)
-        # Rodrigues R = u u^T + (I - u u^T) cos + [u]x sin, component-major (axis k, 3, 3, J, 1).
-        outer = np.einsum("jka,jkb->kabj", axes, axes)[..., None]
-        cross = np.zeros((3, 3, 3, len(axes)))
-        x, y, z = axes.transpose(2, 1, 0)  # (3, J) each
-        cross[:, 0, 1], cross[:, 0, 2], cross[:, 1, 2] = -z, y, -x
-        cross[:, 1, 0], cross[:, 2, 0], cross[:, 2, 1] = z, -y, x
+        outer, perp, cross = rodrigues_tables(axes)
         buf("rot_outer", outer)
-        buf("rot_perp", np.eye(3)[None, :, :, None, None] - outer)
-        buf("rot_cross", cross[..., None])
+        buf("rot_perp", perp)
+        buf("rot_cross", cross)
         buf("trans_axes", np.array(trans_axes, np.float64))  # (J, 3, 3)
         # Translation function k is multiplied by w_k . s (see translation_scale_weights); 1 if unscaled.
         w = np.array(trans_w, np.float64)  # (J, 3, 3)
