@@ -402,9 +402,9 @@ def test_the_memory_budget_refuses_long_sequences_from_their_headers(body_servic
     refused (413) before anything is decompressed, with how many frames fit."""
     from dataclasses import replace as with_limits
 
-    from bodyfit.service.core import SEQUENCE_BYTES_PER_FRAME, UPGRADE_BYTES_PER_FRAME
     from bodyfit.service.errors import LimitExceededError
     from bodyfit.service.limits import Limits
+    from bodyfit.service.uploads import SEQUENCE_BYTES_PER_FRAME, UPGRADE_BYTES_PER_FRAME
 
     small = with_limits(body_service, limits=Limits(max_request_bytes=100 * 2**20))
     seq_frames, up_frames = (100 * 2**20 // b for b in (SEQUENCE_BYTES_PER_FRAME, UPGRADE_BYTES_PER_FRAME))
