@@ -11,7 +11,7 @@ import logging
 import tempfile
 import threading
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterator
 from concurrent.futures import Future
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
@@ -28,14 +28,12 @@ from bodyfit.io.smpl import SmplSequence
 from bodyfit.models.assets import read_manifest, verified_asset
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.body.onnx_export import BODY_ONNX
-from bodyfit.models.errors import BodyfitError
 from bodyfit.models.fitting.common.report import FitReport
 from bodyfit.models.fitting.registered.fitter import BodyFit, RegisteredFitter
 from bodyfit.models.fitting.registered.smpl_topology import SMPL_VERTICES, fit_smpl_meshes, refine_smpl_fit
 from bodyfit.models.fitting.scan.config import ScanFitConfig
 from bodyfit.models.fitting.scan.fitter import ScanFitter
 from bodyfit.models.fitting.sequence.fitter import SequenceFit, SequenceFitter
-from bodyfit.models.skeleton.model import RANGE_TOLERANCE
 from bodyfit.models.upgrade.proxy import ShapeHintError, ShapeHints, SmplProxy, load_proxy
 from bodyfit.models.upgrade.smpl_model import SmplModel, load_smpl_model
 from bodyfit.models.upgrade.upgrade import (
@@ -51,17 +49,16 @@ from bodyfit.service.errors import BusyError, InvalidInputError, LimitExceededEr
 from bodyfit.service.formats import Bodies
 from bodyfit.service.jobs import Job
 from bodyfit.service.limits import Limits
+from bodyfit.service.synthesis import SynthRequest, synthesis_parameters
 from bodyfit.service.uploads import SEQUENCE_BYTES_PER_FRAME
 from bodyfit.service.validation import (
     check_finite_result,
     check_frames,
-    check_plausible,
-    float_array,
+    invalid_input,
 )
 
 LOG = logging.getLogger("bodyfit.service")
 
-Coordinates = np.ndarray | Mapping[str, float | Sequence[float] | np.ndarray] | None
 
 
 @dataclass(frozen=True)
@@ -102,19 +99,6 @@ class ModelInfo:
                 "sha256": self.asset_sha256,
             },
         }
-
-
-@dataclass(frozen=True)
-class SynthRequest:
-    """shape (B, n_shape) or None (the mean body); coordinates (B, n_dof) in ``dof_names`` order, or a
-    mapping DOF name -> value or (B,) values (missing DOFs are 0), or None (zero pose); root (B, 3) metres
-    or None; skeleton: also pose the bone mesh; batch: B when nothing else gives it."""
-
-    shape: np.ndarray | None = None
-    coordinates: Coordinates = None
-    root: np.ndarray | None = None
-    skeleton: bool = False
-    batch: int | None = None
 
 
 @dataclass(frozen=True)
@@ -303,7 +287,7 @@ class BodyService:
     def start_synthesis(self, request: SynthRequest) -> PendingSynthesis:
         """Validate ``request`` (raising as :meth:`synthesize`) and queue its model call; concurrent
         requests share one call (:class:`SynthBatcher`). Await ``future`` then :meth:`finish_synthesis`."""
-        q, root, shape = self._parameters(request)
+        q, root, shape = synthesis_parameters(request, self.model, self.limits.max_batch)
         return PendingSynthesis(request, shape, q, root, self._batcher.submit(shape, q, root))
 
     def finish_synthesis(self, pending: PendingSynthesis, vertices: np.ndarray, joints: np.ndarray) -> Bodies:
@@ -329,74 +313,6 @@ class BodyService:
             bones=bones,
             bone_faces=bone_faces,
         )
-
-    def _parameters(self, request: SynthRequest) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Validated float32 (B, n_dof), (B, 3), (B, n_shape): shapes, dtypes (an array must hold floats),
-        finite values (after the cast to float32), DOF ranges, and plausible shape coefficients
-        (:data:`SHAPE_LIMIT_SD`) and root (:data:`ROOT_LIMIT_M`)."""
-        skel = self.model.skeleton
-        batch = _batch_of(request)
-        if batch > self.limits.max_batch:
-            raise LimitExceededError(
-                f"{batch} bodies asked for in one call; the limit is {self.limits.max_batch}: split it",
-                field="batch",
-            )
-        with invalid_input("coordinates"):
-            coords = request.coordinates
-            if coords is None:
-                q = np.zeros((batch, skel.n_dof))
-            elif isinstance(coords, Mapping):
-                q = skel.coordinates({k: np.asarray(v) for k, v in coords.items()}, batch=batch)
-            else:
-                q = float_array(coords, "coordinates")
-        root = None if request.root is None else float_array(request.root, "root")
-        shape = None if request.shape is None else float_array(request.shape, "shape")
-        check_plausible(shape, root)
-        out = self._plainly_valid(q, root, shape)
-        if out is None:
-            # Something is off: the model's own checks raise with the detailed message. In float64: the
-            # values are checked as sent, and every value that passes is small enough for float32.
-            with invalid_input("coordinates"):
-                qt, _, _ = skel.validate(q, None, dtype=torch.float64)
-            with invalid_input("root"):
-                _, rt, _ = skel.validate(
-                    qt, np.zeros((len(qt), 3)) if root is None else root, dtype=torch.float64
-                )
-            with invalid_input("shape"):
-                ct = self.model.validate_shape(shape, len(qt), torch.float64)
-            assert rt is not None
-            out = qt.numpy().astype(np.float32), rt.numpy().astype(np.float32), ct.numpy().astype(np.float32)
-        for name, value in zip(("coordinates", "root", "shape"), out, strict=True):
-            if not np.isfinite(value).all():  # after the cast: float32 overflows where float64 does not
-                raise InvalidInputError(
-                    f"{name} holds values beyond float32's range (about 3.4e38); send values within their "
-                    "ranges (GET /v1/model)",
-                    field=name,
-                )
-        return out
-
-    def _plainly_valid(
-        self, q: np.ndarray, root: np.ndarray | None, shape: np.ndarray | None
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """float32 (q, root, shape) when the inputs pass every check, else None (a numpy fast path: the
-        model's checks go through torch and cost a quarter of a millisecond per request). Finiteness is
-        checked after the cast to float32, so that a value float64 holds but float32 does not fails."""
-        skel = self.model.skeleton
-        if q.ndim != 2 or q.shape[1] != skel.n_dof:
-            return None
-        B = len(q)
-        r = np.zeros((B, 3)) if root is None else root
-        c = np.zeros((B, self.model.n_shape)) if shape is None else shape
-        if r.shape != (B, 3) or c.shape != (B, self.model.n_shape):
-            return None
-        lo, hi = skel.ranges[:, 0] - RANGE_TOLERANCE, skel.ranges[:, 1] + RANGE_TOLERANCE
-        if not ((q >= lo) & (q <= hi)).all():  # NaN fails too
-            return None
-        with np.errstate(over="ignore"):
-            out = q.astype(np.float32), r.astype(np.float32), c.astype(np.float32)
-        if not all(np.isfinite(a).all() for a in out):
-            return None
-        return out
 
     # -- fitting ---------------------------------------------------------------------------------------
     def read_scan(self, data: bytes, format: str, units: str = "auto") -> Scan:
@@ -624,46 +540,6 @@ def shape_hints(sex: str | None, height_m: float | None, mass_kg: float | None) 
         return ShapeHints.given(sex, height_m, mass_kg)
     except ShapeHintError as exc:
         raise InvalidInputError(str(exc), field=exc.field) from exc
-
-
-@contextmanager
-def invalid_input(field_name: str) -> Iterator[None]:
-    """Turn the model layer's typed errors into :class:`InvalidInputError` naming ``field_name``."""
-    try:
-        yield
-    except BodyfitError as exc:
-        raise InvalidInputError(str(exc), field=field_name) from exc
-
-
-def _batch_of(request: SynthRequest) -> int:
-    """B: the rows of the first array given, else ``request.batch``, else 1.
-
-    Raises:
-        InvalidInputError: an array with no rows (0 bodies) or a batch below 1.
-    """
-    sources: list[tuple[str, int]] = []
-    for name, value in (("shape", request.shape), ("root", request.root)):
-        if value is not None and np.ndim(value) >= 1:
-            sources.append((name, len(value)))
-    coords = request.coordinates
-    if coords is not None and not isinstance(coords, Mapping) and np.ndim(coords) >= 1:
-        sources.append(("coordinates", len(coords)))
-    if isinstance(coords, Mapping):
-        lengths = [np.size(v) for v in coords.values() if np.ndim(v) >= 1]
-        if lengths:
-            sources.append(("coordinates", max(lengths)))
-    if sources:
-        name, rows = sources[0]
-        if rows < 1:
-            raise InvalidInputError(
-                f"{name} has no rows, so 0 bodies were asked for; send at least one row (B >= 1), or leave "
-                f"{name} out",
-                field=name,
-            )
-        return rows
-    if request.batch is not None and request.batch < 1:
-        raise InvalidInputError(f"batch must be at least 1; got {request.batch}", field="batch")
-    return request.batch or 1
 
 
 def _first(fit: BodyFit, kind: str) -> MeshFit:

@@ -5,11 +5,13 @@ numbers, and results that are finite before anything encodes them. Each raises
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
 
+from bodyfit.models.errors import BodyfitError
 from bodyfit.service.errors import InvalidInputError
 
 SHAPE_LIMIT_SD = 10.0
@@ -240,3 +242,12 @@ def float_array(value: Any, field: str) -> np.ndarray:
         return np.asarray(value, np.float64)
     except (TypeError, ValueError) as exc:
         raise InvalidInputError(f"{field} must be a (B, N) array of numbers ({exc})", field=field) from None
+
+
+@contextmanager
+def invalid_input(field_name: str) -> Iterator[None]:
+    """Turn the model layer's typed errors into :class:`InvalidInputError` naming ``field_name``."""
+    try:
+        yield
+    except BodyfitError as exc:
+        raise InvalidInputError(str(exc), field=field_name) from exc
