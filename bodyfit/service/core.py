@@ -54,6 +54,7 @@ from bodyfit.service.uploads import SEQUENCE_BYTES_PER_FRAME
 from bodyfit.service.validation import (
     check_finite_result,
     check_frames,
+    check_scan,
     invalid_input,
 )
 
@@ -100,6 +101,31 @@ class ModelInfo:
             },
         }
 
+    @classmethod
+    def of(cls, model: BodyModel, manifest: dict[str, Any]) -> ModelInfo:
+        """The info of a loaded ``model`` and its asset ``manifest``."""
+        skel = model.skeleton
+        units = tuple("m" if c.motion == "translational" else "rad" for c in skel.spec.coordinates)
+        try:
+            pkg = version("bodyfit")
+        except PackageNotFoundError:  # pragma: no cover - running from a source tree without install
+            pkg = "unknown"
+        files = manifest.get("files", {})
+        return cls(
+            dof_names=tuple(model.dof_names),
+            dof_ranges=skel.ranges.copy(),
+            dof_units=units,
+            n_bone=model.n_bone,
+            n_identity=model.n_identity,
+            n_vertices=model.n_vertices,
+            n_faces=len(model.faces),
+            joint_names=tuple(model.joint_names),
+            asset_format=str(manifest.get("format", "")),
+            asset_sources=dict(manifest.get("sources", {})),
+            asset_sha256={name: str(entry.get("sha256", "")) for name, entry in files.items()},
+            version=pkg,
+        )
+
 
 @dataclass(frozen=True)
 class PendingSynthesis:
@@ -116,9 +142,6 @@ class PendingSynthesis:
 # how :meth:`BodyService.fit_mesh` fits a mesh (:meth:`BodyService.route`), as ``MeshFit.fitted_as`` says
 REGISTERED, SMPL_TOPOLOGY, RAW_SCAN = "registered", "SMPL topology", "raw scan"
 
-SCAN_MIN_EXTENT_M = 0.1
-"""The smallest scan the raw-scan fit can use (a head and shoulders), metres: the fit thins scans to a 1 cm
-grid, so anything smaller leaves too few points (a scan in metres read as millimetres spans 2 mm)."""
 
 
 @dataclass(frozen=True)
@@ -175,7 +198,7 @@ class BodyService:
         self._slots = threading.BoundedSemaphore(self.limits.max_concurrent)
         self._batcher = SynthBatcher(self.session, max_bodies=self.limits.max_batch)
         self._faces = self.model.faces.astype(np.int32)
-        self._info = self._model_info()
+        self._info = ModelInfo.of(self.model, self.manifest)
 
     @classmethod
     def load(
@@ -250,29 +273,6 @@ class BodyService:
     def info(self) -> ModelInfo:
         return self._info
 
-    def _model_info(self) -> ModelInfo:
-        skel = self.model.skeleton
-        units = tuple("m" if c.motion == "translational" else "rad" for c in skel.spec.coordinates)
-        try:
-            pkg = version("bodyfit")
-        except PackageNotFoundError:  # pragma: no cover - running from a source tree without install
-            pkg = "unknown"
-        files = self.manifest.get("files", {})
-        return ModelInfo(
-            dof_names=tuple(self.model.dof_names),
-            dof_ranges=skel.ranges.copy(),
-            dof_units=units,
-            n_bone=self.model.n_bone,
-            n_identity=self.model.n_identity,
-            n_vertices=self.model.n_vertices,
-            n_faces=len(self.model.faces),
-            joint_names=tuple(self.model.joint_names),
-            asset_format=str(self.manifest.get("format", "")),
-            asset_sources=dict(self.manifest.get("sources", {})),
-            asset_sha256={name: str(entry.get("sha256", "")) for name, entry in files.items()},
-            version=pkg,
-        )
-
     # -- synthesis -------------------------------------------------------------------------------------
     def synthesize(self, request: SynthRequest) -> Bodies:
         """Parameters -> posed skin and joints (ONNX Runtime), and the posed bone mesh when asked for.
@@ -333,33 +333,13 @@ class BodyService:
         return RAW_SCAN
 
     def check_scan(self, scan: Scan) -> None:
-        """Check, before any fitting, that ``scan`` can be the body :meth:`fit_mesh` fits it as: a whole body
-        for our topology and SMPL's (:func:`check_frames`), at least :data:`SCAN_MIN_EXTENT_M` across for a
-        raw scan.
+        """Check, before any fitting, that ``scan`` can be the body :meth:`fit_mesh` fits it as
+        (:func:`bodyfit.service.validation.check_scan`: a whole body for our topology and SMPL's).
 
         Raises:
             InvalidInputError: what is wrong (degenerate, not human-sized, the wrong units) and the fix.
         """
-        read_as = " read in millimetres (units=mm)" if scan.source_units == "mm" else ""
-        if self.route(scan) != RAW_SCAN:
-            try:
-                check_frames(scan.points[None], field="file")
-            except InvalidInputError as exc:
-                if not read_as:
-                    raise
-                raise InvalidInputError(
-                    f"{exc.detail} (the mesh was{read_as}: send units=m or auto when the file is in metres)",
-                    field="units",
-                ) from None
-            return
-        extent = float(np.ptp(scan.points, axis=0).max())
-        if extent < SCAN_MIN_EXTENT_M:
-            raise InvalidInputError(
-                f"the scan{read_as} spans only {extent * 1000:.3g} mm; a body or a body part (a head and "
-                f"shoulders) spans at least {SCAN_MIN_EXTENT_M:g} m: send units=m (or auto) when the file is "
-                "in metres, units=mm only when it is in millimetres",
-                field="units" if read_as else "file",
-            )
+        check_scan(scan, whole_body=self.route(scan) != RAW_SCAN)
 
     def fit_mesh(self, scan: Scan, job: Job | None = None) -> MeshFit:
         """Fit one mesh or scan, routed by its topology: 13,348 vertices -> registered fit; 6,890 vertices

@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from bodyfit.io.scans import Scan
 from bodyfit.models.errors import BodyfitError
 from bodyfit.service.errors import InvalidInputError
 
@@ -30,6 +31,10 @@ the shortest body the shape limits allow (0.72 m) curled up spans more than 0.3 
 its arms raised less than 4 m. Millimetres (about 1,700) and centimetres (about 170) fall outside."""
 _FLAT = 1e-3  # a frame whose smallest spread is below this fraction of its largest is flat (as for scans)
 
+
+SCAN_MIN_EXTENT_M = 0.1
+"""The smallest scan the raw-scan fit can use (a head and shoulders), metres: the fit thins scans to a 1 cm
+grid, so anything smaller leaves too few points (a scan in metres read as millimetres spans 2 mm)."""
 
 def check_plausible(shape: np.ndarray | None, root: np.ndarray | None) -> None:
     """Refuse shape coefficients beyond +-:data:`SHAPE_LIMIT_SD` and roots beyond +-:data:`ROOT_LIMIT_M`
@@ -251,3 +256,33 @@ def invalid_input(field_name: str) -> Iterator[None]:
         yield
     except BodyfitError as exc:
         raise InvalidInputError(str(exc), field=field_name) from exc
+
+
+def check_scan(scan: Scan, whole_body: bool) -> None:
+    """Check, before any fitting, that ``scan`` can be the body it is fitted as: with ``whole_body`` (a mesh
+    in our topology or SMPL's) a whole body (:func:`check_frames`), else at least
+    :data:`SCAN_MIN_EXTENT_M` across (a raw scan).
+
+    Raises:
+        InvalidInputError: what is wrong (degenerate, not human-sized, the wrong units) and the fix.
+    """
+    read_as = " read in millimetres (units=mm)" if scan.source_units == "mm" else ""
+    if whole_body:
+        try:
+            check_frames(scan.points[None], field="file")
+        except InvalidInputError as exc:
+            if not read_as:
+                raise
+            raise InvalidInputError(
+                f"{exc.detail} (the mesh was{read_as}: send units=m or auto when the file is in metres)",
+                field="units",
+            ) from None
+        return
+    extent = float(np.ptp(scan.points, axis=0).max())
+    if extent < SCAN_MIN_EXTENT_M:
+        raise InvalidInputError(
+            f"the scan{read_as} spans only {extent * 1000:.3g} mm; a body or a body part (a head and "
+            f"shoulders) spans at least {SCAN_MIN_EXTENT_M:g} m: send units=m (or auto) when the file is "
+            "in metres, units=mm only when it is in millimetres",
+            field="units" if read_as else "file",
+        )
