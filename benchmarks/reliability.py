@@ -14,10 +14,12 @@ What is measured
   answered; ``hostile_hangs``: no answer in 30 s), its time, and the growth of the server's peak resident
   memory over its resident memory before the case (the peak is reset before each case). After every case
   the server must still answer /readyz.
-* Soak: ``soak_requests`` mixed requests, one at a time: synthesis in every format and batch size (some
+* Soak: a warm-up that sends every well-formed request below once, then ``soak_requests`` mixed requests,
+  one at a time: synthesis in every format and batch size (some
   with the skeleton), registered-mesh fits, short sequence fits and upgrades, model info, 10% hostile cases
   and some NDJSON fits and upgrades whose connection is closed after the first event (cancelled). The
-  server's resident memory after the first 10% (the warm-up) against its value at the end:
+  server's resident memory after the warm-up against its value at the end, each read 2 s after the last
+  request (the server trims freed memory about once a second):
   ``soak_rss_growth_pct``; ``soak_errors_5xx`` counts 5xx answers to the well-formed requests.
 * Targets: hostile_5xx = 0, hostile_hangs = 0, hostile_cases >= 100, hostile_max_s <= 1,
   hostile_max_rss_growth_mb <= 200, soak_rss_growth_pct <= 10, fresh_lock_matches.
@@ -111,47 +113,52 @@ def _legit_requests(n_vertices: int, rng: np.random.Generator) -> list[tuple[str
     return out
 
 
+PATHS = {
+    "synthesize": "/v1/synthesize",
+    "synthesize-glb-256": "/v1/synthesize",
+    "fit-registered": "/v1/fit/scan",
+    "fit-sequence": "/v1/fit/sequence",
+    "upgrade": "/v1/upgrade",
+}
+SETTLE_S = 2.0  # before reading memory: the server trims freed memory about once a second
+
+
+def _send(http: httpx.Client, kind: str, kwargs: dict[str, Any], cancel: bool) -> int:
+    """One well-formed request; with ``cancel``, an NDJSON one whose connection is closed after its first
+    event. Returns the HTTP status."""
+    if kind == "model":
+        return int(http.get("/v1/model").status_code)
+    if not cancel:
+        return int(http.post(PATHS[kind], **kwargs).status_code)
+    with http.stream("POST", PATHS[kind], headers={"accept": "application/x-ndjson"}, **kwargs) as r:
+        next(r.iter_lines(), None)
+        return int(r.status_code)
+
+
 def soak(server: ServerProcess, n: int, hostile: list[Case], seed: int = 0) -> dict[str, Any]:
-    """``n`` mixed requests one at a time (see the module docstring)."""
-    rng = np.random.default_rng(seed)
+    """A warm-up (every well-formed request once), then ``n`` mixed requests one at a time (see the module
+    docstring); the server's memory after each, once it has settled."""
     pick = random.Random(seed)
-    legit = _legit_requests(13_348, rng)
-    paths = {
-        "synthesize": "/v1/synthesize",
-        "synthesize-glb-256": "/v1/synthesize",
-        "fit-registered": "/v1/fit/scan",
-        "fit-sequence": "/v1/fit/sequence",
-        "upgrade": "/v1/upgrade",
-    }
+    legit = _legit_requests(13_348, np.random.default_rng(seed))
+    streamed = [r for r in legit if r[0] in ("fit-sequence", "upgrade")]
     errors_5xx = cancelled = hostile_sent = 0
-    warm = max(1, n // 10)
-    rss_warm = rss_end = 0.0
     began = time.perf_counter()
     with httpx.Client(base_url=server.url, timeout=120) as http:
-        for k in range(n):
-            if k == warm:
-                rss_warm = server.rss_mb()
+        for kind, kwargs in legit:
+            errors_5xx += _send(http, kind, kwargs, False) >= 500
+        time.sleep(SETTLE_S)
+        rss_warm = server.rss_mb()
+        for _ in range(n):
             roll = pick.random()
             if roll < 0.10:
                 send_rest(http, pick.choice(hostile))
                 hostile_sent += 1
                 continue
-            kind, kwargs = pick.choice(legit)
-            if roll < 0.13:
-                kind, kwargs = pick.choice([r for r in legit if r[0] in ("fit-sequence", "upgrade")])
-            if kind == "model":
-                status = http.get("/v1/model").status_code
-            elif roll < 0.13:
-                # cancelled midway: read the first NDJSON event, then close the connection
-                with http.stream(
-                    "POST", paths[kind], headers={"accept": "application/x-ndjson"}, **kwargs
-                ) as r:
-                    status = r.status_code
-                    next(r.iter_lines(), None)
-                cancelled += 1
-            else:
-                status = http.post(paths[kind], **kwargs).status_code
-            errors_5xx += status >= 500
+            cancel = roll < 0.13
+            kind, kwargs = pick.choice(streamed if cancel else legit)
+            cancelled += cancel
+            errors_5xx += _send(http, kind, kwargs, cancel) >= 500
+        time.sleep(SETTLE_S)
         rss_end = server.rss_mb()
     return {
         "soak_requests": n,
