@@ -35,6 +35,8 @@ import platform
 import random
 import re
 import time
+from collections.abc import Callable
+from functools import partial
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
@@ -75,17 +77,17 @@ def run_hostile(server: ServerProcess, cases: list[Case]) -> tuple[list[Answer],
     stub = pb_grpc.BodyfitStub(channel)
     with httpx.Client(base_url=server.url, timeout=30) as http:
         for case in cases:
-            sends = [] if case.grpc_request is not None and not case.data else [("rest", case)]
+            sends: list[tuple[str, Callable[[], Answer]]] = []
+            if case.data or case.grpc_request is None:
+                sends.append(("rest", partial(send_rest, http, case)))
             if case.grpc:
-                sends.append(("grpc", case))
-            for transport, c in sends:
-                before = server.rss_mb()
-                server.reset_peak()
-                answer = send_rest(http, c) if transport == "rest" else send_grpc(stub, c)
-                growth.append(server.peak_rss_mb() - before)
+                sends.append(("grpc", partial(send_grpc, stub, case)))
+            for transport, send in sends:
+                answer, grown = server.peak_growth(send)
+                growth.append(grown)
                 answers.append(answer)
                 if not server.ready():
-                    raise RuntimeError(f"the server stopped being ready after {c.name} over {transport}")
+                    raise RuntimeError(f"the server stopped being ready after {case.name} over {transport}")
     channel.close()
     return answers, growth
 

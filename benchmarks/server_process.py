@@ -7,14 +7,18 @@ import os
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypeVar
 
 import httpx
 
 ROOT = Path(__file__).resolve().parents[1]
+T = TypeVar("T")
 
 
 def free_port() -> int:
@@ -42,13 +46,13 @@ class ServerProcess:
         """The server's resident memory now (MiB)."""
         return _status_kb(self.proc.pid, "VmRSS") / 1024
 
-    def peak_rss_mb(self) -> float:
-        """The server's peak resident memory since start or the last :meth:`reset_peak` (MiB)."""
-        return _status_kb(self.proc.pid, "VmHWM") / 1024
-
-    def reset_peak(self) -> None:
-        """Reset the peak that :meth:`peak_rss_mb` reads (Linux: clear_refs 5)."""
+    def peak_growth(self, work: Callable[[], T]) -> tuple[T, float]:
+        """Run ``work`` (e.g. one request) and return its result and how far the server's peak resident
+        memory rose above its resident memory before it (MiB; Linux: the peak is reset with clear_refs 5)."""
+        before = self.rss_mb()
         Path(f"/proc/{self.proc.pid}/clear_refs").write_text("5")
+        result = work()
+        return result, _status_kb(self.proc.pid, "VmHWM") / 1024 - before
 
     def ready(self) -> bool:
         try:
@@ -103,8 +107,6 @@ def start_server(env: dict[str, str] | None = None, timeout_s: float = 180.0) ->
 
 def _keep_log(server: ServerProcess) -> None:
     """Read the server's output in the background into ``server.lines`` (so that it never fills the pipe)."""
-    import threading
-
     def run() -> None:
         assert server.proc.stdout is not None
         for line in server.proc.stdout:

@@ -66,15 +66,9 @@ def test_the_corpus_is_large_and_covers_every_endpoint() -> None:
 
 @pytest.mark.parametrize("case", [c for c in CASES if c.data], ids=lambda c: c.name)
 def test_rest_refuses(server: ServerProcess, http: httpx.Client, case: Case) -> None:
-    before = server.rss_mb()
-    server.reset_peak()
-    answer = send_rest(http, case)
-    _check(server, answer, server.peak_rss_mb() - before)
+    _check(server, *server.peak_growth(lambda: send_rest(http, case)))
 
 
 @pytest.mark.parametrize("case", [c for c in CASES if c.grpc], ids=lambda c: c.name)
 def test_grpc_refuses(server: ServerProcess, stub: Any, case: Case) -> None:
-    before = server.rss_mb()
-    server.reset_peak()
-    answer = send_grpc(stub, case, timeout_s=60.0)
-    _check(server, answer, server.peak_rss_mb() - before)
+    _check(server, *server.peak_growth(lambda: send_grpc(stub, case, timeout_s=60.0)))
