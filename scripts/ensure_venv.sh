@@ -19,12 +19,13 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
     echo "bodyfit: installing the locked environment into $venv (first run: several minutes)" >&2
     pip=(pip_quiet "$venv/bin/python" -m pip --disable-pip-version-check)
     # torch first, on its own: its CPU build is not on PyPI. Its lines of the lock carry its hash.
-    torch_req="$(mktemp)"
-    trap 'rm -f "$torch_req"' EXIT
-    awk '/^torch==/{on=1} on{print; if ($0 !~ /\\$/) exit}' "$lock" > "$torch_req"
-    if ! "${pip[@]}" install --quiet --no-deps --require-hashes --no-index -r "$torch_req" 2>/dev/null; then
+    # (no temporary file: this script is sourced by scripts that exec, so an EXIT trap would never run)
+    torch_req="$(awk '/^torch==/{on=1} on{print; if ($0 !~ /\\$/) exit}' "$lock")"
+    if ! "${pip[@]}" install --quiet --no-deps --require-hashes --no-index \
+        -r <(printf '%s\n' "$torch_req") 2>/dev/null; then
         "${pip[@]}" install --quiet --no-deps --require-hashes \
-            --index-url "${BODYFIT_TORCH_INDEX:-https://download.pytorch.org/whl/cpu}" -r "$torch_req"
+            --index-url "${BODYFIT_TORCH_INDEX:-https://download.pytorch.org/whl/cpu}" \
+            -r <(printf '%s\n' "$torch_req")
     fi
     "${pip[@]}" install --quiet --no-deps --require-hashes -r "$lock"
     "${pip[@]}" install --quiet --no-deps --no-build-isolation -e "$root"
