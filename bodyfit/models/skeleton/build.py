@@ -1,5 +1,11 @@
 """Build bodyfit's skeleton from Rajagopal2015 plus the joints SKEL adds (build time only).
 
+Rajagopal2015: A. Rajagopal, C. L. Dembia, M. S. DeMers, D. D. Delp, J. L. Hicks and S. L. Delp, "Full-Body
+Musculoskeletal Model for Muscle-Driven Simulation of Human Gait", IEEE Transactions on Biomedical Engineering
+63(10), 2016. SKEL: M. Keller, K. Werling, S. Shin, S. Delp, S. Pujades, C. K. Liu and M. J. Black, "From Skin
+to Skeleton: Towards Biomechanically Accurate 3D Digital Humans", ACM Transactions on Graphics 42(6) (SIGGRAPH
+Asia), 2023, whose constant-curvature spine and scapula sliding on the thorax are built here as OpenSim joints.
+
 What is added to Rajagopal2015 (whose bodies, joints, axes and ranges are kept exactly):
 
 * **Thoracic and cervical spine.** The torso is split: ``torso`` keeps Rajagopal's body frame and its
@@ -64,7 +70,8 @@ SCAPULA_CONTACT_R: Vec = (-0.07, 0.33, 0.09)  # scapula on the posterior ribcage
 THORAX_AXIS: tuple[float, float] = (0.0, 0.0)  # (x, z) of the ribcage's vertical axis
 THORAX_VERTICAL_RADIUS = 0.15
 
-# de Leva (1996, J Biomech 29:1223) segment masses as fractions of Rajagopal's head-arms-trunk "torso":
+# Segment masses of P. de Leva, "Adjustments to Zatsiorsky-Seluyanov's segment inertia parameters", Journal of
+# Biomechanics 29(9), 1996, as fractions of Rajagopal's head-arms-trunk "torso":
 # head+neck 6.94 %, upper+middle trunk 32.29 %, lower trunk 11.17 % of body mass (sum 50.4 %).
 MASS_SPLIT = {"torso": 11.17 / 50.4, "thorax": 32.29 / 50.4 - 0.02, "head": 6.94 / 50.4}
 SCAPULA_MASS_FRACTION = 0.01  # of the torso mass, each side, taken from the thorax

@@ -26,6 +26,9 @@ _FAR = 1e4  # stands for infinity in piece bounds (coordinates are radians or me
 def fmm_spline_second_derivatives(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Second derivatives at the knots of the Forsythe-Malcolm-Moler cubic spline (OpenSim SimmSpline).
 
+    The spline of G. E. Forsythe, M. A. Malcolm and C. B. Moler, "Computer Methods for Mathematical
+    Computations", Prentice-Hall, 1977 (routine SPLINE), which OpenSim's SimmSpline evaluates.
+
     End conditions: the third derivative at each end equals that of the cubic through the four end
     knots (plain not-natural ends). With fewer than four knots the spline is natural.
 

@@ -1,7 +1,11 @@
 """Batched, differentiable forward kinematics of a :class:`SkeletonSpec` (torch, ONNX-exportable).
 
-The module holds buffers only. The tree is composed by pointer jumping (every body at once, about log2(depth)
-rounds) with constant gather indices, so there is no data-dependent control flow.
+Joints follow OpenSim's CustomJoint (Seth et al., "OpenSim: Simulating musculoskeletal dynamics and
+neuromuscular control to study human and animal movement", PLoS Computational Biology 14(7), 2018), so the
+frames match OpenSim's to float precision. The module holds buffers only. The tree is composed by pointer
+jumping (every body at once, about log2(depth) rounds; W. D. Hillis and G. L. Steele, "Data Parallel
+Algorithms", Communications of the ACM 29(12), 1986) with constant gather indices, so there is no
+data-dependent control flow.
 """
 
 from __future__ import annotations
@@ -60,6 +64,9 @@ def pointer_jumps(parents: list[int]) -> list[np.ndarray]:
 
 def rodrigues_tables(axes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rodrigues' R = u u^T + (I - u u^T) cos + [u]x sin, component-major, for every joint's three axes.
+
+    The axis-angle rotation of O. Rodrigues, "Des lois géométriques qui régissent les déplacements d'un
+    système solide dans l'espace", Journal de Mathématiques Pures et Appliquées 5, 1840.
 
     Args:
         axes: (J, 3, 3) unit axis k of joint j.

@@ -133,9 +133,21 @@ class Skeleton:
     ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
         """Check shapes, finiteness and ranges; return tensors of one dtype.
 
+        Values are never clamped silently: use :meth:`from_unbounded` to map free values into range.
+
+        Args:
+            q: (B, n_dof) coordinates in the order of :attr:`dof_names` (radians / metres).
+            root: (B, 3) root translation in metres, or None.
+            scales: (B, n_seg, 3) positive per-segment scale factors, or None.
+            dtype: the dtype of the returned tensors; None keeps ``q``'s (float32 for integer input).
+
+        Returns:
+            ``(q, root, scales)`` as tensors of one dtype (``root`` and ``scales`` None when not given).
+
         Raises:
-            ShapeError, NonFiniteError, CoordinateRangeError (never clamps silently; use
-            :meth:`from_unbounded` to map free values into range).
+            ShapeError: an array does not have the shape above.
+            NonFiniteError: an array holds NaN or infinite values.
+            CoordinateRangeError: a coordinate is outside its joint limits, or a scale factor is not positive.
         """
         qt = _as_tensor(q, dtype)
         if qt.ndim != 2 or qt.shape[1] != self.n_dof:
@@ -193,7 +205,11 @@ class Skeleton:
 
     # -- bounded parameterisation -------------------------------------------------------------------------
     def from_unbounded(self, u: torch.Tensor) -> torch.Tensor:
-        """(B, n_dof) unconstrained values -> coordinates strictly inside their ranges (paper 000, eq. 6)."""
+        """(B, n_dof) unconstrained values -> coordinates strictly inside their ranges.
+
+        The tanh bound of :mod:`~bodyfit.models.skeleton.bounds` (eq. 6 of Wang et al., "BLSM: A Bone-Level
+        Skinned Model of the Human Mesh", ECCV 2020).
+        """
         lo, hi = (torch.as_tensor(self.ranges[:, k], dtype=u.dtype, device=u.device) for k in (0, 1))
         return to_coordinates(u, lo, hi)
 

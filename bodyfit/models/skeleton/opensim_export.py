@@ -1,5 +1,10 @@
 """Export the skeleton to OpenSim: a scaled ``.osim`` model and ``.mot`` coordinate files.
 
+OpenSim: S. L. Delp et al., "OpenSim: Open-Source Software to Create and Analyze Dynamic Simulations of
+Movement", IEEE Transactions on Biomedical Engineering 54(11), 2007; A. Seth et al., "OpenSim: Simulating
+musculoskeletal dynamics and neuromuscular control to study human and animal movement", PLoS Computational
+Biology 14(7), 2018.
+
 Serving-time code: plain XML, no opensim import. Every joint is written as an OpenSim ``CustomJoint``
 (Rajagopal's pin and universal joints are CustomJoints with one or two rotation axes), so the model uses
 only OpenSim-native components: spine arcs and scapula paths become sub-joints through light link bodies

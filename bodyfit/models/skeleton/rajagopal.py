@@ -1,5 +1,9 @@
 """Read Rajagopal2015.osim (shipped inside the nimblephysics wheel) into a :class:`SkeletonSpec`.
 
+The model of A. Rajagopal, C. L. Dembia, M. S. DeMers, D. D. Delp, J. L. Hicks and S. L. Delp, "Full-Body
+Musculoskeletal Model for Muscle-Driven Simulation of Human Gait", IEEE Transactions on Biomedical Engineering
+63(10), 2016.
+
 Build time only. The file is in OpenSim 3 format; OpenSim 4.6 (the ``build`` extra) upgrades it to the
 4.0 document layout, which is then read with ElementTree. nimblephysics itself is never imported.
 """

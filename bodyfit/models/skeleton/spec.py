@@ -1,7 +1,10 @@
 """Skeleton description: bodies, joints, transform axes, coordinates. Pure data, JSON round-trippable.
 
-Every joint is described the way OpenSim describes a CustomJoint, which covers all joint types we use
-(pin, universal, ball, the Walker knee, our spine and scapula sub-joints):
+Every joint is described the way OpenSim describes a CustomJoint (S. L. Delp et al., "OpenSim: Open-Source
+Software to Create and Analyze Dynamic Simulations of Movement", IEEE Transactions on Biomedical Engineering
+54(11), 2007; A. Seth et al., "OpenSim: Simulating musculoskeletal dynamics and neuromuscular control to study
+human and animal movement", PLoS Computational Biology 14(7), 2018), which covers all joint types we use (pin,
+universal, ball, the Walker knee, our spine and scapula sub-joints):
 
     X_child_in_parent = X_parent_offset @ X_FM(q) @ inverse(X_child_offset)
     X_FM(q) = [R(a1, f1(q)) R(a2, f2(q)) R(a3, f3(q)),  f4(q) b4 + f5(q) b5 + f6(q) b6]
@@ -27,7 +30,8 @@ class Function:
     kinds and parameters:
       * ``constant``: ``value``.
       * ``linear``: ``slope * x + intercept``.
-      * ``spline``: natural cubic spline through knots ``x`` / ``y`` (OpenSim SimmSpline).
+      * ``spline``: cubic spline through knots ``x`` / ``y`` with Forsythe-Malcolm-Moler end conditions
+        (OpenSim SimmSpline; see :func:`~bodyfit.models.skeleton.functions.fmm_spline_second_derivatives`).
       * ``sine``: ``amplitude * sin(omega * x + phase) + offset`` (OpenSim Sine).
       * ``arc``: ``a * (sin x - (1 - cos x) / x) + b * (sin x / x - cos x)``: the offset of the base of a
         constant-curvature segment of length ``a`` or ``b`` bent by ``x`` (see :mod:`.build`).
