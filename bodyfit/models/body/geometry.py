@@ -8,10 +8,13 @@ import numpy as np
 def winding_number(
     vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, chunk: int = 256
 ) -> np.ndarray:
-    """Generalised winding number of points with respect to a closed triangle mesh (Jacobson et al. 2013).
+    """Generalised winding number of points with respect to a closed triangle mesh.
 
-    About 1 inside, 0 outside, for a consistently oriented closed surface (either orientation: the sign
-    is dropped). Solid angles by Van Oosterom & Strackee (1983).
+    A. Jacobson, L. Kavan and O. Sorkine-Hornung, "Robust Inside-Outside Segmentation using Generalized Winding
+    Numbers", ACM Transactions on Graphics 32(4) (SIGGRAPH), 2013. About 1 inside, 0 outside, for a
+    consistently oriented closed surface (either orientation: the sign is dropped). Solid angles by A. Van
+    Oosterom and J. Strackee, "The Solid Angle of a Plane Triangle", IEEE Transactions on Biomedical
+    Engineering BME-30(2), 1983.
 
     Args:
         vertices: (V, 3); faces: (F, 3); points: (P, 3).

@@ -8,19 +8,30 @@ Left landmarks are the mirror vertices of the right ones.
 
 Joint centres from landmarks (all positions in metres):
 
-- hip: Harrington et al. (2007), J. Biomech. 40:595-602, regression on pelvis width (PW, inter-ASIS
+- hip: regression of M. E. Harrington, A. B. Zavatsky, S. E. M. Lawson, Z. Yuan and T. N. Theologis,
+  "Prediction of the hip joint centre in adults, children, and patients with cerebral palsy based on magnetic
+  resonance imaging", Journal of Biomechanics 40(3), 2007, on pelvis width (PW, inter-ASIS
   distance) and depth (PD, mid-ASIS to mid-PSIS): posterior 0.24 PD + 9.9 mm, inferior 0.30 PW + 10.9 mm,
   lateral 0.33 PW + 7.3 mm from the mid-ASIS point, in the pelvis frame.
 - pelvis origin: mid-ASIS point (the origin of Rajagopal's pelvis, as in Delp's lower-limb models).
-- knee: mid-point of the femoral epicondyles (Grood & Suntay 1983; Wu et al. 2002, ISB).
-- ankle: mid-point of the malleoli (Wu et al. 2002, ISB recommendation, J. Biomech. 35:543-548).
-- metatarsophalangeal: mid-point of the first and fifth metatarsal heads (Leardini et al. 2007).
-- shoulder (glenohumeral): below the acromion by 17% of the inter-acromion distance (Rab et al. 2002,
-  Gait & Posture 15:113-119).
-- elbow: mid-point of the humeral epicondyles; wrist: mid-point of the radial and ulnar styloids (Wu et al.
-  2005, ISB recommendation, J. Biomech. 38:981-992).
+- knee: mid-point of the femoral epicondyles (E. S. Grood and W. J. Suntay, "A joint coordinate system for
+  the clinical description of three-dimensional motions: application to the knee", Journal of Biomechanical
+  Engineering 105(2), 1983; Wu et al. 2002, below).
+- ankle: mid-point of the malleoli (G. Wu et al., "ISB recommendation on definitions of joint coordinate
+  system of various joints for the reporting of human joint motion - part I: ankle, hip, and spine", Journal
+  of Biomechanics 35(4), 2002).
+- metatarsophalangeal: mid-point of the first and fifth metatarsal heads (A. Leardini, M. G. Benedetti,
+  L. Berti, D. Bettinelli, R. Nativo and S. Giannini, "Rear-foot, mid-foot and fore-foot motion during the
+  stance phase of gait", Gait & Posture 25(3), 2007).
+- shoulder (glenohumeral): below the acromion by 17% of the inter-acromion distance (G. Rab, K. Petuskey and
+  A. Bagley, "A method for determination of upper extremity kinematics", Gait & Posture 15(2), 2002).
+- elbow: mid-point of the humeral epicondyles; wrist: mid-point of the radial and ulnar styloids (G. Wu et
+  al., "ISB recommendation on definitions of joint coordinate systems of various joints for the reporting of
+  human joint motion - Part II: shoulder, elbow, wrist and hand", Journal of Biomechanics 38(5), 2005).
 - cervicothoracic (C7/T1): from C7 towards the suprasternale (jugular notch), 55% of the C7-suprasternale
-  distance along a line rotated 8 degrees downward from it (Reed, Manary & Schneider 1999, SAE 1999-01-0959).
+  distance along a line rotated 8 degrees downward from it (M. P. Reed, M. A. Manary and L. W. Schneider,
+  "Methods for Measuring and Representing Automobile Occupant Posture", SAE Technical Paper 1999-01-0959,
+  1999).
 """
 
 from __future__ import annotations

@@ -1,4 +1,10 @@
-"""Skinning math: pure, batched torch functions (BLSM eq. 12; SKEL eq. 5)."""
+"""Skinning math: pure, batched torch functions.
+
+Linear blend skinning as in eq. 12 of H. Wang, R. A. Güler, I. Kokkinos, G. Papandreou and S. Zafeiriou, "BLSM:
+A Bone-Level Skinned Model of the Human Mesh", European Conference on Computer Vision (ECCV), 2020, and eq. 5 of
+M. Keller, K. Werling, S. Shin, S. Delp, S. Pujades, C. K. Liu and M. J. Black, "From Skin to Skeleton: Towards
+Biomechanically Accurate 3D Digital Humans", ACM Transactions on Graphics 42(6) (SIGGRAPH Asia), 2023.
+"""
 
 from __future__ import annotations
 
@@ -126,6 +132,9 @@ def blend_blocks(weights: np.ndarray, n_blocks: int, step: int = 64) -> list[tup
 
 def normalised_weights(raw: torch.Tensor, mask: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
     """BLSM eq. 19: W = f(W') / sum_j f(W'), f(x) = sqrt(x^2 + eps), restricted to a support mask.
+
+    From Wang et al., "BLSM: A Bone-Level Skinned Model of the Human Mesh", ECCV 2020: the mapping keeps the
+    weights non-negative and normalised while W' is optimised freely.
 
     Args:
         raw: (V, n_body) free parameters W'.

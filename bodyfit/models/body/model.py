@@ -10,6 +10,9 @@
 Shape coefficients are ``c = [c_b, c_s]``, each in units of its population standard deviation (so a
 standard normal draw is a plausible body). Coordinates are the skeleton's (OpenSim names and ranges);
 ``root`` is the pelvis translation.
+
+Equation numbers are those of H. Wang, R. A. Güler, I. Kokkinos, G. Papandreou and S. Zafeiriou, "BLSM: A
+Bone-Level Skinned Model of the Human Mesh", European Conference on Computer Vision (ECCV), 2020.
 """
 
 from __future__ import annotations
@@ -423,8 +426,11 @@ class BodyModel:
             skeleton_mesh: also pose the Rajagopal bone mesh scaled to the body.
             offsets: (V, 3) one person's rest-pose offsets in metres (from a sequence fit or an upgrade:
                 surface detail beyond the shape space), or None.
+
         Raises:
-            ShapeError, NonFiniteError, CoordinateRangeError.
+            ShapeError: an array does not have the documented shape.
+            NonFiniteError: an input holds NaN or infinite values.
+            CoordinateRangeError: a coordinate is outside its joint limits.
         """
         if coordinates is None:
             batch = 1 if shape is None else int(np.shape(shape)[0])

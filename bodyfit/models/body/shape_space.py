@@ -28,7 +28,12 @@ class PCA:
 
 def fit_pca(X: np.ndarray, k: int, seed: int = 0) -> PCA:
     """PCA of X (N, D) keeping k components (randomised SVD for large D). Explained ratios are of the
-    total variance."""
+    total variance.
+
+    The randomised SVD (``torch.svd_lowrank``) is that of N. Halko, P. G. Martinsson and J. A. Tropp, "Finding
+    Structure with Randomness: Probabilistic Algorithms for Constructing Approximate Matrix Decompositions",
+    SIAM Review 53(2), 2011.
+    """
     mean = X.mean(axis=0)
     Xc = torch.as_tensor(X - mean)
     k = min(k, X.shape[0] - 1, X.shape[1])
@@ -52,6 +57,9 @@ def fit_pca(X: np.ndarray, k: int, seed: int = 0) -> PCA:
 def fit_correctives(Y: np.ndarray, coeffs: np.ndarray) -> np.ndarray:
     """Bone-corrective blendshapes (BLSM eq. 7, 15): least squares Y - mean(Y) ~ coeffs @ P.
 
+    From Wang et al., "BLSM: A Bone-Level Skinned Model of the Human Mesh", ECCV 2020, with the meshes already
+    unposed to the bind pose, so eq. 15's skinning drops out and the fit is linear.
+
     Args:
         Y: (N, D) bind-pose vertices, flattened; coeffs: (N, K) bone coefficients.
     Returns:
@@ -65,7 +73,14 @@ def fit_correctives(Y: np.ndarray, coeffs: np.ndarray) -> np.ndarray:
 def fit_joint_regressor(
     vertices: np.ndarray, joints: np.ndarray, candidates: int = 200, sum_weight: float = 10.0
 ) -> np.ndarray:
-    """Non-negative joint regressor (SKEL section 5.1 / OSSO): one NNLS problem per joint.
+    """Non-negative joint regressor: one NNLS problem per joint.
+
+    As in section 5.1 of M. Keller, K. Werling, S. Shin, S. Delp, S. Pujades, C. K. Liu and M. J. Black, "From
+    Skin to Skeleton: Towards Biomechanically Accurate 3D Digital Humans", ACM Transactions on Graphics 42(6),
+    2023, following M. Keller, S. Zuffi, M. J. Black and S. Pujades, "OSSO: Obtaining Skeletal Shape from
+    Outside", IEEE/CVF Conference on Computer Vision and Pattern Recognition (CVPR), 2022. Each problem is solved
+    by the active-set method of C. L. Lawson and R. J. Hanson, "Solving Least Squares Problems", Prentice-Hall,
+    1974 (``scipy.optimize.nnls``).
 
     Each joint uses the ``candidates`` template vertices nearest to it on the mean body; a weighted row
     asks the weights to sum to 1, so the regressor commutes with translation.

@@ -1,6 +1,8 @@
 """Place the skeleton inside bodies: coordinates, root and per-segment scales from landmark-derived targets.
 
-Build-time step (BLSM section 4.1, with joint centres instead of CAESAR's landmarks): for each body,
+Build-time step after section 4.1 of H. Wang, R. A. Güler, I. Kokkinos, G. Papandreou and S. Zafeiriou, "BLSM: A
+Bone-Level Skinned Model of the Human Mesh", ECCV 2020, with joint centres instead of CAESAR's landmarks: for
+each body,
 minimise over coordinates q, root translation and log segment scales
 
     sum_p w_p |x_p(q, s) - x_p*|^2 + w_axis sum_a (1 - cos(axis_a(q), axis_a*))
@@ -8,7 +10,9 @@ minimise over coordinates q, root translation and log segment scales
 
 where x_p are body-fixed skeleton points (joint centres, and bone-surface points such as the top of the
 skull matched to skin landmarks) and axis_a are body axes matched to landmark axes (e.g. the femur's
-left-right axis to the epicondyle axis), which fix the long-axis rotations joint centres cannot see.
+left-right axis to the epicondyle axis), which fix the long-axis rotations joint centres cannot see. The
+minimisation is L-BFGS (D. C. Liu and J. Nocedal, "On the limited memory BFGS method for large scale
+optimization", Mathematical Programming 45, 1989) with a strong Wolfe line search.
 """
 
 from __future__ import annotations

@@ -1,4 +1,8 @@
-"""Skinning weights learned from posed anny bodies (BLSM section 4.4, eq. 18-19), build time.
+"""Skinning weights learned from posed anny bodies, build time.
+
+The blending-weight fit of section 4.4 (eq. 18-19) of H. Wang, R. A. Güler, I. Kokkinos, G. Papandreou and S.
+Zafeiriou, "BLSM: A Bone-Level Skinned Model of the Human Mesh", European Conference on Computer Vision (ECCV),
+2020.
 
 Ground truth: anny posed by its own 104-bone rig and weights, each bone following the skeleton body it
 belongs to. Where anny has several bones between two of our bodies (five spine bones, three neck bones,
@@ -7,7 +11,9 @@ as a real spine or forearm shares the motion. Our weights W (over the skeleton's
 
     sum_n | S_n - LBS_W(V_n, T(c_n, q_n)) |^2,   W = f(W') / sum_j f(W'),  f(x) = sqrt(x^2 + eps),
 
-accumulated per vertex as a quadratic form (the loss is quadratic in W), solved for W' by L-BFGS.
+accumulated per vertex as a quadratic form (the loss is quadratic in W), solved for W' by L-BFGS (D. C. Liu
+and J. Nocedal, "On the limited memory BFGS method for large scale optimization", Mathematical Programming
+45, 1989).
 """
 
 from __future__ import annotations
