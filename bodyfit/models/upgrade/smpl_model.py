@@ -7,7 +7,9 @@ faces +Z, +X to the body's left; metres.
 
 The forward pass is SMPL's linear blend skinning: shape blend, joint regression, pose blend (from the
 rotation matrices minus identity, joints after the root), forward kinematics along the kinematic tree,
-skinning, translation. It runs in chunks of frames so long sequences stay within memory.
+skinning, translation. It runs in chunks of frames so long sequences stay within memory. SMPL: M. Loper,
+N. Mahmood, J. Romero, G. Pons-Moll and M. J. Black, "SMPL: A Skinned Multi-Person Linear Model", ACM
+Transactions on Graphics 34(6) (SIGGRAPH Asia), 2015.
 """
 
 from __future__ import annotations
@@ -143,7 +145,11 @@ class SmplModel:
 
 
 def rodrigues(axis_angle: np.ndarray) -> np.ndarray:
-    """(..., 3) axis-angle -> (..., 3, 3) rotation matrices."""
+    """(..., 3) axis-angle -> (..., 3, 3) rotation matrices.
+
+    Rodrigues' formula (O. Rodrigues, "Des lois géométriques qui régissent les déplacements d'un système solide
+    dans l'espace", Journal de Mathématiques Pures et Appliquées 5, 1840).
+    """
     a = np.asarray(axis_angle, np.float64)
     theta = np.linalg.norm(a, axis=-1, keepdims=True)
     k = a / np.maximum(theta, 1e-12)

@@ -9,6 +9,13 @@ of the fit, given the coordinates interpolated from their neighbours, and flagge
 
 Path (b), without one (:func:`upgrade_from_rotations`): the rotations pose a proxy body in our topology
 (:mod:`bodyfit.models.upgrade.proxy`), fitted the same way; shape from hints or the population mean.
+
+Upgrading SMPL motion to a biomechanical skeleton by fitting follows M. Keller, K. Werling, S. Shin, S. Delp,
+S. Pujades, C. K. Liu and M. J. Black, "From Skin to Skeleton: Towards Biomechanically Accurate 3D Digital
+Humans", ACM Transactions on Graphics 42(6) (SIGGRAPH Asia), 2023, who fit their skeleton to AMASS's SMPL
+sequences; here the fitted quantity is our model's skin against the SMPL mesh, through a fixed topology
+correspondence. SMPL: M. Loper, N. Mahmood, J. Romero, G. Pons-Moll and M. J. Black, "SMPL: A Skinned
+Multi-Person Linear Model", ACM Transactions on Graphics 34(6) (SIGGRAPH Asia), 2015.
 """
 
 from __future__ import annotations
