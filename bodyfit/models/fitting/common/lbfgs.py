@@ -1,10 +1,16 @@
 """L-BFGS for many independent problems at once (one per row), for batched fitting.
 
+L-BFGS: D. C. Liu and J. Nocedal, "On the limited memory BFGS method for large scale optimization",
+Mathematical Programming 45, 1989; the two-loop recursion is algorithm 7.4 of J. Nocedal and S. J. Wright,
+"Numerical Optimization", Springer, 2nd ed., 2006; the sufficient-decrease test is that of L. Armijo,
+"Minimization of functions having Lipschitz continuous first partial derivatives", Pacific Journal of
+Mathematics 16(1), 1966.
+
 torch's L-BFGS treats a batch as one problem: one step length and one curvature history for all meshes, so
 an easy mesh waits for a hard one and a hard one drags the history of the others. Here every row has its
-own history (two-loop recursion, Nocedal & Wright algorithm 7.4), its own step length and its own Armijo
-test, and each iteration costs exactly one batched evaluation of the losses and their gradients: a row
-whose trial point fails the test stays where it was and retries with a shorter step next iteration.
+own history, its own step length and its own Armijo test, and each iteration costs exactly one batched
+evaluation of the losses and their gradients: a row whose trial point fails the test keeps its point and
+tries a shorter step at the next iteration.
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
-"""Nearest-neighbour queries for the fitting loops (pykdtree: 2-3x faster than scipy's cKDTree to build and
-query at our sizes, 10^3-10^5 points)."""
+"""Nearest-neighbour queries for the fitting loops: kd-trees (J. L. Bentley, "Multidimensional binary search
+trees used for associative searching", Communications of the ACM 18(9), 1975), through pykdtree, which builds
+and queries faster than scipy's cKDTree at our sizes (10^3-10^5 points)."""
 
 from __future__ import annotations
 

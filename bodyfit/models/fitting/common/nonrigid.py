@@ -1,7 +1,13 @@
 """Non-rigid refinement: move a fitted body's vertices onto a scan, for detail beyond the shape space.
 
-As in BLiSS's refinement step (paper 003, section 3.3): the parametric fit is the starting registration, and
-per-vertex offsets D (V, 3) minimise
+The role of the refinement step of BLiSS (S. Muralikrishnan, C.-H. P. Huang, D. Ceylan and N. J. Mitra,
+"BLiSS: Bootstrapped Linear Shape Space", International Conference on 3D Vision (3DV), 2024, section 3.3): the
+parametric fit is the starting registration, refined non-linearly to capture what the shape space misses.
+BLiSS refines with Neural Jacobian Fields; here the refinement is a Laplacian-regularised per-vertex
+deformation (O. Sorkine, D. Cohen-Or, Y. Lipman, M. Alexa, C. Rössl and H.-P. Seidel, "Laplacian Surface
+Editing", Eurographics/ACM SIGGRAPH Symposium on Geometry Processing, 2004) fitted by iterated closest points
+(P. J. Besl and N. D. McKay, "A Method for Registration of 3-D Shapes", IEEE Transactions on Pattern Analysis
+and Machine Intelligence 14(2), 1992): per-vertex offsets D (V, 3) minimise
 
     sum_j a_j |M_j + D_j - t_j|^2 + smoothness |L D|^2 + stiffness |D|^2
 
@@ -10,10 +16,9 @@ scan point -> its nearest vertex), a_j their robust (Geman-McClure) weights, and
 round re-finds the closest points and solves one sparse linear system. The pull towards t_j acts along the
 vertex's normal only (``tangential`` = 0): detail beyond the shape space lies across the surface, while a
 pull along it slides vertices to wherever the nearest points happen to be and breaks the correspondence
-(on the 102 benchmark scans the registration's error against the truth was 0.4 mm worse than the
-parametric fit's with the full pull, 0.3 mm better with the normal part alone, at the same distance to
-the scan). Where the scan has no points (holes,
-the far side of a single view) the offsets fade smoothly to zero, leaving the parametric surface.
+with the template (the registration moves away from the true one at the same distance to the scan). Where
+the scan has no points (holes, the far side of a single view) the offsets fade smoothly to zero, leaving the
+parametric surface.
 """
 
 from __future__ import annotations
@@ -43,7 +48,13 @@ class NonRigidConfig:
 
 
 def geman_mcclure_weights(distance: np.ndarray, sigma: float) -> np.ndarray:
-    """IRLS weights (sigma^2 / (sigma^2 + d^2))^2 of the Geman-McClure loss, same shape as ``distance``."""
+    """IRLS weights (sigma^2 / (sigma^2 + d^2))^2 of the Geman-McClure loss, same shape as ``distance``.
+
+    The loss of S. Geman and D. E. McClure, "Statistical methods for tomographic image reconstruction", Bulletin
+    of the International Statistical Institute 52(4), 1987, minimised by iteratively reweighted least squares
+    (P. W. Holland and R. E. Welsch, "Robust regression using iteratively reweighted least-squares",
+    Communications in Statistics - Theory and Methods 6(9), 1977).
+    """
     s2 = sigma * sigma
     return (s2 / (s2 + distance * distance)) ** 2
 
@@ -97,7 +108,9 @@ def solve_offsets(
     a: np.ndarray, rhs: np.ndarray, regulariser: sp.csr_matrix, start: np.ndarray | None = None
 ) -> np.ndarray:
     """Per-vertex offsets D (V, 3) minimising ``sum_j a_j |D_j - rhs_j / a_j|^2 + D^T R D``: the sparse
-    system (diag(a) + R) D = rhs, one conjugate-gradient solve (Jacobi preconditioned) per axis.
+    system (diag(a) + R) D = rhs, one conjugate-gradient solve (Jacobi preconditioned) per axis (M. R. Hestenes
+    and E. Stiefel, "Methods of Conjugate Gradients for Solving Linear Systems", Journal of Research of the
+    National Bureau of Standards 49(6), 1952).
 
     Args:
         a: (V,) data weights (non-negative); rhs: (V, 3); regulariser: (V, V) R, positive definite (e.g.

@@ -1,4 +1,4 @@
-"""The error report every fit returns (DESIGN.md section 6)."""
+"""The error report every fit returns (what its fields mean for users: docs/fitting.md)."""
 
 from __future__ import annotations
 

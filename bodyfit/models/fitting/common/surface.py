@@ -51,8 +51,8 @@ def vertex_normals(
     """Area-weighted unit vertex normals (..., V, 3) of meshes (..., V, 3) sharing faces (F, 3); zero for
     unused vertices. ``operators``: :class:`NormalOperators` of the faces, when the caller keeps them.
     Float32 vertices (a fitting loop's) are computed in float32, others in float64. The edges and the sums
-    onto the corners are sparse products over the vertices of all meshes at once: fancy-indexed corners
-    took twice as long."""
+    onto the corners are sparse products over the vertices of all meshes at once, which is faster than
+    fancy-indexing the corners."""
     v = np.asarray(vertices)
     v = v if v.dtype == np.float32 else v.astype(np.float64)
     ops = NormalOperators.of(faces, v.shape[-2]) if operators is None else operators
@@ -223,7 +223,10 @@ def point_to_surface(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
 
 
 def laplacian(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
-    """(V, V) uniform graph Laplacian L = I - D^-1 A of the mesh edges (rows of isolated vertices zero)."""
+    """(V, V) uniform graph Laplacian L = I - D^-1 A of the mesh edges (rows of isolated vertices zero).
+
+    The umbrella operator of G. Taubin, "A Signal Processing Approach to Fair Surface Design", SIGGRAPH, 1995.
+    """
     f = np.asarray(faces, np.int64)
     i = np.concatenate([f[:, 0], f[:, 1], f[:, 2], f[:, 1], f[:, 2], f[:, 0]])
     j = np.concatenate([f[:, 1], f[:, 2], f[:, 0], f[:, 0], f[:, 1], f[:, 2]])
