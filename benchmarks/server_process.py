@@ -80,7 +80,7 @@ def start_server(env: dict[str, str] | None = None, timeout_s: float = 180.0) ->
     cmd = [
         sys.executable,
         "-m",
-        "bodyfit.clients.cli",
+        "bodyfit.cli",
         "serve",
         "--port",
         str(rest),

@@ -4,21 +4,21 @@
 sequences (AMASS's per-subject ``shape.npz`` files are not sequences and are skipped), upgrades each one
 and writes ``<out_dir>/<same relative path>.{npz,json,osim,mot}``. A sequence whose ``.json`` exists is
 finished (the JSON is written last, after the other files are in place) and is skipped, so an interrupted
-run resumes where it stopped. Back-ends:
+run resumes where it stopped. The back-end is a server URL (``"http://host:8000"``: the REST SDK,
+``concurrency`` requests at once) or any :class:`Upgrader`.
 
-* a server URL (``"http://host:8000"``): the REST SDK, ``concurrency`` requests at once;
-* ``"local"``: in this process (needs the ``server`` extra); path (a) with an SMPL-family model file
-  (``smpl_model`` or $BODYFIT_SMPL_MODEL), else path (b) from the joint rotations, as ``bodyfit upgrade``
-  and the server choose;
-* ``"ray"`` / ``"ray://host:10001"``: a pool of ``concurrency`` Ray actors, each holding one loaded
-  model (needs the ``ray`` extra; ``ray`` alone starts a local Ray).
+Upgrading in this process or on Ray needs the service and the models, which the SDK does not import:
+those back-ends are :func:`bodyfit.cli.backends.upgrader` (``"local"``, ``"ray"``, ``"ray://host:10001"``),
+as ``bodyfit batch-upgrade --backend`` runs them. Deprecated: ``backend="local"`` / ``"ray"`` here, and
+``LocalUpgrader`` from this module, still reach them for one release and will be removed in the next.
 """
 
 from __future__ import annotations
 
 import os
 import time
-from collections.abc import Iterable, Iterator
+import warnings
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -88,56 +88,6 @@ def server_upgrader(url: str, timeout: float = 600.0) -> Upgrader:
     return upgrade
 
 
-class LocalUpgrader:
-    """Upgrades in this process: the body model and fitters are loaded once (``server`` extra). Path (a)
-    with the SMPL-family model file ``smpl_model`` (default $BODYFIT_SMPL_MODEL; a path that does not exist
-    is an error), else path (b) from the joint rotations (each result's notes say which ran)."""
-
-    def __init__(self, smpl_model: str | os.PathLike[str] | None = None) -> None:
-        from bodyfit.models.upgrade.smpl_model import ENV_VAR, model_path
-        from bodyfit.service.core import BodyService
-        from bodyfit.service.limits import Limits
-
-        given = smpl_model or os.environ.get(ENV_VAR)
-        limits = Limits(max_concurrent=os.cpu_count() or 1, max_frames=10**7, max_upload_bytes=2**40)
-        self.service = BodyService.load(limits=limits, smpl_model=model_path(given) if given else None)
-
-    def __call__(self, path: Path) -> Files:
-        from bodyfit.io.smpl import read_smpl_sequence
-
-        result = self.service.upgrade(read_smpl_sequence(path))
-        return self.service.upgrade_files(result, path.stem)
-
-
-def _ray_upgrades(
-    paths: list[Path], address: str | None, concurrency: int, smpl_model: str | os.PathLike[str] | None
-) -> Iterator[tuple[Path, Files | BaseException]]:
-    import ray
-    from ray.util import ActorPool
-
-    from bodyfit.models.upgrade.smpl_model import ENV_VAR, model_path
-
-    if not ray.is_initialized():
-        ray.init(address=address, ignore_reinit_error=True, log_to_driver=False)
-    given = smpl_model or os.environ.get(ENV_VAR)
-    model_file = str(model_path(given)) if given else None
-
-    @ray.remote
-    class Worker:
-        def __init__(self) -> None:
-            self.upgrade = LocalUpgrader(model_file)
-
-        def run(self, path: str) -> tuple[str, Files | str]:
-            try:
-                return path, self.upgrade(Path(path))
-            except Exception as exc:  # reported per file
-                return path, f"{type(exc).__name__}: {exc}"
-
-    pool = ActorPool([Worker.remote() for _ in range(concurrency)])  # type: ignore[attr-defined]
-    for path, outcome in pool.map_unordered(lambda actor, p: actor.run.remote(str(p)), paths):
-        yield Path(path), (RuntimeError(outcome) if isinstance(outcome, str) else outcome)
-
-
 def _thread_upgrades(
     paths: list[Path], upgrader: Upgrader, concurrency: int
 ) -> Iterator[tuple[Path, Files | BaseException]]:
@@ -161,10 +111,11 @@ def batch_upgrade(
     """Upgrade every sequence under ``dataset_dir`` into ``out_dir`` (see the module docstring).
 
     Args:
-        concurrency: sequences in flight at once (requests, threads or Ray actors).
-        backend: a server URL, "local", "ray" / "ray://host:port", or any :class:`Upgrader` callable.
-        smpl_model: the SMPL-family model file for "local" and "ray" (default $BODYFIT_SMPL_MODEL); a server
-            uses its own.
+        concurrency: sequences in flight at once (requests or threads).
+        backend: a server URL or any :class:`Upgrader` callable (``"local"`` and ``"ray"``: deprecated,
+            see the module docstring).
+        smpl_model: the SMPL-family model file of the deprecated in-process back-ends (default
+            $BODYFIT_SMPL_MODEL); a server uses its own.
         progress: show a tqdm bar.
     """
     began = time.perf_counter()
@@ -179,17 +130,9 @@ def batch_upgrade(
             report.skipped.append(rel)
         else:
             todo.append(path)
-    results: Iterable[tuple[Path, Files | BaseException]]
-    if isinstance(backend, str) and backend.startswith("ray"):
-        address = None if backend == "ray" else backend
-        results = _ray_upgrades(todo, address, concurrency, smpl_model)
-    elif isinstance(backend, str):
-        upgrader = LocalUpgrader(smpl_model) if backend == "local" else server_upgrader(backend)
-        results = _thread_upgrades(todo, upgrader, concurrency)
-    else:
-        results = _thread_upgrades(todo, backend, concurrency)
+    upgrader = _resolve(backend, concurrency, smpl_model) if isinstance(backend, str) else backend
     bar: Any = tqdm(total=len(todo), unit="seq", disable=not progress)
-    for path, outcome in results:
+    for path, outcome in _thread_upgrades(todo, upgrader, concurrency):
         rel = str(path.relative_to(root))
         if isinstance(outcome, BaseException):
             report.failed[rel] = _message(outcome)
@@ -201,6 +144,32 @@ def batch_upgrade(
     bar.close()
     report.seconds = time.perf_counter() - began
     return report
+
+
+def _resolve(backend: str, concurrency: int, smpl_model: str | os.PathLike[str] | None) -> Upgrader:
+    """A server URL's :func:`server_upgrader`; the deprecated in-process names through
+    :func:`bodyfit.cli.backends.upgrader`, with a :class:`DeprecationWarning`."""
+    if backend.startswith(("http://", "https://")):
+        return server_upgrader(backend)
+    warnings.warn(
+        f"batch_upgrade(backend={backend!r}) from bodyfit.clients.batch is deprecated and will be removed in "
+        "the next release: pass backend=bodyfit.cli.backends.upgrader(name, concurrency, smpl_model)",
+        DeprecationWarning,
+        stacklevel=3,
+    )
+    from bodyfit.cli.backends import upgrader  # deprecated bridge, removed in the next release
+
+    return upgrader(backend, concurrency, smpl_model)
+
+
+def __getattr__(name: str) -> Any:
+    """``LocalUpgrader`` moved to :mod:`bodyfit.cli.backends` (deprecated here; removed in the next
+    release)."""
+    if name == "LocalUpgrader":
+        from bodyfit.cli.backends import LocalUpgrader  # deprecated bridge, removed in the next release
+
+        return LocalUpgrader
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _message(exc: BaseException) -> str:

@@ -1,104 +1,12 @@
-"""``bodyfit fit`` on motion-capture marker trials (.trc, .c3d): coordinates, a scaled OpenSim subject and
-an error report per trial (:func:`bodyfit.models.fitting.mocap.fitter.fit_markers`)."""
+"""Deprecated: moved to :mod:`bodyfit.cli.fit.markers`; this path will be removed in the next release. Its
+public names are re-exported from there."""
 
-from __future__ import annotations
+from bodyfit.cli.fit.markers import (
+    MARKER_SUFFIXES,
+    MarkerOptions,
+    fit_marker_trials,
+    is_marker_file,
+    parse_static_pose,
+)
 
-import json
-import math
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from pathlib import Path
-from typing import Any
-
-MARKER_SUFFIXES = (".trc", ".c3d")
-
-
-@dataclass(frozen=True)
-class MarkerOptions:
-    """What the command line says about the trials: static: a standing trial of the same subject;
-    static_pose: ``NAME=DEGREES`` items (coordinates held in the static trial's pose); calibration and
-    marker_set: as :func:`fit_markers` takes them; up, forward: the lab's axes (``y``, ``-z``, ...)."""
-
-    static: Path | None = None
-    static_pose: Sequence[str] = ()
-    calibration: str = "auto"
-    marker_set: str = "auto"
-    up: str = "y"
-    forward: str = "x"
-
-
-def is_marker_file(path: Path) -> bool:
-    return path.suffix.lower() in MARKER_SUFFIXES
-
-
-def parse_static_pose(items: Sequence[str]) -> dict[str, float]:
-    """``["ankle_angle_r=0.5", ...]`` (degrees) -> ``{"ankle_angle_r": 0.00873, ...}`` (radians).
-
-    Raises:
-        ValueError: an item that is not NAME=DEGREES with a finite number, or a name given twice.
-    """
-    out: dict[str, float] = {}
-    for item in items:
-        name, sep, value = item.partition("=")
-        name = name.strip()
-        try:
-            degrees = float(value)
-        except ValueError:
-            degrees = math.nan
-        if not sep or not name or not math.isfinite(degrees):
-            raise ValueError(f"--static-pose takes NAME=DEGREES (e.g. ankle_angle_r=0.5); got {item!r}")
-        if name in out:
-            raise ValueError(f"--static-pose gives {name} twice")
-        out[name] = math.radians(degrees)
-    return out
-
-
-def fit_marker_trials(
-    trials: Sequence[Path], out: Path, options: MarkerOptions, echo: Callable[[str], None]
-) -> list[dict[str, Any]]:
-    """Fit each trial, write ``<stem>.mot`` and ``<stem>.osim`` (the scaled subject with its calibrated
-    markers) to ``out`` and ``fit.json`` (one record per trial); returns the records. ``echo`` gets one line
-    per trial.
-
-    Raises:
-        BodyfitError (unreadable files, marker sets, coordinates), ValueError (bad options), OSError.
-    """
-    from bodyfit.io.mocap import lab_rotation, read_markers
-    from bodyfit.models.body.model import BodyModel
-    from bodyfit.models.fitting.mocap.fitter import fit_markers
-
-    held = parse_static_pose(options.static_pose)
-    rotation = lab_rotation(options.up, options.forward)
-    static = None if options.static is None else read_markers(options.static, rotation)
-    motions = [read_markers(path, rotation) for path in trials]  # every file read before any fit
-    model = BodyModel.load()
-    records = []
-    out.mkdir(parents=True, exist_ok=True)
-    for path, motion in zip(trials, motions, strict=True):
-        fit = fit_markers(
-            motion,
-            static,
-            options.marker_set,
-            model=model,
-            static_pose=held or None,
-            calibration=options.calibration,
-        )
-        files = fit.write(out, model.skeleton.spec, path.stem)
-        report = fit.report
-        records.append(
-            {
-                "trial": str(path),
-                "frames": len(fit.times),
-                "marker_set": fit.marker_set,
-                "files": {kind: str(p) for kind, p in files.items()},
-                **report.to_dict(),
-            }
-        )
-        flag = "ok" if report.confident else "LOW CONFIDENCE: " + "; ".join(report.reasons)
-        echo(
-            f"{path.name} ({fit.marker_set}, {len(fit.times)} frames, calibrated from "
-            f"{report.extra['calibration']}): markers {report.distances.mean:.1f} mm mean, "
-            f"{report.distances.p95:.1f} mm p95, {flag}"
-        )
-    (out / "fit.json").write_text(json.dumps(records, indent=1) + "\n")
-    return records
+__all__ = ["MARKER_SUFFIXES", "MarkerOptions", "fit_marker_trials", "is_marker_file", "parse_static_pose"]

@@ -1,0 +1,5 @@
+"""``python -m bodyfit.cli``: the ``bodyfit`` command."""
+
+from bodyfit.cli.app import main
+
+main()

@@ -1,0 +1,255 @@
+"""``bodyfit fit``: one subcommand per input kind (``scan``, ``markers``, ``sequence``); ``bodyfit fit
+FILE...`` without a kind runs ``auto``, which detects the kind from the files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import typer
+from typer.core import TyperGroup
+
+from bodyfit.cli.common import OUT_HELP, fail, note, reported
+from bodyfit.cli.fit.kinds import DESCRIPTION, Kind, single_kind, wrong_kind
+from bodyfit.cli.fit.markers import MarkerOptions
+from bodyfit.cli.fit.scan import HELPER_SCANS
+
+AUTO = "auto"
+
+
+class FitGroup(TyperGroup):
+    """A group whose first argument may be a file instead of a subcommand: ``bodyfit fit walk.trc --out
+    DIR`` runs ``bodyfit fit auto walk.trc --out DIR``, so every command written before the subcommands
+    existed keeps working."""
+
+    # ctx: the Context of the click that typer bundles privately, hence Any
+    def parse_args(self, ctx: Any, args: list[str]) -> list[str]:
+        if args and args[0] not in self.commands and args[0] not in ctx.help_option_names:
+            args = [AUTO, *args]
+        return super().parse_args(ctx, args)
+
+
+app = typer.Typer(
+    cls=FitGroup,
+    no_args_is_help=True,
+    add_completion=False,
+    rich_markup_mode=None,
+    help="Fit the body model to files, one subcommand per input kind. `bodyfit fit FILE...` without a kind "
+    "detects it: .trc and .c3d are marker trials, an .npz holding `frames` is a registered sequence, "
+    "anything else a mesh or scan. Positions in the outputs are in metres, joint coordinates in radians "
+    "(degrees in .mot files, as OpenSim reads them), errors in millimetres.",
+)
+
+Out = Annotated[Path, typer.Option(help=OUT_HELP)]
+UNITS_HELP = (
+    "Unit of the input coordinates: m (metres), mm (millimetres) or auto (whichever gives a human-sized "
+    "body)."
+)
+PROCESSES_HELP = (
+    "1 or 2 processes: 2 fits raw scans with a helper process on a second core (about 20% faster per scan "
+    f"once it has started, 0.5 GB more memory). Default: 2 when {HELPER_SCANS} or more inputs are raw "
+    "scans."
+)
+STATIC_HELP = "The subject's static (standing) trial, .trc or .c3d (positions in the unit its header states)."
+STATIC_POSE_HELP = (
+    "NAME=DEGREES: a coordinate held in the static trial's pose, in DEGREES as a lab's OpenSim scale setup "
+    "writes it (unlike `bodyfit synth -c`, which takes radians), e.g. ankle_angle_r=0; repeat for more."
+)
+CALIBRATION_HELP = (
+    "static (from the static trial), motion (from the trial itself; with --static and --static-pose the "
+    "static trial then places the markers of the held coordinates' bodies) or auto (static when --static "
+    "is given)."
+)
+MARKER_SET_HELP = "Marker protocol: auto (from the marker names), gait2392 or rajagopal."
+UP_HELP = "The lab's up axis: x, y or z with an optional sign (e.g. z, -y)."
+FORWARD_HELP = "The lab's forward (walking) axis: x, y or z with an optional sign."
+FPS_HELP = "Frames per second (Hz) of the sequence, for the times in the .mot."
+Units = Literal["auto", "m", "mm"]
+Calibration = Literal["auto", "static", "motion"]
+OPTION_KIND: dict[str, Kind] = {
+    "--units": "scan",
+    "--processes": "scan",
+    "--static": "markers",
+    "--static-pose": "markers",
+    "--calibration": "markers",
+    "--marker-set": "markers",
+    "--up": "markers",
+    "--forward": "markers",
+    "--fps": "sequence",
+}
+
+
+def run_scans(files: list[Path], out: Path, units: str, processes: int | None) -> None:
+    """Fit meshes and scans in this process (:func:`bodyfit.cli.fit.scan.fit_mesh_files`)."""
+    from bodyfit.cli.fit.scan import fit_mesh_files
+
+    with reported():
+        from bodyfit.service.core import BodyService
+
+        service = BodyService.load(fitters=False)
+        fit_mesh_files(service, files, out, units, processes, typer.echo, note)
+    typer.echo(f"wrote {len(files)} fits to {out}/ (fit.npz, fit.json, registration_*.ply, fit.mot)")
+
+
+def run_markers(files: list[Path], out: Path, options: MarkerOptions) -> None:
+    """Fit marker trials in this process (:func:`bodyfit.cli.fit.markers.fit_marker_trials`)."""
+    from bodyfit.cli.fit.markers import fit_marker_trials
+
+    with reported():
+        fit_marker_trials(files, out, options, typer.echo)
+    typer.echo(f"wrote {len(files)} marker fits to {out}/ (fit.json, <trial>.mot, <trial>.osim)")
+
+
+def run_sequences(files: list[Path], out: Path, fps: float) -> None:
+    """Fit registered sequences in this process (:func:`bodyfit.cli.fit.sequence.fit_sequence_files`)."""
+    from bodyfit.cli.fit.sequence import fit_sequence_files
+
+    with reported():
+        from bodyfit.service.core import BodyService
+
+        fit_sequence_files(BodyService.load(fitters=False), files, out, fps, typer.echo)
+    typer.echo(f"wrote {len(files)} sequence fits to {out}/ (fit.json, <name>.npz, <name>.mot)")
+
+
+def _only(files: list[Path], kind: Kind) -> None:
+    message = wrong_kind(files, kind)
+    if message is not None:
+        fail(message)
+
+
+@app.command("scan")
+def scan(
+    files: Annotated[
+        list[Path],
+        typer.Argument(
+            exists=True,
+            dir_okay=False,
+            help="Meshes or point clouds: .ply, .obj, .stl, .pcd, or .npz holding points (N, 3) or vertices.",
+        ),
+    ],
+    out: Out = Path("out/fit"),
+    units: Annotated[Units, typer.Option(help=UNITS_HELP)] = "auto",
+    processes: Annotated[int | None, typer.Option(min=1, max=2, help=PROCESSES_HELP)] = None,
+) -> None:
+    """Fit meshes and scans, any placement.
+
+    Meshes in our 13,348-vertex topology are fitted vertex to vertex (batched); meshes in SMPL's 6,890-vertex
+    topology through the stored correspondence; anything else as a raw scan (any topology or a bare point
+    cloud; orientation searched; no landmarks). Writes fit.npz (shape, coordinates in radians, root in
+    metres, registered vertices in our topology, joints), fit.json (one error report per input: distances
+    in mm, joint-limit violations, iterations, time, confidence), the registrations as .ply and the
+    coordinates as an OpenSim .mot.
+    """
+    _only(files, "scan")
+    run_scans(files, out, units, processes)
+
+
+@app.command("markers")
+def markers(
+    files: Annotated[
+        list[Path],
+        typer.Argument(exists=True, dir_okay=False, help="Marker trials (.trc, .c3d) of one subject."),
+    ],
+    out: Out = Path("out/fit"),
+    static: Annotated[Path | None, typer.Option(exists=True, dir_okay=False, help=STATIC_HELP)] = None,
+    static_pose: Annotated[list[str] | None, typer.Option(help=STATIC_POSE_HELP)] = None,
+    calibration: Annotated[Calibration, typer.Option(help=CALIBRATION_HELP)] = "auto",
+    marker_set: Annotated[str, typer.Option(help=MARKER_SET_HELP)] = "auto",
+    up: Annotated[str, typer.Option(help=UP_HELP)] = "y",
+    forward: Annotated[str, typer.Option(help=FORWARD_HELP)] = "x",
+) -> None:
+    """Fit motion-capture marker trials: the skeleton's coordinates per frame.
+
+    OpenSim gait2392 or Rajagopal marker names. The subject is calibrated from the static trial (--static)
+    or from the motion, then every frame is solved. Writes <trial>.mot (degrees, as OpenSim reads it),
+    <trial>.osim (the scaled subject with its markers, for OpenSim) and fit.json (one error report per
+    trial: marker distances in mm, joint-limit violations, confidence).
+    """
+    _only(files, "markers")
+    options = MarkerOptions(static, tuple(static_pose or ()), calibration, marker_set, up, forward)
+    run_markers(files, out, options)
+
+
+@app.command("sequence")
+def sequence(
+    files: Annotated[
+        list[Path],
+        typer.Argument(
+            exists=True,
+            dir_okay=False,
+            help="Registered sequences: .npz holding frames (T, 13348, 3) in metres, optionally weights "
+            "(T, 13348); one person in time order.",
+        ),
+    ],
+    out: Out = Path("out/fit"),
+    fps: Annotated[float, typer.Option(min=0.001, help=FPS_HELP)] = 30.0,
+) -> None:
+    """Fit registered mesh sequences: one shape and a pose per frame.
+
+    Writes <name>.npz (shape, coordinates in radians, root in metres, vertices, joints, per-frame error_mm),
+    <name>.mot and fit.json (frames per second, error in mm, jitter).
+    """
+    _only(files, "sequence")
+    run_sequences(files, out, fps)
+
+
+@app.command(AUTO)
+def auto(
+    files: Annotated[
+        list[Path],
+        typer.Argument(
+            exists=True,
+            dir_okay=False,
+            help="Files of one kind: meshes or scans, marker trials (.trc, .c3d) or registered sequences "
+            "(.npz holding frames).",
+        ),
+    ],
+    out: Out = Path("out/fit"),
+    units: Annotated[Units | None, typer.Option(help=f"Scans: {UNITS_HELP}")] = None,
+    processes: Annotated[int | None, typer.Option(min=1, max=2, help=f"Scans: {PROCESSES_HELP}")] = None,
+    static: Annotated[
+        Path | None, typer.Option(exists=True, dir_okay=False, help=f"Markers: {STATIC_HELP}")
+    ] = None,
+    static_pose: Annotated[list[str] | None, typer.Option(help=f"Markers: {STATIC_POSE_HELP}")] = None,
+    calibration: Annotated[
+        Calibration | None, typer.Option(help=f"Markers: {CALIBRATION_HELP}")
+    ] = None,
+    marker_set: Annotated[str | None, typer.Option(help=f"Markers: {MARKER_SET_HELP}")] = None,
+    up: Annotated[str | None, typer.Option(help=f"Markers: {UP_HELP} Default: y.")] = None,
+    forward: Annotated[str | None, typer.Option(help=f"Markers: {FORWARD_HELP} Default: x.")] = None,
+    fps: Annotated[float | None, typer.Option(min=0.001, help=f"Sequences: {FPS_HELP} Default: 30.")] = None,
+) -> None:
+    """Detect the kind of the files, then fit them as `scan`, `markers` or `sequence` do (the default when
+    no kind is given: `bodyfit fit FILE...`). Every file of one run must be of one kind."""
+    kind, mixed = single_kind(files)
+    if kind is None:
+        fail(mixed)
+    given: dict[str, Any] = {
+        "--units": units,
+        "--processes": processes,
+        "--static": static,
+        "--static-pose": static_pose,
+        "--calibration": calibration,
+        "--marker-set": marker_set,
+        "--up": up,
+        "--forward": forward,
+        "--fps": fps,
+    }
+    stray = [name for name, value in given.items() if value is not None and OPTION_KIND[name] != kind]
+    if stray:
+        owners = "; ".join(f"{name} is an option of `bodyfit fit {OPTION_KIND[name]}`" for name in stray)
+        fail(f"{owners}, but {files[0]} is {DESCRIPTION[kind]}; leave {' '.join(stray)} out")
+    if kind == "markers":
+        options = MarkerOptions(
+            static,
+            tuple(static_pose or ()),
+            calibration or "auto",
+            marker_set or "auto",
+            up or "y",
+            forward or "x",
+        )
+        run_markers(files, out, options)
+    elif kind == "sequence":
+        run_sequences(files, out, 30.0 if fps is None else fps)
+    else:
+        run_scans(files, out, units or "auto", processes)
