@@ -81,6 +81,12 @@ def parse_parameters(data: bytes) -> tuple[dict[str, Any], int]:
     return out, processor
 
 
+def _chars(raw: bytes) -> str:
+    """Character data as text, without the blanks or NUL bytes that pad it (MotionMonitor pads with
+    NULs)."""
+    return raw.decode("latin-1").replace("\x00", " ").strip()
+
+
 def _param_value(data: bytes, k: int, processor: int) -> Any:
     kind, n_dims = struct.unpack("bB", data[k : k + 2])
     dims = list(data[k + 2 : k + 2 + n_dims])
@@ -94,9 +100,11 @@ def _param_value(data: bytes, k: int, processor: int) -> Any:
         raise C3DError("the parameter section is truncated")
     if kind == -1:
         if len(dims) <= 1:
-            return raw.decode("latin-1").strip()
+            return _chars(raw)
         width = dims[0]
-        return [raw[w : w + width].decode("latin-1").strip() for w in range(0, count, width)]
+        if width == 0:  # some exporters (Motion Analysis Cortex, Optotrak) declare empty strings this way
+            return [""] * int(np.prod(dims[1:]))
+        return [_chars(raw[w : w + width]) for w in range(0, count, width)]
     if kind == 1:
         values = np.frombuffer(raw, np.uint8).astype(np.int64)
     elif kind == 2:
@@ -113,53 +121,97 @@ def _get(params: dict[str, Any], key: str, default: Any) -> Any:
     return value.ravel()[0] if isinstance(value, np.ndarray) and value.size else value
 
 
+def _text(value: Any, default: str) -> str:
+    """A character parameter as one string (a 2-D one gives its first entry)."""
+    if isinstance(value, list):
+        value = value[0] if value else ""
+    return str(value).strip() or default
+
+
+def _frame_range(params: dict[str, Any], first: int, last: int) -> tuple[int, int]:
+    """First and last frame: TRIAL:ACTUAL_START_FIELD / END_FIELD (two 16-bit words each, for trials
+    over 65,535 frames) when present, else the header's."""
+    if "TRIAL:ACTUAL_START_FIELD" in params and "TRIAL:ACTUAL_END_FIELD" in params:
+        s = np.asarray(params["TRIAL:ACTUAL_START_FIELD"]).ravel() & 0xFFFF
+        e = np.asarray(params["TRIAL:ACTUAL_END_FIELD"]).ravel() & 0xFFFF
+        if s.size >= 2 and e.size >= 2:
+            return int(s[0] + (s[1] << 16)), int(e[0] + (e[1] << 16))
+    return first, last
+
+
+def _analog_per_frame(params: dict[str, Any], header_count: int, rate: float) -> int:
+    """Analog samples stored after each point frame (all channels).
+
+    The C3D guide defines it as ANALOG:USED x ANALOG:RATE / POINT:RATE; header word 3 repeats it. Files
+    whose analog rate is not a whole multiple of the point rate disagree: Motion Analysis EVaRT writes
+    17 x 28 in the header of a 1000 Hz / 60 Hz trial but stores 16 x 28, and MotionMonitor writes the
+    channel count alone. The parameters, with the ratio rounded down, match the data in both; the header
+    serves when the parameters are absent.
+    """
+    used = int(_get(params, "ANALOG:USED", -1))
+    analog_rate = float(_get(params, "ANALOG:RATE", 0.0))
+    if used >= 0 and analog_rate > 0 and rate > 0:
+        return used * int(analog_rate / rate + 1e-6) if used else 0
+    return header_count
+
+
 def parse_c3d_points(data: bytes) -> tuple[list[str], np.ndarray, float, str]:
     """Markers of a C3D file.
 
     Returns:
         labels (M,), positions (T, M, 3) in the file's units (NaN where the residual is negative),
         point rate (Hz), POINT:UNITS.
+    Raises:
+        C3DError: not a C3D file, no points, or fewer bytes than the header declares.
     """
     params, processor = parse_parameters(data)
     i16 = ">H" if processor == MIPS else "<H"
     words = [struct.unpack(i16, data[2 * w : 2 * w + 2])[0] for w in range(12)]
-    n_points, analog, first, last, data_block = words[1], words[2], words[3], words[4], words[8]
-    scale = float(_floats(data[12:16], 1, processor)[0])
-    rate = float(_floats(data[20:24], 1, processor)[0])
-    n_points = int(_get(params, "POINT:USED", n_points)) & 0xFFFF
-    scale = float(_get(params, "POINT:SCALE", scale))
-    rate = float(_get(params, "POINT:RATE", rate))
-    data_block = int(_get(params, "POINT:DATA_START", data_block)) & 0xFFFF
-    if "TRIAL:ACTUAL_START_FIELD" in params and "TRIAL:ACTUAL_END_FIELD" in params:
-        s = np.asarray(params["TRIAL:ACTUAL_START_FIELD"]).ravel() & 0xFFFF
-        e = np.asarray(params["TRIAL:ACTUAL_END_FIELD"]).ravel() & 0xFFFF
-        if s.size >= 2 and e.size >= 2:
-            first, last = int(s[0] + (s[1] << 16)), int(e[0] + (e[1] << 16))
+    n_points = int(_get(params, "POINT:USED", words[1])) & 0xFFFF
+    scale = float(_get(params, "POINT:SCALE", _floats(data[12:16], 1, processor)[0]))
+    rate = float(_get(params, "POINT:RATE", _floats(data[20:24], 1, processor)[0]))
+    data_block = int(_get(params, "POINT:DATA_START", words[8])) & 0xFFFF
+    if data_block < 2:  # PhoeniX and some converters leave the parameter at 0: the header holds it
+        data_block = words[8]
+    first, last = _frame_range(params, words[3], words[4])
     n_frames = last - first + 1
     if n_points <= 0:
-        raise C3DError("the file has no 3D points (POINT:USED = 0)")
+        raise C3DError(
+            "the file has no 3D points (POINT:USED = 0): it holds only analog or force-plate data; "
+            "export the marker trajectories (C3D or TRC) to fit a body"
+        )
     if n_frames <= 0 or rate <= 0:
         raise C3DError(f"bad frame range {first}..{last} or point rate {rate}")
+    xyz = _point_frames(
+        data, processor, n_points, n_frames, data_block, scale, _analog_per_frame(params, words[2], rate)
+    )
+    labels: list[str] = []
+    for key in ("POINT:LABELS", "POINT:LABELS2", "POINT:LABELS3"):
+        value = params.get(key, [])
+        labels += [value] if isinstance(value, str) else list(value)
+    labels = (labels + [""] * n_points)[:n_points]
+    return labels, xyz, rate, _text(params.get("POINT:UNITS", "mm"), "mm")
+
+
+def _point_frames(
+    data: bytes, processor: int, n_points: int, n_frames: int, data_block: int, scale: float, analog: int
+) -> np.ndarray:
+    """(n_frames, n_points, 3) positions from the data section: per frame ``n_points`` x (X, Y, Z,
+    residual), then ``analog`` samples; 16-bit integers times |scale| when ``scale`` > 0, else floats."""
     is_float = scale < 0
     size = 4 if is_float else 2
-    frame_values = 4 * n_points + analog  # analog: samples of all channels per point frame
+    frame_values = 4 * n_points + analog
     start = (data_block - 1) * BLOCK
     need = start + n_frames * frame_values * size
     if data_block < 2 or need > len(data):
         raise C3DError(
             f"the file is truncated: {n_frames} frames of {n_points} points need {need} bytes, "
-            f"it has {len(data)}"
+            f"it has {len(data)}; re-export it from the capture software"
         )
     body = data[start:need]
     count = n_frames * frame_values
     values = _floats(body, count, processor) if is_float else _int16(body, count, processor).astype(float)
     frames = values.reshape(n_frames, frame_values)[:, : 4 * n_points].reshape(n_frames, n_points, 4)
     xyz = frames[..., :3] * (1.0 if is_float else abs(scale))
-    missing = frames[..., 3] < 0
-    xyz[missing] = np.nan
-    labels: list[str] = []
-    for key in ("POINT:LABELS", "POINT:LABELS2", "POINT:LABELS3"):
-        value = params.get(key, [])
-        labels += [value] if isinstance(value, str) else list(value)
-    labels = (labels + [""] * n_points)[:n_points]
-    return labels, xyz, rate, str(params.get("POINT:UNITS", "mm")) or "mm"
+    xyz[frames[..., 3] < 0] = np.nan
+    return xyz
