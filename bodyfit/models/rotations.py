@@ -12,7 +12,7 @@ import torch
 def cm_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Matrix product in the component-major layout: (I, L, ...) @ (L, K, ...) -> (I, K, ...), the batch
     dimensions last (broadcast). Batches of 3 x 3 or 4 x 4 products become a few large elementwise
-    operations instead of thousands of tiny GEMMs (5x faster in ONNX Runtime, 2x in torch)."""
+    operations instead of thousands of tiny GEMMs, which is faster in ONNX Runtime and torch alike."""
     return (a.unsqueeze(2) * b.unsqueeze(0)).sum(1)
 
 
@@ -22,7 +22,10 @@ def cm_matvec(a: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 
 
 def axis_angle_matrix(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
-    """Rotation by ``angle`` about unit ``axis`` (Rodrigues).
+    """Rotation by ``angle`` about unit ``axis``.
+
+    Rodrigues' formula (O. Rodrigues, "Des lois géométriques qui régissent les déplacements d'un système solide
+    dans l'espace", Journal de Mathématiques Pures et Appliquées 5, 1840).
 
     Args:
         axis: (..., 3) unit vectors; broadcast against ``angle``.
@@ -107,6 +110,11 @@ def zxy_angles(R: np.ndarray) -> np.ndarray:
 
 def kabsch(source: np.ndarray, target: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Weighted rigid alignment per row: R, t minimising sum_k w_k |R s_k + t - x_k|^2.
+
+    W. Kabsch, "A solution for the best rotation to relate two sets of vectors", Acta Crystallographica A
+    32(5), 1976, with the determinant correction that keeps R a proper rotation (S. Umeyama, "Least-squares
+    estimation of transformation parameters between two point patterns", IEEE Transactions on Pattern
+    Analysis and Machine Intelligence 13(4), 1991).
 
     Non-finite target points are skipped; rows with fewer than 3 weighted finite points give NaN.
 

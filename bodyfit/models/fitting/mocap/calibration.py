@@ -3,7 +3,8 @@
 Scales follow the body model's bone shape space with a per-segment correction,
 ``s = (s_mean + c P_b) * exp(r)`` (``c`` the bone coefficients, standard normal prior; ``r`` a log
 correction per segment and axis, left and right tied, prior sigma :data:`SCALE_SIGMA`), so segments no
-marker sees still get plausible lengths from the ones that are seen (BLSM eq. 4).
+marker sees still get plausible lengths from the ones that are seen (eq. 4 of H. Wang, R. A. Güler, I.
+Kokkinos, G. Papandreou and S. Zafeiriou, "BLSM: A Bone-Level Skinned Model of the Human Mesh", ECCV 2020).
 
 The solvers that use these pieces are in :mod:`.subject` (calibration) and :mod:`.marker_solve` (IK).
 """
@@ -184,7 +185,10 @@ def moved_bodies(skel: Skeleton, coordinates: Iterable[str]) -> np.ndarray:
 def pelvis_start(
     skel: Skeleton, markers: VirtualMarkers, scales: np.ndarray, observed: np.ndarray, times: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Pelvis angles (tilt, list, rotation) and root per frame from the pelvis markers (Kabsch).
+    """Pelvis angles (tilt, list, rotation) and root per frame from the pelvis markers.
+
+    The rigid alignment is :func:`~bodyfit.models.rotations.kabsch` (W. Kabsch, "A solution for the best
+    rotation to relate two sets of vectors", Acta Crystallographica A 32(5), 1976).
 
     Args:
         scales: (n_seg, 3); observed: (T, M, 3); times: (T,).

@@ -11,6 +11,12 @@
 3. inverse kinematics of all frames at once (:mod:`.marker_solve`);
 4. an error report (:class:`~bodyfit.models.fitting.common.report.FitReport`): marker distances,
    joint-limit violations, iterations, time, and confidence with reasons.
+
+Steps 2 and 3 follow OpenSim's scaling, marker placement and inverse kinematics (S. L. Delp et al., "OpenSim:
+Open-Source Software to Create and Analyze Dynamic Simulations of Movement", IEEE Transactions on Biomedical
+Engineering 54(11), 2007; A. Seth et al., "OpenSim: Simulating musculoskeletal dynamics and neuromuscular
+control to study human and animal movement", PLoS Computational Biology 14(7), 2018). User guide:
+docs/fitting.md.
 """
 
 from __future__ import annotations

@@ -1,5 +1,9 @@
 """Marker kinematics and a batched Levenberg-Marquardt solver (pure functions, torch).
 
+Levenberg-Marquardt: K. Levenberg, "A method for the solution of certain non-linear problems in least
+squares", Quarterly of Applied Mathematics 2(2), 1944; D. W. Marquardt, "An algorithm for least-squares
+estimation of nonlinear parameters", Journal of the Society for Industrial and Applied Mathematics 11(2), 1963.
+
 Marker positions are body-fixed points: ``x_m = R_b (l_m * s_seg(b)) + t_b`` with ``l_m`` the point in
 body ``b``'s frame before segment scaling. Their Jacobian with respect to every coordinate is analytic:
 a joint's rotation axis ``k`` (world direction ``w_k``, about the origin ``o_M`` of the joint's moving
@@ -310,12 +314,14 @@ def levenberg_marquardt(
 ) -> SolveResult:
     """Batched, box-constrained Levenberg-Marquardt: every row of ``x0`` is its own problem.
 
-    Bounds are kept by projection (projected Newton, Bertsekas 1982): a variable on a bound whose
-    gradient pushes outwards is held for the step, the others take the damped Gauss-Newton step, and
-    the result is clipped into the box. Unlike a tanh reparameterisation (``Skeleton.from_unbounded``),
-    a variable can leave a bound as soon as the data pull it inwards: through tanh the gradient vanishes
-    at a limit, and on the gait2392 walk 4% of the frames stayed stuck with the knee at 0 deg during
-    heel strike (knee RMSE 10 deg against OpenSim's 2 deg).
+    The damping is Marquardt's, scaled by the diagonal of J^T J (Levenberg 1944; Marquardt 1963, see the
+    module docstring). Bounds are kept by projection (D. P. Bertsekas, "Projected Newton methods for
+    optimization problems with simple constraints", SIAM Journal on Control and Optimization 20(2), 1982):
+    a variable on a bound whose gradient pushes outwards is held for the step, the others take the damped
+    Gauss-Newton step, and the result is clipped into the box. Unlike a tanh reparameterisation
+    (``Skeleton.from_unbounded``), a variable can leave a bound as soon as the data pull it inwards: through
+    tanh the gradient vanishes at a limit, so a knee that reaches full extension at heel strike would stay
+    stuck there.
 
     Args:
         residual: ``(x (b, P), rows (b,) long) -> (r (b, R), J (b, R, P))`` for the problems ``rows``.

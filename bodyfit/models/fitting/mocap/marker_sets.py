@@ -1,5 +1,11 @@
 """Virtual marker sets on our skeleton: the OpenSim gait2392 and Rajagopal2015 laboratory protocols.
 
+gait2392 is OpenSim's lower-limb and trunk model after S. L. Delp, J. P. Loan, M. G. Hoy, F. E. Zajac, E. L.
+Topp and J. M. Rosen, "An interactive graphics-based model of the lower extremity to study orthopaedic
+surgical procedures", IEEE Transactions on Biomedical Engineering 37(8), 1990; Rajagopal2015 is the model of
+A. Rajagopal, C. L. Dembia, M. S. DeMers, D. D. Delp, J. L. Hicks and S. L. Delp, "Full-Body Musculoskeletal
+Model for Muscle-Driven Simulation of Human Gait", IEEE Transactions on Biomedical Engineering 63(10), 2016.
+
 A virtual marker is a body of our skeleton and a point in that body's frame before segment scaling. Its
 default location comes from one of two sources, or the mean of several:
 

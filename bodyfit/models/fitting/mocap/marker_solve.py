@@ -6,8 +6,11 @@ and the root translation. Residuals: ``sqrt(w_m) (x_m - y_m)`` for every visible
 ones are masked to zero) and ``sqrt(lambda_i) q_i`` for the soft DOFs. Frames are independent problems
 solved together by :func:`~.marker_ik.levenberg_marquardt` (one batched Jacobian per iteration). Warm
 start, the batched form of OpenSim's frame-to-frame warm start: the pelvis of every frame from its markers
-(Kabsch), the other DOFs neutral (or ``start``); a staged first pass on every ``stride``-th frame, then
-every frame starts from the solution interpolated between its neighbours in that pass.
+(Kabsch; :func:`~.calibration.pelvis_start`), the other DOFs neutral (or ``start``); a staged first pass on
+every ``stride``-th frame, then every frame starts from the solution interpolated between its neighbours in
+that pass. The objective is that of OpenSim's inverse kinematics (A. Seth et al., "OpenSim: Simulating
+musculoskeletal dynamics and neuromuscular control to study human and animal movement", PLoS Computational
+Biology 14(7), 2018), with the joint limits as hard bounds.
 """
 
 from __future__ import annotations
@@ -177,7 +180,8 @@ def solve_ik(
 
     Staged on the first pass (every ``stride``-th frame): pelvis, legs and trunk from their markers; then
     arms and head with the rest held; then everything. All frames then start from the interpolated
-    first-pass solution for one last pass (BLSM's torso / limbs / all staging, batched over frames).
+    first-pass solution for one last pass (the torso / limbs / all staging of Wang et al., "BLSM: A
+    Bone-Level Skinned Model of the Human Mesh", ECCV 2020, batched over frames).
 
     Args:
         markers: the M markers of ``observed``; scales: (n_seg, 3); observed: (T, M, 3) (NaN: missing);

@@ -7,12 +7,15 @@ markers being placed. Residuals (metres): ``sqrt(w_m) (x_m - y_m)`` per visible 
 ``sigma_m c``, ``sigma_m r / SCALE_SIGMA``, ``sigma_m (l - l_0) / PLACE_SIGMA`` and the soft DOFs.
 
 The normal equations have the bundle-adjustment structure (one small pose block per frame, a shared
-block), so each Levenberg-Marquardt step eliminates the poses with a batched Schur complement. All
-Jacobians are analytic (:func:`~.marker_ik.marker_jacobian`, positions are linear in the scales).
+block; B. Triggs, P. F. McLauchlan, R. I. Hartley and A. W. Fitzgibbon, "Bundle Adjustment - A Modern
+Synthesis", Vision Algorithms: Theory and Practice, LNCS 1883, Springer, 2000), so each Levenberg-Marquardt
+step (:mod:`.marker_ik`) eliminates the poses with a batched Schur complement. All Jacobians are analytic
+(:func:`~.marker_ik.marker_jacobian`, positions are linear in the scales).
 
-* From a static trial (OpenSim ScaleTool + MarkerPlacer): K = 1 (the mean of the static frames), the
-  anatomical markers at their default locations fix scales and standing pose; afterwards every marker
-  seen is placed where it was observed.
+* From a static trial (the ScaleTool + MarkerPlacer of S. L. Delp et al., "OpenSim: Open-Source Software to
+  Create and Analyze Dynamic Simulations of Movement", IEEE Transactions on Biomedical Engineering 54(11),
+  2007): K = 1 (the mean of the static frames), the anatomical markers at their default locations fix
+  scales and standing pose; afterwards every marker seen is placed where it was observed.
 * Without a static trial: K frames spread over the motion, all markers used, the technical markers'
   locations estimated with the rest (functional calibration: thigh and shank clusters must move rigidly
   about hip, knee and ankle), anatomical markers kept at their defaults.
