@@ -17,6 +17,12 @@ How (:func:`retarget`):
 
 The map from BVH joints to our bodies is a :class:`SegmentMap`; :data:`CMU_MAP` serves the CMU database's
 31-joint skeleton (its BVH conversions).
+
+Methods: L-BFGS (D. C. Liu and J. Nocedal, "On the limited memory BFGS method for large scale optimization",
+Mathematical Programming 45, 1989) through the tanh-bounded coordinates of BLSM (eq. 6 of H. Wang, R. A.
+Güler, I. Kokkinos, G. Papandreou and S. Zafeiriou, "BLSM: A Bone-Level Skinned Model of the Human Mesh",
+European Conference on Computer Vision (ECCV), 2020); the running median is Tukey's median smoother (J. W.
+Tukey, "Exploratory Data Analysis", Addison-Wesley, 1977).
 """
 
 from __future__ import annotations
