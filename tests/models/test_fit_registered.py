@@ -172,7 +172,7 @@ def test_stage_jacobian_is_the_derivative_of_the_vertices(
 ) -> None:
     """The forward-difference Jacobian in ``optimise``'s variables agrees with forward-mode autodiff."""
     fitter = RegisteredFitter(model, RegisteredFitConfig(dtype=torch.float64))
-    stage = Stage("pose", "all", "bone", "subset", 1)
+    stage = Stage(name="pose", coordinates="all", shape="bone", vertices="subset", iterations=1)
     z = fitter.start_state(known["q"][:2], known["root"][:2], known["shape"][:2])
     J = fitter.stage_jacobian(stage, z, "subset", step=1e-6)  # (2, 3V', P)
     n_bone, n_dof = model.n_bone, model.skeleton.n_dof
@@ -258,7 +258,7 @@ def test_a_gauss_newton_metric_speeds_up_optimise(
 ) -> None:
     """From a start 0.1 rad off in every coordinate, five iterations in the metric's variables fit the
     bodies far better than five with the diagonal preconditioner alone."""
-    stage = Stage("all", "all", "all", "subset", 5)
+    stage = Stage(name="all", coordinates="all", shape="all", vertices="subset", iterations=5)
     x = torch.as_tensor(known["vertices"][:3][:, fitter.index["subset"]] * 1000.0, dtype=torch.float32)
     q0 = known["q"][:3] + np.random.default_rng(2).normal(scale=0.1, size=known["q"][:3].shape)
     errors = _optimised_errors(fitter, stage, x, q0, known["root"][:3], known["shape"][:3])
@@ -272,7 +272,7 @@ def test_a_gauss_newton_metric_speeds_up_a_shared_shape_fit(
     metric's variables (the poses' blocks, their couplings to the shape and the shape's block summed) fit
     far better than ten without (17.0 against 9.6 mm; 18.9 with the couplings left out, 21.2 with one pose's
     shape block instead of the sum)."""
-    stage = Stage("all", "all", "all", "subset", 10)
+    stage = Stage(name="all", coordinates="all", shape="all", vertices="subset", iterations=10)
     shape = np.repeat(known["shape"][:1], 3, axis=0)
     out = fitter.decoders["subset"](
         *(torch.as_tensor(a, dtype=torch.float32) for a in (shape, known["q"][:3], known["root"][:3]))
@@ -286,7 +286,7 @@ def test_a_gauss_newton_metric_speeds_up_a_shared_shape_fit(
 def test_a_metric_that_is_not_positive_definite_is_not_used(
     fitter: RegisteredFitter, known: dict[str, np.ndarray]
 ) -> None:
-    stage = Stage("all", "all", "all", "subset", 10)
+    stage = Stage(name="all", coordinates="all", shape="all", vertices="subset", iterations=10)
     x = torch.as_tensor(known["vertices"][:2][:, fitter.index["subset"]] * 1000.0, dtype=torch.float32)
     term = vertex_term(x, torch.ones(x.shape[:2]))
     q0 = known["q"][:2] + 0.05

@@ -507,7 +507,12 @@ def test_the_point_to_plane_phases_fit_the_dense_subset_with_its_coarse_normals(
     e2 = along**2 + t * ((r**2).sum(1) - along**2)
     assert float(both[0] - loss[0]) == pytest.approx((e2 * s2 / (e2 + s2)).mean(), rel=1e-3)
     with pytest.raises(ValueError, match="surface"):
-        fitter._chamfer(hyp, dataclasses.replace(phase, stage=Stage("x", "all", "all", "subset", 1)))
+        fitter._chamfer(
+            hyp,
+            dataclasses.replace(
+                phase, stage=Stage(name="x", coordinates="all", shape="all", vertices="subset", iterations=1)
+            ),
+        )
 
 
 def test_a_real_t_posed_body_given_as_bare_points_is_fitted_facing_forward(fitter: ScanFitter) -> None:

@@ -334,6 +334,13 @@ def test_bad_sequences_raise(model: BodyModel, seq_fitter: SequenceFitter) -> No
     with pytest.raises(ShapeError, match="vertex weights"):
         seq_fitter.fit(np.zeros((3, V, 3)), weights=np.ones((2, V)))
     with pytest.raises(ValueError, match="keep the shape frozen"):
-        SequenceFitter(model, SequenceConfig(frame_stages=(Stage("x", "all", "all", "subset", 5),)))
+        SequenceFitter(
+            model,
+            SequenceConfig(
+                frame_stages=(
+                    Stage(name="x", coordinates="all", shape="all", vertices="subset", iterations=5),
+                )
+            ),
+        )
     with pytest.raises(ValueError, match="at least 1"):
         SequenceFitter(model, SequenceConfig(stride=0))

@@ -1,13 +1,18 @@
 """Fit the body model to meshes in its own topology (registered meshes), batched.
 
-Staged as in BLSM (paper 000, section 5.2): a rigid start from the trunk (Kabsch), then the trunk's pose and
+Staged as in BLSM's fitting (Wang, Güler, Kokkinos, Papandreou, Zafeiriou, "BLSM: A Bone-Level Skinned Model
+of the Human Mesh", ECCV 2020, section 5.2): a rigid start from each body's own skin (Kabsch, "A solution for
+the best rotation to relate two sets of vectors", Acta Crystallographica A, 1976), then the trunk's pose and
 the bone-length coefficients on trunk vertices, then every coordinate on a spread vertex subset, then
-everything including identity shape, and a last pass on all vertices. Each stage minimises
+everything including identity shape, and a last pass on all vertices (:mod:`.stages`). Each stage minimises
 
     sum_b [ mean_v w_bv |v_bv(c_b, q_b, r_b) - x_bv|^2 (mm^2) + lambda |c_b|^2 ]
 
-by L-BFGS over unconstrained coordinates ``u`` (``q = from_unbounded(u)``, BLSM eq. 6), so every pose it
-returns respects the joint limits. The model holds buffers only; the optimisation state lives here.
+by L-BFGS (Liu and Nocedal, "On the limited memory BFGS method for large scale optimization", Mathematical
+Programming, 1989) over unconstrained coordinates ``u`` (``q = from_unbounded(u)``, BLSM eq. 6), so every
+pose it returns respects the joint limits; in preconditioned units, and in the last stages in the variables
+of the loss's Gauss-Newton metric (:mod:`.metric`). The model holds buffers only; the optimisation state
+lives here.
 """
 
 from __future__ import annotations
@@ -19,79 +24,63 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from bodyfit.models.body.model import BodyDecoder, BodyModel
 from bodyfit.models.errors import ShapeError
 from bodyfit.models.fitting.common.lbfgs import batched_lbfgs
 from bodyfit.models.fitting.common.report import DistanceStats, FitReport
-from bodyfit.models.rotations import kabsch, zxy_angles
+from bodyfit.models.fitting.registered.metric import (
+    State,
+    gauss_newton_metric,
+    unit_scales,
+)
+from bodyfit.models.fitting.registered.metric import (
+    stage_jacobian as _stage_jacobian,
+)
+from bodyfit.models.fitting.registered.stages import (
+    CORE_DOF_PREFIXES,
+    DEFAULT_STAGES,
+    MIN_PART_VERTICES,
+    MIN_PART_WEIGHT,
+    STAGE_METRIC_DAMPING,
+    TRUNK_BODIES,
+    TRUNK_DOF_PREFIXES,
+    UPPER_BODY_M,
+    UPPER_DOF_PREFIXES,
+    RegisteredFitConfig,
+    Stage,
+    VertexSet,
+    coordinate_masks,
+    farthest_point_subset,
+    shape_masks,
+    vertex_sets,
+)
+from bodyfit.models.fitting.registered.start import BoneStart
 from bodyfit.models.skeleton.model import PELVIS_ROTATIONS, check_finite
 
-TRUNK_BODIES = ("pelvis", "torso", "thoracic_link", "thorax")
-TRUNK_DOF_PREFIXES = ("pelvis_", "lumbar_", "thorax_")
-# The trunk and the legs' flexion: a seated or crouching body's pose, which the trunk alone can only mimic
-# by bending the spine.
-CORE_DOF_PREFIXES = (*TRUNK_DOF_PREFIXES, "hip_flexion_", "knee_angle_")
-# A head-and-shoulders capture: the mean body's vertices this far below the top of its head (head, neck,
-# shoulders and upper chest), and the DOFs that place them (the trunk's, the neck's and the scapulae's).
-UPPER_BODY_M = 0.55
-UPPER_DOF_PREFIXES = (*TRUNK_DOF_PREFIXES, "neck_", "scapula_")
+__all__ = [
+    "CONFIDENT_MEAN_MM",
+    "CORE_DOF_PREFIXES",
+    "DEFAULT_STAGES",
+    "MIN_PART_VERTICES",
+    "MIN_PART_WEIGHT",
+    "STAGE_METRIC_DAMPING",
+    "TRUNK_BODIES",
+    "TRUNK_DOF_PREFIXES",
+    "UPPER_BODY_M",
+    "UPPER_DOF_PREFIXES",
+    "BodyFit",
+    "DataTerm",
+    "RegisteredFitConfig",
+    "RegisteredFitter",
+    "Stage",
+    "State",
+    "farthest_point_subset",
+    "vertex_term",
+]
+
 CONFIDENT_MEAN_MM = 10.0
-MIN_PART_WEIGHT = 0.7  # a vertex belongs to a body's rigid part above this skinning weight
-MIN_PART_VERTICES = 20
-
-State = tuple[torch.Tensor, torch.Tensor, torch.Tensor]  # preconditioned (u, root, shape), see start_state
 DataTerm = Callable[[torch.Tensor], torch.Tensor]
-
-
-@dataclass(frozen=True)
-class Stage:
-    """One fitting stage.
-
-    coordinates: "trunk" (pelvis, lumbar, thoracic DOFs), "core" (those and the hips' and knees' flexion),
-    "upper" (the trunk's, the neck's and the scapulae's) or "all"; shape: "none", "bone" or "all";
-    vertices: "trunk", "coarse", "subset" or "dense" (farthest-point subsets of the whole body, nested),
-    "upper" (head, neck, shoulders and upper chest: :data:`UPPER_BODY_M`) or "all";
-    iterations: L-BFGS iterations; metric: None, or the vertex set whose Gauss-Newton metric
-    (:meth:`RegisteredFitter.metric`, at the stage's start) the stage's L-BFGS runs in.
-    """
-
-    name: str
-    coordinates: str
-    shape: str
-    vertices: str
-    iterations: int
-    metric: str | None = None
-
-
-# The last two stages run in the Gauss-Newton metric of the 200-vertex subset: on the 200 held-out bodies of
-# benchmarks/fit_registered.py, 25 + 5 iterations so gave 1.50 mm at 40 ms per mesh against 1.83 mm at 45 ms
-# for 80 + 10 plain ones (the 1,000-vertex subset's metric costs more than the iterations it saves).
-DEFAULT_STAGES = (
-    Stage("trunk", "trunk", "bone", "trunk", 10),
-    Stage("limbs", "all", "none", "subset", 20),
-    Stage("all", "all", "all", "subset", 25, metric="coarse"),
-    Stage("refine", "all", "all", "all", 5, metric="coarse"),
-)
-# The damping of the stages' metrics (``regularise`` of :meth:`RegisteredFitter.metric`): with 1e-3 the first
-# (Newton) step took one of six bodies of the model, turned anywhere, into a wrong minimum (3.6 mm against
-# 0.6 mm without the metric); with 3e-3 all six end within 0.4 mm.
-STAGE_METRIC_DAMPING = 3e-3
-
-
-@dataclass(frozen=True)
-class RegisteredFitConfig:
-    """stages: run in order; dense_size, subset_size, coarse_size: vertices of the farthest-point subsets
-    "dense", "subset" and "coarse" (the first ones of the same sample); shape_prior: weight of
-    |c|^2 (coefficients are in population standard deviations) against the loss in mm^2."""
-
-    stages: tuple[Stage, ...] = DEFAULT_STAGES
-    dense_size: int = 6500
-    subset_size: int = 1000
-    coarse_size: int = 200
-    shape_prior: float = 1e-2
-    dtype: torch.dtype = torch.float32
 
 
 @dataclass(frozen=True)
@@ -120,24 +109,12 @@ def vertex_term(targets_mm: torch.Tensor, weights: torch.Tensor) -> DataTerm:
     return term
 
 
-def farthest_point_subset(points: np.ndarray, n: int) -> np.ndarray:
-    """Indices (n,) of a farthest-point sample of points (V, 3), starting from the point nearest the mean.
-    Each pick lowers the distances of the points within the current largest distance of it only (a ball
-    query), 10x faster than updating all at 5,000 of 13,000 vertices, with the same picks."""
-    n = min(n, len(points))
-    chosen = np.empty(n, np.int64)
-    chosen[0] = int(np.argmin(np.linalg.norm(points - points.mean(0), axis=1)))
-    dist = np.linalg.norm(points - points[chosen[0]], axis=1)
-    tree = cKDTree(points)
-    for k in range(1, n):
-        c = chosen[k] = int(np.argmax(dist))
-        near = np.asarray(tree.query_ball_point(points[c], dist[c]), np.int64)
-        dist[near] = np.minimum(dist[near], np.linalg.norm(points[near] - points[c], axis=1))
-    return chosen
-
-
 class RegisteredFitter:
-    """Fits :class:`BodyModel` to (B, V, 3) meshes in its topology. Reusable and stateless between calls."""
+    """Fits :class:`BodyModel` to (B, V, 3) meshes in its topology. Reusable and stateless between calls.
+
+    Its vertex sets (:attr:`index`, :attr:`decoders`), coordinate and shape masks (:attr:`dof_mask`,
+    :attr:`shape_mask`) are those a :class:`Stage` names (:mod:`.stages`).
+    """
 
     def __init__(self, model: BodyModel, config: RegisteredFitConfig | None = None) -> None:
         self.model = model
@@ -145,50 +122,14 @@ class RegisteredFitter:
         dtype = self.config.dtype
         skel = model.skeleton
         self.decoder = model.decoder(dtype)
-        template = model.data["vertices_mean"]
-        body_of_vertex = np.argmax(model.data["weights"], axis=1)
-        trunk_ids = [skel.body_names.index(b) for b in TRUNK_BODIES]
-        cfg = self.config
-        spread = farthest_point_subset(template, max(cfg.dense_size, cfg.subset_size, cfg.coarse_size))
-        self.index = {
-            "trunk": np.flatnonzero(np.isin(body_of_vertex, trunk_ids)),
-            "dense": np.sort(spread[: cfg.dense_size]),
-            "subset": np.sort(spread[: cfg.subset_size]),
-            "coarse": np.sort(spread[: cfg.coarse_size]),
-            "upper": np.flatnonzero(template[:, 1] > template[:, 1].max() - UPPER_BODY_M),
-            "all": np.arange(model.n_vertices),
-        }
+        self.index = vertex_sets(model, self.config)
         self.decoders = self._decoders_of(self.decoder)
-        self.dof_mask = {
-            name: torch.as_tensor([n.startswith(prefixes) for n in skel.dof_names], dtype=dtype)
-            for name, prefixes in (
-                ("trunk", TRUNK_DOF_PREFIXES),
-                ("core", CORE_DOF_PREFIXES),
-                ("upper", UPPER_DOF_PREFIXES),
-            )
-        }
-        self.dof_mask["all"] = torch.ones(skel.n_dof, dtype=dtype)
-        nb, ns = model.n_bone, model.n_shape
-        self.shape_mask = {
-            "none": torch.zeros(ns, dtype=dtype),
-            "bone": torch.as_tensor(np.arange(ns) < nb, dtype=dtype),
-            "all": torch.ones(ns, dtype=dtype),
-        }
+        self.dof_mask = coordinate_masks(skel, dtype)
+        self.shape_mask = shape_masks(model.n_shape, model.n_bone, dtype)
         self.pelvis = [skel.dof_index(n) for n in PELVIS_ROTATIONS]
-        # Bodies with enough of their own skin for a rigid fit, and those vertices.
-        W = model.data["weights"]
-        self._part_bodies: list[int] = []
-        self._part_index: list[np.ndarray] = []
-        for j in range(W.shape[1]):
-            own = np.flatnonzero(W[:, j] > MIN_PART_WEIGHT)
-            if len(own) >= MIN_PART_VERTICES:
-                self._part_bodies.append(j)
-                self._part_index.append(own)
-        # (n_body, 4, 4) the mean body's bind pose, float64
-        mean_scales = torch.as_tensor(np.asarray(model.data["scale_mean"], np.float64))[None]
-        bind_q = torch.as_tensor(model.bind_coordinates)[None]
-        self._bind_frames = skel.kinematics(torch.float64)(bind_q, None, mean_scales).frames[0].numpy()
-        self._scales = self._preconditioner()
+        self._bone_start = BoneStart(model, dtype)
+        subset = self.decoders["subset"]
+        self._scales = unit_scales(skel, subset, model.bind_coordinates, model.n_shape, dtype)
 
     def _decoders_of(self, decoder: BodyDecoder) -> dict[str, BodyDecoder]:
         """``decoder`` restricted to each vertex set of :attr:`index`."""
@@ -231,52 +172,9 @@ class RegisteredFitter:
 
     # -- start -----------------------------------------------------------------------------------------
     def bone_start(self, x: np.ndarray, w: np.ndarray, iterations: int = 30) -> tuple[np.ndarray, np.ndarray]:
-        """Coordinates (B, n_dof) and root (B, 3) from each body's own rigid motion.
-
-        Every skinned body's vertices are aligned rigidly (Kabsch) from the template to the target, giving
-        the body's world orientation. The pelvis frame gives the root and the pelvis coordinates (intrinsic
-        ZXY Euler angles = tilt, list, rotation) directly; the other coordinates are fitted to the bodies'
-        orientations (inverse kinematics on rotations, L-BFGS, in range). This sees each joint's rotation
-        directly, so large rotations (a raised arm, a deep squat) do not trap the vertex fit in a wrong pose.
-        """
-        B = len(x)
-        dtype = self.config.dtype
-        skel = self.model.skeleton
-        bind = self._bind_frames
-        template = self.model.data["vertices_mean"]
-        target = np.zeros((B, len(self._part_bodies), 4, 4))
-        for k, (body, idx) in enumerate(zip(self._part_bodies, self._part_index, strict=True)):
-            R, t = kabsch(template[idx], x[:, idx], w[:, idx] + 1e-12)
-            target[:, k, :3, :3] = R @ bind[body, :3, :3]
-            target[:, k, :3, 3] = np.einsum("bij,j->bi", R, bind[body, :3, 3]) + t
-        pelvis = target[:, self._part_bodies.index(0)]
-        lo, hi = skel.ranges[:, 0], skel.ranges[:, 1]
-        q = np.repeat(self.model.bind_coordinates[None], B, axis=0)
-        q[:, self.pelvis] = zxy_angles(pelvis[:, :3, :3])
-        q = skel.inside(q, 0.1)
-        q[:, self.pelvis] = np.clip(q[:, self.pelvis], lo[self.pelvis] + 1e-3, hi[self.pelvis] - 1e-3)
-        root = torch.as_tensor(pelvis[:, :3, 3], dtype=dtype)
-        free = torch.ones(skel.n_dof, dtype=dtype)
-        free[self.pelvis] = 0.0
-        u = skel.to_unbounded(torch.as_tensor(q, dtype=dtype)).requires_grad_(True)
-        scales = torch.as_tensor(self.model.data["scale_mean"], dtype=dtype).expand(B, -1, -1)
-        bodies = torch.as_tensor(self._part_bodies)
-        R_target = torch.as_tensor(target[..., :3, :3], dtype=dtype)
-        fk = skel.kinematics(dtype)
-        opt = torch.optim.LBFGS(
-            [u], max_iter=iterations, history_size=20, tolerance_grad=1e-10, line_search_fn="strong_wolfe"
-        )
-
-        def closure() -> torch.Tensor:
-            opt.zero_grad()
-            u_eff = u * free + u.detach() * (1 - free)
-            F = fk(skel.from_unbounded(u_eff), root, scales).frames[:, bodies]
-            loss = ((F[..., :3, :3] - R_target) ** 2).sum()
-            loss.backward()
-            return loss
-
-        opt.step(closure)
-        return skel.from_unbounded(u).detach().double().numpy(), root.double().numpy()
+        """Coordinates (B, n_dof) and root (B, 3) of meshes x (B, V, 3) with weights w (B, V) from each
+        body's own rigid motion (:class:`.start.BoneStart`)."""
+        return self._bone_start(x, w, iterations)
 
     # -- fit -------------------------------------------------------------------------------------------
     def fit(
@@ -357,38 +255,6 @@ class RegisteredFitter:
         unbounded values ``z_u`` (B, n_dof) (:meth:`start_state`)."""
         return self.model.skeleton.from_unbounded(z_u * self._scales[0])
 
-    def _preconditioner(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Per-parameter units (u: (n_dof,), root: (3,), c: (n_shape,)) in which one unit moves the subset's
-        vertices by about 1 mm RMS, from the Jacobian at the mean body in the bind pose. L-BFGS starts from a
-        scalar Hessian guess; without this the pelvis (moving every vertex) and a wrist (moving a few) differ
-        in curvature by orders of magnitude and it converges slowly."""
-        skel = self.model.skeleton
-        dtype = self.config.dtype
-        q = skel.inside(self.model.bind_coordinates, 0.1)
-        n_dof, ns = skel.n_dof, self.model.n_shape
-        p0 = torch.cat([
-            skel.to_unbounded(torch.as_tensor(q[None], dtype=dtype)), torch.zeros(1, 3 + ns, dtype=dtype)
-        ], dim=1)  # fmt: skip
-        decoder = self.decoders["subset"]
-
-        def f(p: torch.Tensor) -> torch.Tensor:
-            u, r, c = p[:, :n_dof], p[:, n_dof : n_dof + 3], p[:, n_dof + 3 :]
-            return decoder(c, skel.from_unbounded(u), r)[0] * 1000.0
-
-        # Rows are independent, so P copies of p0 give every column at once (row k along parameter k), as
-        # Jacobian-vector products by two reverse passes: g(w) = J^T w is linear in w, and its own
-        # vector-Jacobian product with e_k is J e_k. (torch's forward mode imports its compiler: 1 s more.)
-        P = p0.shape[1]
-        with torch.enable_grad():
-            x = p0.repeat(P, 1).requires_grad_()
-            y = f(x)
-            v = torch.zeros_like(y, requires_grad=True)
-            (g,) = torch.autograd.grad(y, x, v, create_graph=True)
-            (cols,) = torch.autograd.grad(g, v, torch.eye(P, dtype=dtype))
-        rms = cols.reshape(P, -1, 3).norm(dim=-1).pow(2).mean(-1).sqrt().clamp_min(1e-3)  # (P,) mm per unit
-        scale = 1.0 / rms
-        return scale[:n_dof], scale[n_dof : n_dof + 3], scale[n_dof + 3 :]
-
     def free_variables(self, stage: Stage) -> tuple[torch.Tensor, torch.Tensor]:
         """The stage's free coordinates and shape coefficients (their indices): ``optimise``'s variables
         are these coordinates, the root (3) and these coefficients, in that order."""
@@ -465,58 +331,31 @@ class RegisteredFitter:
         z_c.copy_(c)
         return stage.iterations, float(result.loss.sum()) / B
 
-    def stage_jacobian(self, stage: Stage, z: State, vertices: str, step: float = 0.05) -> torch.Tensor:
+    def stage_jacobian(self, stage: Stage, z: State, vertices: VertexSet, step: float = 0.05) -> torch.Tensor:
         """(B, V' * 3, P) d vertices (mm) / d the stage's variables (``optimise``'s layout, one problem per
-        mesh), by forward differences of ``step`` units, on the vertex set ``vertices``."""
-        z_u, z_r, z_c = z
-        _, s_r, s_c = self._scales
-        B = z_u.shape[0]
-        fd, fs = self.free_variables(stage)
-        P = len(fd) + 3 + len(fs)
-        decoder = self.decoders[vertices]
-        Z0 = torch.cat([z_u[:, fd], z_r, z_c[:, fs].expand(B, -1)], 1)
-        Z = Z0[:, None].repeat(1, P + 1, 1)
-        Z[:, 1:] += step * torch.eye(P, dtype=Z.dtype)
-        Z = Z.reshape(B * (P + 1), P)
-        u = z_u.repeat_interleave(P + 1, 0).index_copy(1, fd, Z[:, : len(fd)])
-        c = z_c.expand(B, -1).repeat_interleave(P + 1, 0).index_copy(1, fs, Z[:, len(fd) + 3 :])
-        with torch.no_grad():
-            v = decoder(c * s_c, self.coordinates(u), Z[:, len(fd) : len(fd) + 3] * s_r)[0] * 1000.0
-        v = v.reshape(B, P + 1, -1)
-        return ((v[:, 1:] - v[:, :1]) / step).mT
+        mesh), by forward differences of ``step`` units, on the vertex set ``vertices``
+        (:func:`.metric.stage_jacobian`)."""
+        free = self.free_variables(stage)
+        return _stage_jacobian(self.decoders[vertices], self.model.skeleton, self._scales, free, z, step)
 
     def metric(
         self,
         stage: Stage,
         z: State,
-        vertices: str,
+        vertices: VertexSet,
         normals: np.ndarray | None = None,
         tangential: float = 1.0,
         regularise: float = 1e-3,
     ) -> torch.Tensor:
         """(problems, P, P) Gauss-Newton metric of a vertex-to-surface loss in ``optimise``'s variables at
-        ``z`` (one problem per mesh, or one for the batch when the shape is shared):
-
-            sum over the problem's meshes of 2 mean_v J_v^T N_v J_v, + the shape prior's Hessian
-            + regularise * mean(diag) I,
-
-        J_v (3, P) the Jacobian of vertex v of ``vertices`` (mm per unit, :meth:`stage_jacobian`);
-        N_v = n n^T + tangential (I - n n^T) for normals (B, V', 3), the identity without them."""
-        J = self.stage_jacobian(stage, z, vertices).double()
-        B, _, P = J.shape
-        J = J.reshape(B, -1, 3, P)
-        M = tangential * torch.einsum("bvkp,bvkq->bpq", J, J)
-        if normals is not None:
-            Jn = torch.einsum("bvk,bvkp->bvp", torch.as_tensor(normals, dtype=J.dtype), J)
-            M += (1.0 - tangential) * Jn.mT @ Jn
-        M *= 2.0 / J.shape[1]
-        fs = self.free_variables(stage)[1]
-        M = _shared(M, len(fs), z[2].shape[0])
-        n = M.shape[-1]
-        if len(fs):  # the shape's variables come last
-            s_c = self._scales[2][fs].double()
-            M[:, n - len(fs) :, n - len(fs) :] += torch.diag(2.0 * self.config.shape_prior * s_c**2)
-        M += regularise * M.diagonal(dim1=1, dim2=2).mean(1)[:, None, None] * torch.eye(n, dtype=M.dtype)
+        ``z`` (one problem per mesh, or one for the batch when the shape is shared), on the vertex set
+        ``vertices`` with normals (B, V', 3) or None (:func:`.metric.gauss_newton_metric`), in the
+        fitter's dtype."""
+        J = self.stage_jacobian(stage, z, vertices)
+        shape_scales = self._scales[2][self.free_variables(stage)[1]]
+        M = gauss_newton_metric(
+            J, shape_scales, z[2].shape[0], self.config.shape_prior, normals, tangential, regularise
+        )
         return M.to(self.config.dtype)
 
     def _report(
@@ -538,24 +377,3 @@ class RegisteredFitter:
             )
         extra = {"stage_loss_mm2": {k: round(v, 4) for k, v in losses.items()}}
         return FitReport.judged(stats, q, self.model.skeleton.ranges, iterations, seconds, reasons, extra)
-
-
-def _shared(M: torch.Tensor, n_shape: int, problems: int) -> torch.Tensor:
-    """Per-mesh metrics M (B, P, P), the last ``n_shape`` variables the shape's, as ``problems`` metrics in
-    :meth:`RegisteredFitter.optimise`'s layout: unchanged for one problem per mesh; for a shared shape, each
-    problem's meshes' pose blocks on the diagonal, their couplings to the shape, and the shape's block summed.
-    """
-    B, P, _ = M.shape
-    if problems == B:
-        return M
-    m = B // problems
-    p = P - n_shape
-    blocks = M.reshape(problems, m, P, P)
-    out = torch.zeros(problems, m * p + n_shape, m * p + n_shape, dtype=M.dtype)
-    for k in range(m):
-        rows = slice(k * p, (k + 1) * p)
-        out[:, rows, rows] = blocks[:, k, :p, :p]
-        out[:, rows, m * p :] = blocks[:, k, :p, p:]
-        out[:, m * p :, rows] = blocks[:, k, p:, :p]
-    out[:, m * p :, m * p :] = blocks[:, :, p:, p:].sum(1)
-    return out

@@ -9,10 +9,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from bodyfit.models.fitting.common.nonrigid import NonRigidConfig
-from bodyfit.models.fitting.registered.fitter import Stage
+from bodyfit.models.fitting.registered.stages import Stage, check_at_least
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class ScanPhase:
     """``stage.iterations`` L-BFGS iterations of ``stage`` on the robust two-way Chamfer loss.
 
@@ -32,6 +32,10 @@ class ScanPhase:
     rounds: the phase's L-BFGS runs this many times, ``stage.iterations`` each, every round from a fresh
     start where the last ended (the single view's visible vertices and, in a metric phase, the Gauss-Newton
     metric taken again there; the searches run before the first round only).
+
+    Raises:
+        ValueError: a scale that is not positive, fewer than one hypothesis kept, scan point or round, or a
+            negative margin (the message names the field).
     """
 
     stage: Stage
@@ -47,6 +51,15 @@ class ScanPhase:
     flipped_margin: float = 0.0
     rounds: int = 1
 
+    def __post_init__(self) -> None:
+        if not isinstance(self.stage, Stage):
+            raise ValueError(f"ScanPhase.stage must be a Stage; got {self.stage!r}")
+        if not self.sigma_mm > 0:
+            raise ValueError(f"ScanPhase.sigma_mm must be positive; got {self.sigma_mm!r}")
+        for name in ("keep", "scan_points", "rounds"):
+            check_at_least("ScanPhase", name, getattr(self, name), 1)
+        check_at_least("ScanPhase", "flipped_margin", self.flipped_margin, 0.0)
+
 
 # A body seen from behind can fit a scan nearly as well as the right one until its limbs are posed: the CC BY
 # man in a T-pose, as bare points, was fitted backwards with his legs crossed: the backward fit scored 1.2%
@@ -56,22 +69,52 @@ FLIPPED_MARGIN = 0.05
 
 
 DEFAULT_PHASES = (
-    ScanPhase(Stage("orient", "core", "none", "coarse", 25), 150.0, 3, 500),
-    ScanPhase(Stage("pose", "all", "bone", "subset", 30), 60.0, 2, 1500, search_limbs=True, straighten=True),
-    ScanPhase(Stage("shape", "all", "all", "subset", 30), 25.0, 1, 3000, flipped_margin=FLIPPED_MARGIN),
     ScanPhase(
-        Stage("limbs", "all", "all", "subset", 20),
-        25.0,
-        2,
-        3000,
+        stage=Stage(name="orient", coordinates="core", shape="none", vertices="coarse", iterations=25),
+        sigma_mm=150.0,
+        keep=3,
+        scan_points=500,
+    ),
+    ScanPhase(
+        stage=Stage(name="pose", coordinates="all", shape="bone", vertices="subset", iterations=30),
+        sigma_mm=60.0,
+        keep=2,
+        scan_points=1500,
+        search_limbs=True,
+        straighten=True,
+    ),
+    ScanPhase(
+        stage=Stage(name="shape", coordinates="all", shape="all", vertices="subset", iterations=30),
+        sigma_mm=25.0,
+        keep=1,
+        scan_points=3000,
+        flipped_margin=FLIPPED_MARGIN,
+    ),
+    ScanPhase(
+        stage=Stage(name="limbs", coordinates="all", shape="all", vertices="subset", iterations=20),
+        sigma_mm=25.0,
+        keep=2,
+        scan_points=3000,
         search_limbs=True,
         search_distal=True,
         scapula_twin=True,
     ),
     ScanPhase(
-        Stage("fine", "all", "all", "dense", 15), 10.0, 1, 4000, plane=True, search_distal=True, rounds=2
+        stage=Stage(name="fine", coordinates="all", shape="all", vertices="dense", iterations=15),
+        sigma_mm=10.0,
+        keep=1,
+        scan_points=4000,
+        plane=True,
+        search_distal=True,
+        rounds=2,
     ),
-    ScanPhase(Stage("valley", "all", "all", "dense", 25), 10.0, 1, 4000, plane=True),
+    ScanPhase(
+        stage=Stage(name="valley", coordinates="all", shape="all", vertices="dense", iterations=25),
+        sigma_mm=10.0,
+        keep=1,
+        scan_points=4000,
+        plane=True,
+    ),
 )
 
 # A scan smaller than a body (:attr:`ScanFitConfig.partial_extent`) is fitted as a head and shoulders: the
@@ -84,9 +127,24 @@ DEFAULT_PHASES = (
 # scale at 80 mm, 74% at 40 (forearms in the crop tilt the trunk less), 75% with the shape fitted (median
 # head error 5.3 -> 4.0 mm).
 UPPER_BODY_PHASES = (
-    ScanPhase(Stage("upper_orient", "upper", "none", "upper", 30), 40.0, 3, 1500),
-    ScanPhase(Stage("upper_pose", "upper", "none", "upper", 40), 30.0, 1, 3000),
-    ScanPhase(Stage("upper_fine", "upper", "all", "upper", 40), 12.0, 1, 4000),
+    ScanPhase(
+        stage=Stage(name="upper_orient", coordinates="upper", shape="none", vertices="upper", iterations=30),
+        sigma_mm=40.0,
+        keep=3,
+        scan_points=1500,
+    ),
+    ScanPhase(
+        stage=Stage(name="upper_pose", coordinates="upper", shape="none", vertices="upper", iterations=40),
+        sigma_mm=30.0,
+        keep=1,
+        scan_points=3000,
+    ),
+    ScanPhase(
+        stage=Stage(name="upper_fine", coordinates="upper", shape="all", vertices="upper", iterations=40),
+        sigma_mm=12.0,
+        keep=1,
+        scan_points=4000,
+    ),
 )
 # What the vertex set a scan is fitted with ("all" or "upper") is called in reports.
 PART_NAMES = {"all": "whole body", "upper": "head and shoulders"}
@@ -95,7 +153,7 @@ PART_NAMES = {"all": "whole body", "upper": "head and shoulders"}
 PARTIAL_EXTENT_M = 0.85
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class ScanBranch:
     """One way to run the phases from :attr:`ScanFitConfig.branch_from` on: metric_phases: the phases
     (by name) whose L-BFGS runs in the variables of the loss's Gauss-Newton metric
@@ -103,6 +161,9 @@ class ScanBranch:
 
     metric_phases: frozenset[str]
     damping: float
+
+    def __post_init__(self) -> None:
+        check_at_least("ScanBranch", "damping", self.damping, 0.0)
 
 
 # Two branches from the shape phase to the valley phase, and the one whose hypothesis scores best after the
@@ -113,8 +174,8 @@ class ScanBranch:
 # (a non-rigid registration lies close to the scan even where its body does not) at one more valley phase and
 # refinement per scan.
 DEFAULT_BRANCHES = (
-    ScanBranch(frozenset({"fine", "valley"}), 1e-3),
-    ScanBranch(frozenset({"shape", "limbs", "fine", "valley"}), 1e-2),
+    ScanBranch(metric_phases=frozenset({"fine", "valley"}), damping=1e-3),
+    ScanBranch(metric_phases=frozenset({"shape", "limbs", "fine", "valley"}), damping=1e-2),
 )
 
 
@@ -162,3 +223,9 @@ class ScanFitConfig:
     def __post_init__(self) -> None:
         if self.processes not in (1, 2):
             raise ValueError(f"processes must be 1 or 2 (a helper process), not {self.processes}")
+        check_at_least("ScanFitConfig", "len(phases)", len(self.phases), 1)
+        check_at_least("ScanFitConfig", "len(branches)", len(self.branches), 1)
+        check_at_least("ScanFitConfig", "workers", self.workers, 1)
+        check_at_least("ScanFitConfig", "partial_extent", self.partial_extent, 0.0)
+        if self.partial_extent > 0:
+            check_at_least("ScanFitConfig", "len(partial_phases)", len(self.partial_phases), 1)
