@@ -7,7 +7,10 @@ conversions among them), mapped to our world (+Y up, +X forward, +Z right). CMU 
 unit of 1/0.45 inch: pass ``units=CMU_UNITS``.
 
 Rotation channels compose in the order they are listed, as rotations about the joint's parent-aligned
-axes: ``CHANNELS 3 Zrotation Xrotation Yrotation`` means ``R = Rz Rx Ry``. Values are degrees.
+axes: ``CHANNELS 3 Zrotation Xrotation Yrotation`` means ``R = Rz Rx Ry``. Values are degrees. Position
+channels give the joint's translation from its parent and replace the OFFSET on their axes (the OFFSET is
+the rest value), as Blender's importer and bvhio read them: exporters that write the root's first-frame
+position as its OFFSET (LAFAN1-style files) would otherwise place it twice as far.
 """
 
 from __future__ import annotations
@@ -78,7 +81,7 @@ class BvhMotion:
 
     def local(self) -> tuple[np.ndarray, np.ndarray]:
         """Per-frame joint rotations (T, J, 3, 3) and translations (T, J, 3) relative to the parent, file
-        axes and units."""
+        axes and units (a position channel replaces the OFFSET on its axis)."""
         T, J = self.n_frames, len(self.joints)
         R = np.broadcast_to(np.eye(3), (T, J, 3, 3)).copy()
         t = np.zeros((T, J, 3))
@@ -90,7 +93,7 @@ class BvhMotion:
                 col += 1
                 axis = _AXIS[name[0]]
                 if name.endswith("position"):
-                    t[:, j, axis] += v
+                    t[:, j, axis] = v
                 else:
                     R[:, j] = R[:, j] @ _axis_rotation(axis, np.radians(v))
         return R, t
