@@ -1,46 +1,46 @@
 """Fit the body model to a raw scan: any topology, orientation and placement, no landmarks.
 
-1. Clean: thin to a voxel grid and drop isolated points (statistical outlier removal).
+The user guide, with the accuracy and speed measured on the benchmark scans, is docs/fitting.md ("Raw scans").
+
+1. Clean: thin to a voxel grid and drop isolated points (statistical outlier removal,
+   :func:`.phases.clean_points`).
 2. Orientation: the scan's principal axes give 24 candidate body frames (each signed axis as "up", four
    headings about it). All are fitted at once, coarsely (the trunk's pose and the hips' and knees' flexion
    on a vertex subset: with the legs held straight a seated or crouching body is matched by bending the
    spine), and the best few by robust Chamfer score go on; after the limbs are posed the best one is kept.
    After the shape phase a runner-up that faces the other way goes on too when it nearly ties
-   (:data:`.config.FLIPPED_MARGIN`): until its limbs are posed, a body seen from behind can fit
-   nearly as well.
-   On a full (not single-view) scan the best one also goes on with a straight-spine twin (the trunk's bend
-   moved into the pelvis, the chest kept in place), since the orientation phase can still bend the spine
-   to make up for legs that are not yet in place.
-3. Coarse to fine (DESIGN.md section 6): iterated closest points in both directions (scan point -> nearest
-   model vertex, point-to-plane; model vertex -> nearest scan point), Geman-McClure weights with a shrinking
-   scale, each round minimised by the staged L-BFGS of :class:`RegisteredFitter` (joint limits kept by the
-   tanh mapping): the limbs, then the identity shape on a vertex subset, then a denser subset (below),
-   point-to-plane. The point-to-plane phases run their L-BFGS in the variables of the loss's Gauss-Newton
-   metric at the phase's start (:meth:`RegisteredFitter.metric`: the Jacobian on the vertex subset, the normal
-   direction weighted fully and the tangential ones by ``tangential``), starting with a Newton step; the first
-   runs in two rounds of 15 iterations, the second from the metric where the first ended (on 102 held-out
-   scans as accurate as 50 iterations in one metric, for 30 iterations). The surface's sliding modes (a
-   thigh turned about its axis, the pelvis tilted against the lumbar bend) are nearly flat for a Chamfer
-   loss, and L-BFGS scaled per coordinate (:meth:`RegisteredFitter._preconditioner`)
-   had not run them out after 50 iterations: on clean held-out scans the parametric fit then lay 2-3 mm from
-   the scan points and 4-6 mm from the truth, against about 1 and 2 mm in the metric's variables. The limbs
-   are placed first by a grid search whose best few distinct candidates per limb are refined continuously
-   (:class:`.limb_search.LimbSearch`), the head, hands and toes later by a grid search of their own. Before
-   the limbs are searched a second time the fit also goes on from a twin with the scapulae at mid-range, as
-   fits from the bind pose tend to hold the shoulders up with the scapulae at their limits. Both go through
-   the first point-to-plane phase and the score picks one only then: refined to the end, the better fit scores
-   better (on 36 held-out scans it picked the one with the lower registration error every time the two
-   differed by more than 3 mm), while after the limbs phase near-ties rank no better than chance. The one kept
-   goes through a last, shorter point-to-plane phase ("valley": pelvis tilt, lumbar bend and hip flexion trade
-   along a valley of the loss that the first point-to-plane phase does not run to its end). The point-to-plane
-   phases fit the "dense" farthest-point subset of 6,500 vertices (:class:`RegisteredFitConfig`), with the
-   normals of a coarse mesh on it (:func:`~bodyfit.models.fitting.common.surface.coarse_faces`): the
-   template's head, hands and toes carry
-   two thirds of its vertices 2.5 mm apart, its trunk and limbs are 15-20 mm apart, and the subset keeps
-   nearly every vertex of the latter. On the 102 held-out benchmark scans that fit better than all the
-   vertices (with 50 iterations in one metric, registration error 7.41 mm mean and 3.86 median on 6,500
-   vertices and 7.75 and 4.05 on 5,000, against 8.24 and 5.01 on all of them; every vertex counted alike
-   weighted the model -> scan term towards the head and hands) at a third of their cost.
+   (:data:`.config.FLIPPED_MARGIN`): until its limbs are posed, a body seen from behind can fit nearly as
+   well. On a full (not single-view) scan the best one also goes on with a straight-spine twin (the trunk's
+   bend moved into the pelvis, the chest kept in place), since the orientation phase can still bend the
+   spine to make up for legs that are not yet in place.
+3. Coarse to fine: iterated closest points in both directions (scan point -> nearest model vertex,
+   point-to-plane; model vertex -> nearest scan point), Geman-McClure weights with a shrinking scale, each
+   round minimised by the staged L-BFGS of :class:`RegisteredFitter` (joint limits kept by the tanh
+   mapping): the limbs, then the identity shape on a vertex subset, then a denser subset, point-to-plane.
+
+   - The limbs are placed first by a grid search whose best few distinct candidates per limb are refined
+     continuously (:class:`.limb_search.LimbSearch`), the head, hands and toes later by a grid search of
+     their own. Before the limbs are searched a second time the fit also goes on from a twin with the
+     scapulae at mid-range, as fits from the bind pose tend to hold the shoulders up with the scapulae at
+     their limits. Both go through the first point-to-plane phase and the score picks one only then:
+     refined to the end, the better fit also scores better, while after the limbs phase near-ties rank no
+     better than chance.
+   - The point-to-plane phases run their L-BFGS in the variables of the loss's Gauss-Newton metric at the
+     phase's start (:meth:`RegisteredFitter.metric`: the Jacobian on the vertex subset, the normal direction
+     weighted fully and the tangential ones by ``tangential``), starting with a Newton step; the first runs
+     in two rounds, the second from the metric where the first ended. The surface's sliding modes (a thigh
+     turned about its axis, the pelvis tilted against the lumbar bend) are nearly flat for a Chamfer loss:
+     L-BFGS scaled per coordinate (:meth:`RegisteredFitter._preconditioner`) does not run them out in the
+     iterations a fit can afford, while in the metric's variables they converge.
+   - The one kept goes through a last, shorter point-to-plane phase ("valley": pelvis tilt, lumbar bend and
+     hip flexion trade along a valley of the loss that the first point-to-plane phase does not run to its
+     end).
+   - The point-to-plane phases fit the "dense" farthest-point subset of the template
+     (:class:`RegisteredFitConfig`), with the normals of a coarse mesh on it
+     (:func:`~bodyfit.models.fitting.common.surface.coarse_faces`): the template's head, hands and toes
+     carry two thirds of its vertices 2.5 mm apart, its trunk and limbs are 15-20 mm apart, and the subset
+     keeps nearly every vertex of the latter. Counted alike, all the vertices would weight the model -> scan
+     term towards the head and hands; the subset fits better, at a fraction of their cost.
 4. Non-rigid refinement (:mod:`~bodyfit.models.fitting.common.nonrigid`): per-vertex offsets for
    detail beyond the shape space.
 5. Branches (:data:`.config.DEFAULT_BRANCHES`): from the shape phase up to the valley phase, step 3
@@ -61,6 +61,21 @@ between their L-BFGS runs in :mod:`.hypotheses`, the scan's cleaning and the bra
 
 The fitted parameters are expressed in the scan's own frame when the pelvis angles can hold the scan's
 orientation (an upright-ish body); otherwise they stay in the body frame and ``scan_to_body`` maps between.
+
+References: the staged fitting (torso, then limbs, then all) of H. Wang, R. A. Güler, I. Kokkinos, G.
+Papandreou and S. Zafeiriou, "BLSM: A Bone-Level Skinned Model of the Human Mesh", European Conference on
+Computer Vision (ECCV), 2020; iterated closest points (P. J. Besl and N. D. McKay, "A Method for Registration
+of 3-D Shapes", IEEE Transactions on Pattern Analysis and Machine Intelligence 14(2), 1992) with
+point-to-plane distances (Y. Chen and G. Medioni, "Object modelling by registration of multiple range
+images", Image and Vision Computing 10(3), 1992); the Chamfer distance (H. G. Barrow, J. M. Tenenbaum, R. C.
+Bolles and H. C. Wolf, "Parametric correspondence and chamfer matching: Two new techniques for image
+matching", International Joint Conference on Artificial Intelligence (IJCAI), 1977); the Geman-McClure loss
+(S. Geman and D. E. McClure, "Statistical methods for tomographic image reconstruction", Bulletin of the
+International Statistical Institute 52(4), 1987); L-BFGS (D. C. Liu and J. Nocedal, "On the limited memory
+BFGS method for large scale optimization", Mathematical Programming 45, 1989) in the variables of the
+Gauss-Newton metric (J. Nocedal and S. J. Wright, "Numerical Optimization", Springer, 2nd ed., 2006, chapter
+10); farthest point sampling (Y. Eldar, M. Lindenbaum, M. Porat and Y. Y. Zeevi, "The Farthest Point Strategy
+for Progressive Image Sampling", IEEE Transactions on Image Processing 6(9), 1997).
 """
 
 from __future__ import annotations
@@ -156,7 +171,7 @@ class ScanFitter:
     ``config.processes=2`` it starts a helper process (:mod:`.helper`); :meth:`close` stops it, as
     does the fitter's collection or the interpreter's exit. ``fitter``: a :class:`RegisteredFitter` of
     ``model`` to share (a service's, whose fits may run at the same time; it keeps no state between calls),
-    else one of its own (about 1.3-2.5 s to build); its config sets the fit loop's float type."""
+    else one of its own (seconds to build); its config sets the fit loop's float type."""
 
     def __init__(
         self, model: BodyModel, config: ScanFitConfig | None = None, fitter: RegisteredFitter | None = None
@@ -227,7 +242,7 @@ class ScanFitter:
     ) -> ScanFit:
         """Refine a body already placed on a scan (e.g. a registered fit through a topology map): the
         point-to-plane phases from the one named ``config.refine_from`` on, from that body, then the
-        non-rigid refinement; no orientation or limb search. About 1 s per scan.
+        non-rigid refinement; no orientation or limb search, so it is much faster than :meth:`fit`.
 
         Args:
             scan: a :class:`Scan` or (N, 3) points in metres, in the body's frame (+X forward, +Y up).

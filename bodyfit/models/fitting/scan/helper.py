@@ -2,13 +2,13 @@
 ``processes=2``).
 
 The scan fit is bound by Python's per-call overhead under the interpreter lock: its two branches, run at
-once on two threads, took 2.40 s where either alone took 1.9, and the phases before the branches ran on one
-core. A helper process, with its own copy of the fitter, runs the second branch and half of the hypotheses
-of the phases before the branches on the other core.
+once on two threads, take little less than one after the other, and the phases before the branches run on
+one core. A helper process, with its own copy of the fitter, runs the second branch and half of the
+hypotheses of the phases before the branches on the other core.
 
 The helper starts in the background, as ``python -m bodyfit.models.fitting.scan.helper`` (a fresh
 interpreter: it does not import the caller's script, so no ``__main__`` guard is needed there); it builds its
-fitter from the parent's model and registered fitter (ready about 1.5 s after the parent's fitter, 0.5 GB).
+fitter from the parent's model and registered fitter (its memory and speed-up: docs/service.md).
 Work it is asked for while it is starting, busy with another fit's work, or after it failed is run by the
 caller itself (:meth:`ScanHelper.submit` returns None): the fit is the same either way, only slower.
 """
@@ -230,4 +230,4 @@ class ScanHelper:
 
 if __name__ == "__main__":
     _serve(Connection(int(sys.argv[1])))
-    os._exit(0)  # nothing to flush; the interpreter's teardown of torch took 0.3 s the parent waited for
+    os._exit(0)  # nothing to flush; the interpreter's teardown of torch would keep the parent waiting

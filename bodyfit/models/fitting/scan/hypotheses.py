@@ -39,16 +39,16 @@ DISTAL_TRUNCATION_M = 0.02
 EXPLAINED_M = 0.02  # a scan point this close to the rest of the body is not a distal chain's to explain
 UNSUPPORTED = 0.8  # a distal chain whose best candidate's cost is this share of the truncation's has no data
 STRAIGHTENED = 1  # of the hypotheses (best first), those that get a straight-spine twin
-# The orientation phase keeps 3 hypotheses and the best gets a twin: the pose phase runs 4, in halves of 2. On
-# the 102 held-out benchmark scans the final fit came from the orientation phase's third best once (a clothing
-# scan) and never from its fourth; keeping 4 with two twins (6, halves of 3) fitted them to 8.12 mm mean,
-# keeping 3 with one twin to 7.90 (keeping 2 with two twins: 8.51), the pose phase 0.42 s long on the calling
-# process against 0.52-0.62.
+# The orientation phase keeps 3 hypotheses and the best gets a twin: the pose phase runs 4, in halves of 2. The
+# final fit rarely comes from the orientation phase's third best and not from a fourth, and more hypotheses
+# (or twins) make the pose phase longer without making the fits better.
 
 
 def orientation_candidates(points: np.ndarray) -> np.ndarray:
     """(24, 3, 3) rotations from scan axes to body axes (+X forward, +Y up, +Z right): every signed
-    principal axis as up, and four headings (the other principal axes, both signs) about it."""
+    principal axis as up, and four headings (the other principal axes, both signs) about it. The principal
+    axes are those of principal component analysis (H. Hotelling, "Analysis of a complex of statistical
+    variables into principal components", Journal of Educational Psychology 24(6), 1933), from the SVD."""
     _, _, axes = np.linalg.svd(points - points.mean(0), full_matrices=False)
     out = []
     for i in range(3):
@@ -208,8 +208,8 @@ class HypothesisSteps:
         the body does not explain (further than :data:`EXPLAINED_M` from its vertices; mean squared distance
         truncated at :data:`DISTAL_TRUNCATION_M`). A chain that no candidate brings near such points (a hand
         or head the scan lost to a hole) goes to the bind pose's values: searched against all points, it
-        was folded onto whatever surface lay near (a wrist flexed 60 degrees onto the thigh). The chains are
-        independent of each other."""
+        would fold onto whatever surface lies near (a wrist flexed onto the thigh). The chains are independent
+        of each other."""
         c, q, root = (t.numpy() for t in self.fitter.parameters(hyp.state))
         grids = self.distal_grid
         K = max(len(g) for _, g in grids)

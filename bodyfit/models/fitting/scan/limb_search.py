@@ -195,9 +195,8 @@ class LimbSearch:
         :meth:`on_scan` plus :meth:`reach`. Each limb's best :data:`LIMB_STARTS` candidates are then
         refined continuously (:meth:`refine`): the grid is coarse and holds the shoulder girdle and
         the limbs' rotation where they are, so its best candidate can lie far from a pose that fits the
-        limb closely (on scans whose arm was placed wrong, the true arm's vertices cost a third to a half
-        of the grid's best). ``over`` maps the hypotheses' grid searches, which are independent (a thread
-        pool's ``map`` runs them at once)."""
+        limb closely. ``over`` maps the hypotheses' grid searches, which are independent (a thread pool's
+        ``map`` runs them at once)."""
         c, q, root = (t.numpy() for t in self.fitter.parameters(hyp.state))
         scans = [PointTree(p) for p in hyp.points]
         starts = np.repeat(q[:, None], LIMB_STARTS, axis=1)  # (H, M, n_dof): each limb's best candidates

@@ -1,6 +1,15 @@
 """The scan fit's losses: the robust two-way Chamfer term its L-BFGS minimises (:func:`chamfer_term`), its
 Gauss-Newton metric (:func:`gauss_newton_metric`) and the robust score that ranks its hypotheses
-(:func:`robust_score`)."""
+(:func:`robust_score`).
+
+The Chamfer distance is that of H. G. Barrow, J. M. Tenenbaum, R. C. Bolles and H. C. Wolf, "Parametric
+correspondence and chamfer matching: Two new techniques for image matching", IJCAI 1977; the robust rho is the
+Geman-McClure loss (S. Geman and D. E. McClure, "Statistical methods for tomographic image reconstruction",
+Bulletin of the International Statistical Institute 52(4), 1987); point-to-plane distances are those of Y. Chen
+and G. Medioni, "Object modelling by registration of multiple range images", Image and Vision Computing 10(3),
+1992; the Gauss-Newton metric is J^T J of the residuals (J. Nocedal and S. J. Wright, "Numerical Optimization",
+Springer, 2nd ed., 2006, chapter 10).
+"""
 
 from __future__ import annotations
 
@@ -17,7 +26,7 @@ from bodyfit.models.fitting.scan.limb_search import Hypotheses
 
 # In the point-to-plane phases, a model vertex further than this from every fit point adds a constant to the
 # model -> scan term: it lies over a hole (or where a single view saw nothing), and the nearest point, on
-# the hole's rim, pulled heads and hands over holes out of place (held-out hole scans: 13.3 -> 11.6 mm).
+# the hole's rim, would pull heads and hands over holes out of place.
 REACH_MM = 25.0
 
 # the vertex sets a point-to-plane phase can fit: their faces (F, 3) and normal operators

@@ -31,13 +31,20 @@ RemoteBranch = Callable[[], tuple[Hypotheses, int, dict[str, float], list[str]] 
 
 def clean_points(points: np.ndarray, voxel: float, neighbours: int, cutoff: float) -> np.ndarray:
     """Points (M, 3): one per occupied ``voxel`` cell, minus isolated ones (mean distance to ``neighbours``
-    nearest above median + cutoff * 1.4826 MAD)."""
+    nearest above median + cutoff * 1.4826 MAD).
+
+    The statistical outlier removal of R. B. Rusu, Z. C. Marton, N. Blodow, M. Dolha and M. Beetz, "Towards 3D
+    Point cloud based object maps for household environments", Robotics and Autonomous Systems 56(11), 2008,
+    with the median and the median absolute deviation (F. R. Hampel, "The influence curve and its role in
+    robust estimation", Journal of the American Statistical Association 69(346), 1974) in place of the mean
+    and standard deviation, so that the outliers do not set their own threshold.
+    """
     if not len(points):
         return points
     keys = np.floor(points / voxel).astype(np.int64)
     keys -= keys.min(axis=0)
     span = keys.max(axis=0) + 1
-    if float(np.prod(span.astype(np.float64))) < 2.0**62:  # one integer per cell: 7x faster than rows
+    if float(np.prod(span.astype(np.float64))) < 2.0**62:  # one integer per cell: faster than unique rows
         keys = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
     _, first = np.unique(keys, axis=0 if keys.ndim == 2 else None, return_index=True)  # first of each cell
     thin = points[np.sort(first)]

@@ -24,8 +24,10 @@ class ViewConfig:
     layer_gap: depth spread within a cell that counts as two layers (m); max_layered: the largest fraction
     of points in layered cells that still counts as a single view; max_points: points used (an even
     subsample of larger scans); coarse_directions, coarse_reject: a first pass over this many directions
-    settles a scan as full when even its least layered one exceeds ``coarse_reject`` (full scans measure
-    0.75-0.94 there, single views 0.03-0.09)."""
+    settles a scan as full when even its least layered one exceeds ``coarse_reject`` (full scans lie far
+    above it, single views far below). The directions are a Fibonacci lattice (Á. González, "Measurement of
+    areas on a sphere using Fibonacci and latitude-longitude lattices", Mathematical Geosciences 42(1),
+    2010)."""
 
     directions: int = 200
     cell: float = 0.03
