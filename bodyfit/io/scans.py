@@ -269,6 +269,10 @@ def sample_surface(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Sample n points uniformly by area on a triangle mesh, deterministically for a seed.
 
+    A face is drawn with probability proportional to its area, then a point in it with the square-root
+    barycentric formula of R. Osada, T. Funkhouser, B. Chazelle and D. Dobkin, "Shape Distributions", ACM
+    Transactions on Graphics 21(4), 2002.
+
     Args:
         vertices: (V, 3); faces: (F, 3) indices.
     Returns:

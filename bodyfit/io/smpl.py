@@ -11,6 +11,14 @@ infinite values, or implausible ones (:data:`POSE_LIMIT_RAD`, :data:`TRANS_LIMIT
 An .npz is never loaded whole: only these arrays are read, each checked from its .npy header first (numeric
 poses, trans, betas and frame rate; text gender; shapes; frames against ``max_frames``; the total against
 ``max_bytes``) by :func:`bodyfit.io.npz.read_npz`.
+
+The layouts are those of SMPL (M. Loper, N. Mahmood, J. Romero, G. Pons-Moll and M. J. Black, "SMPL: A Skinned
+Multi-Person Linear Model", ACM Transactions on Graphics 34(6), 2015), SMPL-H (J. Romero, D. Tzionas and M. J.
+Black, "Embodied Hands: Modeling and Capturing Hands and Bodies Together", ACM Transactions on Graphics 36(6),
+2017) and SMPL-X (G. Pavlakos et al., "Expressive Body Capture: 3D Hands, Face, and Body from a Single Image",
+IEEE/CVF Conference on Computer Vision and Pattern Recognition (CVPR), 2019), as AMASS distributes them (N.
+Mahmood, N. Ghorbani, N. F. Troje, G. Pons-Moll and M. J. Black, "AMASS: Archive of Motion Capture as Surface
+Shapes", IEEE/CVF International Conference on Computer Vision (ICCV), 2019).
 """
 
 from __future__ import annotations
