@@ -83,8 +83,8 @@ def encode_bodies(bodies: Bodies, fmt: str, faces: bool = False) -> bytes:
 
 def _glb(bodies: Bodies) -> bytes:
     """The bodies as one glTF binary scene. trimesh's meshes and scene hold reference cycles, which Python
-    frees only at a full collection: one is run here, or a 256-body scene's 0.7 GB stays resident until one
-    happens."""
+    frees only at a full collection: one is run here, or a large scene's memory (hundreds of MB for hundreds
+    of bodies) stays resident until one happens."""
     scene = trimesh.Scene()
     for b in range(bodies.batch):
         for name, mesh in _meshes(bodies, b):

@@ -148,9 +148,9 @@ def _check_bodies(
     x: np.ndarray, seen: np.ndarray | None, lo: int, frame: Callable[[int], str], field: str
 ) -> None:
     """The per-frame checks of :func:`check_frames` on frames lo.. (k, V, 3) float32 with the vertices
-    ``seen`` (k, V) (at least one per frame; None: all). With every vertex seen, about 0.2 ms a frame of our
-    topology: per-axis reductions on strided views (numpy reduces the middle axis of (k, V, 3) slowly),
-    and the spread on every 8th vertex (a body's subset is no more flat than the body)."""
+    ``seen`` (k, V) (at least one per frame; None: all). Kept cheap per frame: per-axis reductions on strided
+    views (numpy reduces the middle axis of (k, V, 3) slowly), and the spread on every 8th vertex (a body's
+    subset is no more flat than the body)."""
     if seen is None:
         k, V = x.shape[:2]
         flat = x.reshape(k, V * 3)
