@@ -72,7 +72,8 @@ def coarse_faces(vertices: np.ndarray, faces: np.ndarray, subset: np.ndarray) ->
     each face whose corners lie in three different regions gives the triangle of those regions, oriented
     as the face (the dual of the regions, once per triangle). On a subset spread over the surface (a
     farthest-point sample) the coarse mesh's normals (:func:`vertex_normals`) follow the fine one's, and are
-    a function of the subset's vertices alone."""
+    a function of the subset's vertices alone. The regions come from one multi-source shortest-path search
+    (E. W. Dijkstra, "A note on two problems in connexion with graphs", Numerische Mathematik 1, 1959)."""
     f = np.asarray(faces, np.int64)
     V = len(vertices)
     edges = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0)
