@@ -144,7 +144,8 @@ def _mask_zeros(positions: np.ndarray, zeros_missing: bool) -> np.ndarray:
 def parse_trc(
     text: str, rotation: np.ndarray | None = None, source: str = "TRC", zeros_missing: bool = True
 ) -> MarkerTrial:
-    """Parse the text of a TRC file (tab separated; header keys DataRate, NumFrames, NumMarkers, Units).
+    """Parse the text of a TRC file (tab separated, or comma separated when a spreadsheet re-saved it;
+    header keys DataRate, NumFrames, NumMarkers, Units).
 
     Empty cells are missing samples (NaN). Raises MocapFormatError naming what is wrong.
     """
@@ -154,18 +155,27 @@ def parse_trc(
             f"{source} is not a TRC file: the first line must start with 'PathFileType' (OpenSim / Vicon "
             "TRC layout: 5 header lines, then one tab-separated row per frame)"
         )
-    rate, n_markers, unit, names = _trc_header(lines, source)
-    rows = _trc_rows(lines, 2 + 3 * n_markers, source)
+    comma = "\t" not in lines[1] and "," in lines[1]  # a TRC re-saved as CSV by a spreadsheet
+    rate, n_markers, unit, names = _trc_header(lines, source, comma)
+    rows = _trc_rows(lines, 2 + 3 * n_markers, source, comma)
     data = np.asarray(rows, np.float64)
     positions = _mask_zeros(data[:, 2:].reshape(len(rows), n_markers, 3), zeros_missing) * UNITS[unit]
     trial = MarkerTrial(tuple(names), positions, rate, _times(data[:, 1], rate, len(rows)), source)
     return trial if rotation is None else trial.rotated(rotation)
 
 
-def _trc_header(lines: list[str], source: str) -> tuple[float, int, str, list[str]]:
+def _split(line: str, comma: bool) -> list[str]:
+    """A TRC line's cells: commas when ``comma``, else tabs, else runs of blanks."""
+    if comma:
+        return line.split(",")
+    return line.split("\t") if "\t" in line else line.split()
+
+
+def _trc_header(lines: list[str], source: str, comma: bool) -> tuple[float, int, str, list[str]]:
     """Returns the data rate (Hz), the marker count, the lower-case unit and the marker names from a TRC
     file's header lines (2 to 4)."""
-    keys, values = lines[1].split(), lines[2].split()
+    keys = [k.strip() for k in (lines[1].split(",") if comma else lines[1].split()) if k.strip()]
+    values = [v.strip() for v in (lines[2].split(",") if comma else lines[2].split()) if v.strip()]
     header = dict(zip(keys, values))
     for key in ("DataRate", "NumMarkers", "Units"):
         if key not in header:
@@ -178,7 +188,7 @@ def _trc_header(lines: list[str], source: str) -> tuple[float, int, str, list[st
     unit = header["Units"].strip().lower()
     if unit not in UNITS:
         raise MocapFormatError(f"{source}: unknown Units {header['Units']!r}; expected one of {list(UNITS)}")
-    names = [n.strip() for n in lines[3].split("\t")[2:] if n.strip()]
+    names = [n.strip() for n in lines[3].split("," if comma else "\t")[2:] if n.strip()]
     if len(names) != n_markers:
         raise MocapFormatError(
             f"{source}: the header says NumMarkers={n_markers} but line 4 names {len(names)} markers"
@@ -186,14 +196,14 @@ def _trc_header(lines: list[str], source: str) -> tuple[float, int, str, list[st
     return rate, n_markers, unit, names
 
 
-def _trc_rows(lines: list[str], width: int, source: str) -> list[list[float]]:
+def _trc_rows(lines: list[str], width: int, source: str, comma: bool) -> list[list[float]]:
     """Returns the TRC file's data rows (frame, time, then x y z per marker), each ``width`` numbers with
     empty cells as NaN; blank lines are skipped and at least one row is required."""
     rows = []
     for k, line in enumerate(lines[5:], start=6):
-        if not line.strip():
+        if not line.strip(",\t "):
             continue
-        cells = line.split("\t") if "\t" in line else line.split()
+        cells = _split(line, comma)
         if len(cells) > width and any(c.strip() for c in cells[width:]):
             raise MocapFormatError(f"{source} line {k}: {len(cells)} columns, expected at most {width}")
         cells = (cells + [""] * width)[:width]
