@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import astuple, replace
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -24,9 +25,12 @@ from bodyfit.models.fitting.sequence.fitter import (
     SequenceConfig,
     SequenceFit,
     SequenceFitter,
+    SequenceFrames,
     SequenceStats,
+    fit_sequence,
     jitter,
 )
+from bodyfit.models.fitting.sequence.frames import PelvisUnwrap
 from bodyfit.models.threads import torch_threads
 
 CLIP = Path(__file__).resolve().parents[1] / "data" / "cmu_bvh" / "cmu_131_01_clip.bvh"
@@ -247,6 +251,72 @@ def test_frame_source_streams_in_chunks_and_matches_the_array_fit(
         seq_fitter.fit_frames(short, T)
     with pytest.raises(ShapeError, match="at least one frame"):
         seq_fitter.fit_frames(source, 0)
+
+
+def test_final_frames_stream_in_order_while_the_fit_runs(
+    model: BodyModel, moved: Retargeted, seq_fitter: SequenceFitter
+) -> None:
+    """``on_frames`` gets every frame once, in time order, in blocks of the chunk, each as soon as it is
+    final (after the next chunk's poses, which its blend reads) and so before the source is asked for the
+    chunk after that; the blocks concatenated are the returned fit's arrays, to the bit."""
+    T = 2 * CHUNK + 20
+    q = moved.in_range(model.skeleton)[:T]
+    x = model.forward(
+        np.full((T, model.n_shape), 0.2), q, moved.root[:T], dtype=torch.float64
+    ).vertices.numpy()
+    w = np.ones(x.shape[:2])
+    w[:, :50] = 0.0
+    events: list[tuple[str, int, int]] = []
+    blocks: list[SequenceFrames] = []
+
+    def source(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        events.append(("asked", int(idx[0]), int(idx[-1]) + 1))
+        return x[idx], w[idx]
+
+    def on_frames(block: SequenceFrames) -> None:
+        events.append(("block", block.start, block.stop))
+        blocks.append(block)
+
+    fit = seq_fitter.fit_frames(source, T, keep_vertices=True, on_frames=on_frames)
+    c1, c2 = CHUNK, 2 * CHUNK
+    last_pass = [("asked", 0, c1), ("asked", c1, c2), ("block", 0, c1), ("asked", c2, T)]
+    assert events[-6:] == [*last_pass, ("block", c1, c2), ("block", c2, T)]
+    assert [(b.start, b.stop) for b in blocks] == [(0, c1), (c1, c2), (c2, T)]
+    for name, whole in [
+        ("coordinates", fit.coordinates),
+        ("root", fit.root),
+        ("vertices", fit.registration()),
+        ("joints", fit.joints),
+        ("error_mm", np.array([r.distances.mean for r in fit.reports])),
+    ]:
+        streamed = np.concatenate([getattr(b, name) for b in blocks])
+        assert streamed.dtype == whole.dtype and np.array_equal(streamed, whole), name
+    assert blocks[0].vertices.shape == (c1, model.n_vertices, 3) and blocks[0].joints.shape[0] == c1
+    # fit_sequence and fit pass the hook on; a sequence shorter than a chunk is one block
+    few: list[SequenceFrames] = []
+    short = fit_sequence(seq_fitter.fitter, x[:5], config=seq_fitter.config, on_frames=few.append)
+    assert [(b.start, b.stop) for b in few] == [(0, 5)]
+    assert np.array_equal(few[0].coordinates, short.coordinates)
+
+
+def test_pelvis_unwrapped_block_by_block_is_numpys_unwrap_of_the_whole() -> None:
+    """Fed in blocks of any size (one frame, uneven), the unwrapped pelvis angles are np.unwrap's of the
+    whole sequence to the bit: turns of many laps, steps of exactly pi either way, and still frames."""
+    rng = np.random.default_rng(3)
+    T, n_dof, dofs = 400, 6, [0, 2, 5]
+    angles = np.cumsum(rng.normal(0.0, 1.2, (T, n_dof)), axis=0)
+    angles[100:104, 0] = angles[99, 0] + np.pi * np.array([1, 0, -1, 0]).cumsum()
+    angles[200:210, 2] = angles[199, 2]
+    q = np.pi - np.mod(np.pi - angles, 2 * np.pi)  # wrapped into (-pi, pi]
+    expected = q.copy()
+    for k in dofs:
+        expected[:, k] = np.unwrap(q[:, k])
+    for sizes in ([T], [1, 1, 398], [7, 64, 1, 128, 200]):
+        unwrap = PelvisUnwrap(dofs)
+        bounds = np.cumsum([0, *sizes])
+        got = np.concatenate([unwrap(q[lo:hi]) for lo, hi in pairwise(bounds)])
+        assert np.array_equal(got, expected), sizes
+    assert np.abs(np.diff(expected[:, dofs], axis=0)).max() <= np.pi
 
 
 def test_blend_is_centred_and_leaves_the_pelvis(
