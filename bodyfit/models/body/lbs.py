@@ -1,9 +1,10 @@
 """Skinning math: pure, batched torch functions.
 
-Linear blend skinning as in eq. 12 of H. Wang, R. A. Güler, I. Kokkinos, G. Papandreou and S. Zafeiriou, "BLSM:
-A Bone-Level Skinned Model of the Human Mesh", European Conference on Computer Vision (ECCV), 2020, and eq. 5 of
-M. Keller, K. Werling, S. Shin, S. Delp, S. Pujades, C. K. Liu and M. J. Black, "From Skin to Skeleton: Towards
-Biomechanically Accurate 3D Digital Humans", ACM Transactions on Graphics 42(6) (SIGGRAPH Asia), 2023.
+Linear blend skinning as in eq. 12 of H. Wang, R. A. Güler, I. Kokkinos, G. Papandreou and S. Zafeiriou,
+"BLSM: A Bone-Level Skinned Model of the Human Mesh", European Conference on Computer Vision (ECCV), 2020, and
+eq. 5 of M. Keller, K. Werling, S. Shin, S. Delp, S. Pujades, C. K. Liu and M. J. Black, "From Skin to
+Skeleton: Towards Biomechanically Accurate 3D Digital Humans", ACM Transactions on Graphics 42(6) (SIGGRAPH
+Asia), 2023.
 """
 
 from __future__ import annotations

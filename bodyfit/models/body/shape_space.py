@@ -78,9 +78,9 @@ def fit_joint_regressor(
     As in section 5.1 of M. Keller, K. Werling, S. Shin, S. Delp, S. Pujades, C. K. Liu and M. J. Black, "From
     Skin to Skeleton: Towards Biomechanically Accurate 3D Digital Humans", ACM Transactions on Graphics 42(6),
     2023, following M. Keller, S. Zuffi, M. J. Black and S. Pujades, "OSSO: Obtaining Skeletal Shape from
-    Outside", IEEE/CVF Conference on Computer Vision and Pattern Recognition (CVPR), 2022. Each problem is solved
-    by the active-set method of C. L. Lawson and R. J. Hanson, "Solving Least Squares Problems", Prentice-Hall,
-    1974 (``scipy.optimize.nnls``).
+    Outside", IEEE/CVF Conference on Computer Vision and Pattern Recognition (CVPR), 2022. Each problem is
+    solved by the active-set method of C. L. Lawson and R. J. Hanson, "Solving Least Squares Problems",
+    Prentice-Hall, 1974 (``scipy.optimize.nnls``).
 
     Each joint uses the ``candidates`` template vertices nearest to it on the mean body; a weighted row
     asks the weights to sum to 1, so the regressor commutes with translation.

@@ -1,9 +1,8 @@
 """Place the skeleton inside bodies: coordinates, root and per-segment scales from landmark-derived targets.
 
-Build-time step after section 4.1 of H. Wang, R. A. Güler, I. Kokkinos, G. Papandreou and S. Zafeiriou, "BLSM: A
-Bone-Level Skinned Model of the Human Mesh", ECCV 2020, with joint centres instead of CAESAR's landmarks: for
-each body,
-minimise over coordinates q, root translation and log segment scales
+Build-time step after section 4.1 of H. Wang, R. A. Güler, I. Kokkinos, G. Papandreou and S. Zafeiriou, "BLSM:
+A Bone-Level Skinned Model of the Human Mesh", ECCV 2020, with joint centres instead of CAESAR's landmarks:
+for each body, minimise over coordinates q, root translation and log segment scales
 
     sum_p w_p |x_p(q, s) - x_p*|^2 + w_axis sum_a (1 - cos(axis_a(q), axis_a*))
       + regularisers (scales near-isotropic, tied segments alike, small coordinates),

