@@ -1,5 +1,5 @@
-"""Bounded parameterisation of coordinates: the tanh-bounded joint angles of BLSM (eq. 6 of H. Wang,
-R. A. Güler, I. Kokkinos, G. Papandreou and S. Zafeiriou, "BLSM: A Bone-Level Skinned Model of the Human Mesh",
+"""Bounded parameterisation of coordinates: the tanh-bounded joint angles of BLSM (eq. 6 of H. Wang, R. A.
+Güler, I. Kokkinos, G. Papandreou and S. Zafeiriou, "BLSM: A Bone-Level Skinned Model of the Human Mesh",
 European Conference on Computer Vision (ECCV), 2020).
 
 ``q = (lo + hi) / 2 + (hi - lo) / 2 * tanh(u)`` maps any real ``u`` into the open range (lo, hi), so

@@ -4,7 +4,8 @@ Rajagopal2015: A. Rajagopal, C. L. Dembia, M. S. DeMers, D. D. Delp, J. L. Hicks
 Musculoskeletal Model for Muscle-Driven Simulation of Human Gait", IEEE Transactions on Biomedical Engineering
 63(10), 2016. SKEL: M. Keller, K. Werling, S. Shin, S. Delp, S. Pujades, C. K. Liu and M. J. Black, "From Skin
 to Skeleton: Towards Biomechanically Accurate 3D Digital Humans", ACM Transactions on Graphics 42(6) (SIGGRAPH
-Asia), 2023, whose constant-curvature spine and scapula sliding on the thorax are built here as OpenSim joints.
+Asia), 2023, whose constant-curvature spine and scapula sliding on the thorax are built here as OpenSim
+joints.
 
 What is added to Rajagopal2015 (whose bodies, joints, axes and ranges are kept exactly):
 
