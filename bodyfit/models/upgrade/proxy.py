@@ -13,10 +13,12 @@ written as an SMPL-format model (asset ``smpl_proxy.npz``, SMPL's key names):
 * ``J_regressor``: non-negative, fitted to the SOMA joints mapped onto SMPL's 24 (:data:`SOMA_FOR_SMPL`);
 * ``weights``: SOMA's skinning weights summed onto those joints; no pose correctives.
 
-Posed by SMPL joint rotations (the SMPL forward pass of :mod:`~bodyfit.models.upgrade.smpl_model`), it
-gives meshes in our own topology, which our model then fits as a registered sequence. Shape comes from
-hints (:class:`ShapeHints`: sex, stature, mass) solved on the proxy's phenotype sliders, else the mean.
-Building needs anny (extra ``build``); using the asset does not.
+Posed by SMPL joint rotations (the SMPL forward pass of :mod:`~bodyfit.models.upgrade.smpl_model`), it gives
+meshes in our own topology, which our model then fits as a registered sequence. Shape comes from hints
+(:class:`ShapeHints`: sex, stature, mass) solved on the proxy's phenotype sliders, else the mean. Building
+needs anny (extra ``build``); using the asset does not. SMPL's format and forward pass: M. Loper, N. Mahmood,
+J. Romero, G. Pons-Moll and M. J. Black, "SMPL: A Skinned Multi-Person Linear Model", ACM Transactions on
+Graphics 34(6) (SIGGRAPH Asia), 2015.
 """
 
 from __future__ import annotations

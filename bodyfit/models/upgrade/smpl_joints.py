@@ -1,4 +1,8 @@
-"""SMPL's 24-joint tree (names, parents) and SMPL-like joint locations taken from our anatomical joints."""
+"""SMPL's 24-joint tree (names, parents) and SMPL-like joint locations taken from our anatomical joints.
+
+SMPL: M. Loper, N. Mahmood, J. Romero, G. Pons-Moll and M. J. Black, "SMPL: A Skinned Multi-Person Linear
+Model", ACM Transactions on Graphics 34(6) (SIGGRAPH Asia), 2015.
+"""
 
 from __future__ import annotations
 

@@ -147,8 +147,8 @@ class SmplModel:
 def rodrigues(axis_angle: np.ndarray) -> np.ndarray:
     """(..., 3) axis-angle -> (..., 3, 3) rotation matrices.
 
-    Rodrigues' formula (O. Rodrigues, "Des lois géométriques qui régissent les déplacements d'un système solide
-    dans l'espace", Journal de Mathématiques Pures et Appliquées 5, 1840).
+    Rodrigues' formula (O. Rodrigues, "Des lois géométriques qui régissent les déplacements d'un système
+    solide dans l'espace", Journal de Mathématiques Pures et Appliquées 5, 1840).
     """
     a = np.asarray(axis_angle, np.float64)
     theta = np.linalg.norm(a, axis=-1, keepdims=True)

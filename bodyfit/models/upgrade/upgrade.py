@@ -12,10 +12,11 @@ Path (b), without one (:func:`upgrade_from_rotations`): the rotations pose a pro
 
 Upgrading SMPL motion to a biomechanical skeleton by fitting follows M. Keller, K. Werling, S. Shin, S. Delp,
 S. Pujades, C. K. Liu and M. J. Black, "From Skin to Skeleton: Towards Biomechanically Accurate 3D Digital
-Humans", ACM Transactions on Graphics 42(6) (SIGGRAPH Asia), 2023, who fit their skeleton to AMASS's SMPL
-sequences; here the fitted quantity is our model's skin against the SMPL mesh, through a fixed topology
-correspondence. SMPL: M. Loper, N. Mahmood, J. Romero, G. Pons-Moll and M. J. Black, "SMPL: A Skinned
-Multi-Person Linear Model", ACM Transactions on Graphics 34(6) (SIGGRAPH Asia), 2015.
+Humans", ACM Transactions on Graphics 42(6) (SIGGRAPH Asia), 2023, who fit their skeleton to the SMPL
+sequences of AMASS (N. Mahmood, N. Ghorbani, N. F. Troje, G. Pons-Moll and M. J. Black, "AMASS: Archive of
+Motion Capture as Surface Shapes", ICCV 2019); here the fitted quantity is our model's skin against the SMPL
+mesh, through a fixed topology correspondence. SMPL: M. Loper, N. Mahmood, J. Romero, G. Pons-Moll and M. J.
+Black, "SMPL: A Skinned Multi-Person Linear Model", ACM Transactions on Graphics 34(6) (SIGGRAPH Asia), 2015.
 """
 
 from __future__ import annotations
