@@ -50,9 +50,9 @@ class NonRigidConfig:
 def geman_mcclure_weights(distance: np.ndarray, sigma: float) -> np.ndarray:
     """IRLS weights (sigma^2 / (sigma^2 + d^2))^2 of the Geman-McClure loss, same shape as ``distance``.
 
-    The loss of S. Geman and D. E. McClure, "Statistical methods for tomographic image reconstruction", Bulletin
-    of the International Statistical Institute 52(4), 1987, minimised by iteratively reweighted least squares
-    (P. W. Holland and R. E. Welsch, "Robust regression using iteratively reweighted least-squares",
+    The loss of S. Geman and D. E. McClure, "Statistical methods for tomographic image reconstruction",
+    Bulletin of the International Statistical Institute 52(4), 1987, minimised by iteratively reweighted least
+    squares (P. W. Holland and R. E. Welsch, "Robust regression using iteratively reweighted least-squares",
     Communications in Statistics - Theory and Methods 6(9), 1977).
     """
     s2 = sigma * sigma
@@ -107,9 +107,9 @@ def refine_nonrigid(
 def solve_offsets(
     a: np.ndarray, rhs: np.ndarray, regulariser: sp.csr_matrix, start: np.ndarray | None = None
 ) -> np.ndarray:
-    """Per-vertex offsets D (V, 3) minimising ``sum_j a_j |D_j - rhs_j / a_j|^2 + D^T R D``: the sparse
-    system (diag(a) + R) D = rhs, one conjugate-gradient solve (Jacobi preconditioned) per axis (M. R. Hestenes
-    and E. Stiefel, "Methods of Conjugate Gradients for Solving Linear Systems", Journal of Research of the
+    """Per-vertex offsets D (V, 3) minimising ``sum_j a_j |D_j - rhs_j / a_j|^2 + D^T R D``: the sparse system
+    (diag(a) + R) D = rhs, one conjugate-gradient solve (Jacobi preconditioned) per axis (M. R. Hestenes and
+    E. Stiefel, "Methods of Conjugate Gradients for Solving Linear Systems", Journal of Research of the
     National Bureau of Standards 49(6), 1952).
 
     Args:
