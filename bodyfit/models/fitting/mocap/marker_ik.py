@@ -2,7 +2,8 @@
 
 Levenberg-Marquardt: K. Levenberg, "A method for the solution of certain non-linear problems in least
 squares", Quarterly of Applied Mathematics 2(2), 1944; D. W. Marquardt, "An algorithm for least-squares
-estimation of nonlinear parameters", Journal of the Society for Industrial and Applied Mathematics 11(2), 1963.
+estimation of nonlinear parameters", Journal of the Society for Industrial and Applied Mathematics 11(2),
+1963.
 
 Marker positions are body-fixed points: ``x_m = R_b (l_m * s_seg(b)) + t_b`` with ``l_m`` the point in
 body ``b``'s frame before segment scaling. Their Jacobian with respect to every coordinate is analytic:

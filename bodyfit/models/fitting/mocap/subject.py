@@ -149,7 +149,13 @@ class _Problem:
 def _schur_lm(
     problem: _Problem, x: torch.Tensor, z: torch.Tensor, max_iterations: int, rtol: float = 1e-9
 ) -> tuple[torch.Tensor, torch.Tensor, int]:
-    """Levenberg-Marquardt on (x, z) with the poses eliminated by a Schur complement. Returns x, z, steps."""
+    """Levenberg-Marquardt on (x, z) with the poses eliminated by a Schur complement. Returns x, z, steps.
+
+    K. Levenberg, "A method for the solution of certain non-linear problems in least squares", Quarterly of
+    Applied Mathematics 2(2), 1944; D. W. Marquardt, "An algorithm for least-squares estimation of nonlinear
+    parameters", Journal of the Society for Industrial and Applied Mathematics 11(2), 1963; the elimination as
+    in bundle adjustment (Triggs et al., see the module docstring).
+    """
 
     def evaluate(xv: torch.Tensor, zv: torch.Tensor) -> tuple[torch.Tensor, ...]:
         res, Jp, Jz, rz, dz = problem(xv, zv)
