@@ -39,9 +39,9 @@ DISTAL_TRUNCATION_M = 0.02
 EXPLAINED_M = 0.02  # a scan point this close to the rest of the body is not a distal chain's to explain
 UNSUPPORTED = 0.8  # a distal chain whose best candidate's cost is this share of the truncation's has no data
 STRAIGHTENED = 1  # of the hypotheses (best first), those that get a straight-spine twin
-# The orientation phase keeps 3 hypotheses and the best gets a twin: the pose phase runs 4, in halves of 2. The
-# final fit rarely comes from the orientation phase's third best and not from a fourth, and more hypotheses
-# (or twins) make the pose phase longer without making the fits better.
+# The orientation phase keeps 3 hypotheses and the best gets a twin: the pose phase runs 4, in halves of 2.
+# The final fit rarely comes from the orientation phase's third best and not from a fourth, and more
+# hypotheses (or twins) make the pose phase longer without making the fits better.
 
 
 def orientation_candidates(points: np.ndarray) -> np.ndarray:

@@ -297,7 +297,10 @@ class LimbSearch:
         (per hypothesis and limb, (T, 3)) pulled onto their nearest limb vertex; the limbs' DOFs are
         disjoint, so all limbs refine together). Every limb keeps whichever start or refined pose has the
         lowest search cost (:meth:`on_scan` + :meth:`reach`). c (H, n_shape), root (H, 3): the
-        hypotheses' shape and root; ``scans``: each hypothesis's fit points (body frame) as a tree."""
+        hypotheses' shape and root; ``scans``: each hypothesis's fit points (body frame) as a tree.
+
+        L-BFGS: :func:`~bodyfit.models.fitting.common.lbfgs.batched_lbfgs` (D. C. Liu and J. Nocedal, "On the
+        limited memory BFGS method for large scale optimization", Mathematical Programming 45, 1989)."""
         H, M, n_dof = starts.shape
         dtype = self.fitter.config.dtype
         rows = np.arange(H * M) // M  # each row's hypothesis

@@ -5,10 +5,10 @@ Gauss-Newton metric (:func:`gauss_newton_metric`) and the robust score that rank
 The Chamfer distance is that of H. G. Barrow, J. M. Tenenbaum, R. C. Bolles and H. C. Wolf, "Parametric
 correspondence and chamfer matching: Two new techniques for image matching", IJCAI 1977; the robust rho is the
 Geman-McClure loss (S. Geman and D. E. McClure, "Statistical methods for tomographic image reconstruction",
-Bulletin of the International Statistical Institute 52(4), 1987); point-to-plane distances are those of Y. Chen
-and G. Medioni, "Object modelling by registration of multiple range images", Image and Vision Computing 10(3),
-1992; the Gauss-Newton metric is J^T J of the residuals (J. Nocedal and S. J. Wright, "Numerical Optimization",
-Springer, 2nd ed., 2006, chapter 10).
+Bulletin of the International Statistical Institute 52(4), 1987); point-to-plane distances are those of Y.
+Chen and G. Medioni, "Object modelling by registration of multiple range images", Image and Vision Computing
+10(3), 1992; the Gauss-Newton metric is J^T J of the residuals (J. Nocedal and S. J. Wright, "Numerical
+Optimization", Springer, 2nd ed., 2006, chapter 10).
 """
 
 from __future__ import annotations
