@@ -24,8 +24,8 @@ def cm_matvec(a: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 def axis_angle_matrix(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
     """Rotation by ``angle`` about unit ``axis``.
 
-    Rodrigues' formula (O. Rodrigues, "Des lois géométriques qui régissent les déplacements d'un système solide
-    dans l'espace", Journal de Mathématiques Pures et Appliquées 5, 1840).
+    Rodrigues' formula (O. Rodrigues, "Des lois géométriques qui régissent les déplacements d'un système
+    solide dans l'espace", Journal de Mathématiques Pures et Appliquées 5, 1840).
 
     Args:
         axis: (..., 3) unit vectors; broadcast against ``angle``.
