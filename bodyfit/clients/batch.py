@@ -10,7 +10,7 @@ run resumes where it stopped. The back-end is a server URL (``"http://host:8000"
 Upgrading in this process or on Ray needs the service and the models, which the SDK does not import:
 those back-ends are :func:`bodyfit.cli.backends.upgrader` (``"local"``, ``"ray"``, ``"ray://host:10001"``),
 as ``bodyfit batch-upgrade --backend`` runs them. Deprecated: ``backend="local"`` / ``"ray"`` here, and
-``LocalUpgrader`` from this module, still reach them for one release and will be removed in the next.
+``LocalUpgrader`` from this module, still reach them; they will be removed in the next release.
 """
 
 from __future__ import annotations

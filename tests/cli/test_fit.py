@@ -1,4 +1,5 @@
-"""The command line: the main-job demo writes a posed skeleton that OpenSim-format readers accept."""
+"""``bodyfit fit``: each input kind through its subcommand and through ``auto`` (no kind given, as every
+command written before the subcommands), real fits and the errors a user meets."""
 
 from __future__ import annotations
 
@@ -9,53 +10,17 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from bodyfit.clients.cli import app
+from bodyfit.cli import app
 from bodyfit.models.body.model import BodyModel
-from bodyfit.models.skeleton import Skeleton
-from bodyfit.models.skeleton.opensim_export import mot_columns, read_mot
+from bodyfit.models.skeleton.opensim_export import read_mot
 
 runner = CliRunner()
 DATA = Path(__file__).resolve().parents[1] / "data"
-
-
-def test_demo_writes_posed_skeleton(tmp_path: Path) -> None:
-    result = runner.invoke(app, ["demo", "--out", str(tmp_path), "--frames", "30"])
-    assert result.exit_code == 0, result.output
-    skel = Skeleton.load()
-    data = np.load(tmp_path / "pose.npz")
-    assert data["frames"].shape == (30, len(skel.body_names), 4, 4)
-    assert list(data["dof_names"]) == skel.dof_names
-    # The pose in the file is the forward kinematics of the coordinates in the file.
-    again = skel.forward(data["coordinates"], data["root"]).frames.numpy()
-    assert np.allclose(again, data["frames"], atol=1e-6)
-    cols, values, in_degrees = read_mot(tmp_path / "demo.mot")
-    assert cols == ["time", *mot_columns(skel.spec)] and in_degrees and values.shape == (30, len(cols))
-    knee = cols.index("knee_angle_r")
-    assert np.allclose(
-        np.radians(values[:, knee]), data["coordinates"][:, skel.dof_index("knee_angle_r")], atol=1e-8
-    )
-    assert (tmp_path / "skeleton.osim").read_text().startswith("<?xml")
-    ply = (tmp_path / "bones_frame0.ply").read_bytes()
-    assert ply.startswith(b"ply") and f"element vertex {len(skel.bone_mesh().vertices)}".encode() in ply
-
-
-def test_demo_reports_a_broken_asset_folder_cleanly(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setenv("BODYFIT_ASSETS", str(tmp_path / "nowhere"))
-    result = runner.invoke(app, ["demo", "--out", str(tmp_path / "out")])
-    assert result.exit_code == 2
-    assert "manifest" in result.output and "bodyfit build-assets" in result.output
-    assert "Traceback" not in result.output
-
-
-def test_every_command_documents_its_options() -> None:
-    for command in ("demo", "build-assets"):
-        result = runner.invoke(app, [command, "--help"])
-        assert result.exit_code == 0
-        assert "--out" in result.output
+TRIAL = DATA / "opensim_gait" / "hamner_subject02_running.trc"
 
 
 def test_fit_registered_meshes(tmp_path: Path) -> None:
-    """`bodyfit fit` on two meshes of the model written as PLY in millimetres: reports and outputs."""
+    """`bodyfit fit scan` on two meshes of the model written as PLY in millimetres: reports and outputs."""
     import trimesh
 
     from bodyfit.models.body.model import BodyModel
@@ -69,7 +34,7 @@ def test_fit_registered_meshes(tmp_path: Path) -> None:
         paths.append(tmp_path / f"m{k}.ply")
         trimesh.Trimesh(v * 1000.0, model.faces, process=False).export(paths[-1])
     out = tmp_path / "fit"
-    result = runner.invoke(app, ["fit", *map(str, paths), "--out", str(out)])
+    result = runner.invoke(app, ["fit", "scan", *map(str, paths), "--out", str(out)])
     assert result.exit_code == 0, result.output
     reports = json.loads((out / "fit.json").read_text())
     assert [r["confident"] for r in reports] == [True, True]
@@ -136,7 +101,7 @@ def test_fit_reads_a_depth_camera_cloud_as_the_server_does(
 
     monkeypatch.setattr(BodyService, "fit_mesh", first_fit)
     path = DATA / "scans" / "pcl_template_alignment_person.pcd"
-    result = runner.invoke(app, ["fit", str(path), "--out", str(tmp_path / "o")])
+    result = runner.invoke(app, ["fit", "scan", str(path), "--out", str(tmp_path / "o")])
     assert "drop_nonfinite" not in result.output, result.output
     assert "dropped 64,451 of 307,200 points that were NaN or infinite" in result.output
     assert result.exit_code == 2 and "stopped by the test" in result.output
@@ -187,7 +152,7 @@ def test_fit_an_smpl_topology_mesh(tmp_path: Path) -> None:
     path = tmp_path / "woman.ply"
     trimesh.Trimesh(verts * 1000.0, faces, process=False).export(path)
     out = tmp_path / "o"
-    result = runner.invoke(app, ["fit", str(path), "--out", str(out)])
+    result = runner.invoke(app, ["fit", "scan", str(path), "--out", str(out), "--units", "mm"])
     assert result.exit_code == 0, result.output
     report = json.loads((out / "fit.json").read_text())[0]
     assert report["fitted_as"] == "SMPL topology" and report["limit_violations"] == 0
@@ -209,7 +174,7 @@ def test_fit_a_marker_trial_with_its_static_trial(tmp_path: Path) -> None:
     calibrated markers."""
     gait = DATA / "opensim_gait"
     args = [
-        "fit", str(gait / "hamner_subject02_running.trc"),
+        "fit", "markers", str(gait / "hamner_subject02_running.trc"),
         "--static", str(gait / "hamner_subject02_static.trc"), "--calibration", "motion",
         "--static-pose", "ankle_angle_r=0.5", "--static-pose", "ankle_angle_l=0.5", "--out", str(tmp_path),
     ]  # fmt: skip
@@ -229,6 +194,7 @@ def test_fit_a_marker_trial_with_its_static_trial(tmp_path: Path) -> None:
     assert osim.count("<Marker ") == 41 and 'name="R.Toe.Tip"' in osim
 
 
+@pytest.mark.parametrize("command", [["fit"], ["fit", "markers"]], ids=["auto", "markers"])
 @pytest.mark.parametrize(
     ("extra", "message"),
     [
@@ -239,19 +205,29 @@ def test_fit_a_marker_trial_with_its_static_trial(tmp_path: Path) -> None:
         (["--marker-set", "vicon"], "unknown marker set 'vicon'"),
     ],
 )
-def test_fit_a_marker_trial_reports_bad_options(tmp_path: Path, extra: list[str], message: str) -> None:
-    trial = DATA / "opensim_gait" / "hamner_subject02_running.trc"
-    result = runner.invoke(app, ["fit", str(trial), "--out", str(tmp_path), *extra])
+def test_fit_a_marker_trial_reports_bad_options(
+    tmp_path: Path, command: list[str], extra: list[str], message: str
+) -> None:
+    result = runner.invoke(app, [*command, str(TRIAL), "--out", str(tmp_path), *extra])
     assert result.exit_code == 2 and message in result.output and "Traceback" not in result.output
     assert not (tmp_path / "fit.json").exists()
 
 
-def test_fit_refuses_marker_trials_or_sequences_mixed_with_meshes(tmp_path: Path) -> None:
-    trial = DATA / "opensim_gait" / "hamner_subject02_running.trc"
+def test_fit_refuses_inputs_of_different_kinds(tmp_path: Path) -> None:
+    """One run fits one kind: the message lists which file is which and the commands that fit them."""
     np.savez(tmp_path / "seq.npz", frames=np.zeros((2, 13348, 3), np.float32))
-    for inputs in ([trial, tmp_path / "scan.ply"], [tmp_path / "seq.npz", trial]):
+    (tmp_path / "scan.ply").write_bytes(b"ply\n")
+    for inputs, kinds in (
+        ([TRIAL, tmp_path / "scan.ply"], ["markers", "scan"]),
+        ([tmp_path / "seq.npz", TRIAL], ["sequence", "markers"]),
+    ):
         result = runner.invoke(app, ["fit", *map(str, inputs), "--out", str(tmp_path / "o")])
-        assert result.exit_code == 2 and "separate runs" in result.output
+        assert result.exit_code == 2 and "separate run" in result.output, result.output
+        for path in inputs:
+            assert path.name in result.output
+        for kind in kinds:
+            assert f"`bodyfit fit {kind} FILE...`" in result.output
+        assert not (tmp_path / "o").exists()
 
 
 def test_fit_a_registered_sequence(tmp_path: Path) -> None:
@@ -265,7 +241,9 @@ def test_fit_a_registered_sequence(tmp_path: Path) -> None:
     frames = model.forward(np.zeros((T, model.n_shape)), q, np.zeros((T, 3))).vertices.numpy()
     np.savez(tmp_path / "walk.npz", frames=frames)
     out = tmp_path / "o"
-    result = runner.invoke(app, ["fit", str(tmp_path / "walk.npz"), "--out", str(out), "--fps", "50"])
+    result = runner.invoke(
+        app, ["fit", "sequence", str(tmp_path / "walk.npz"), "--out", str(out), "--fps", "50"]
+    )
     assert result.exit_code == 0, result.output
     assert "walk.npz (sequence, 12 frames)" in result.output
     fit = np.load(out / "walk.npz")
@@ -285,55 +263,84 @@ def test_fit_reports_a_malformed_sequence(tmp_path: Path) -> None:
     assert result.exit_code == 2 and "(T, 13348, 3)" in result.output and "Traceback" not in result.output
 
 
-def test_synth_writes_the_requested_format(tmp_path: Path) -> None:
-    out = tmp_path / "body.npz"
-    result = runner.invoke(app, ["synth", str(out), "-c", "knee_angle_r=1.2", "--root", "0,1,0"])
-    assert result.exit_code == 0, result.output
-    data = np.load(out)
-    assert data["vertices"].shape == (1, 13348, 3) and data["faces"].shape == (26692, 3)
-    assert abs(np.median(data["vertices"][0, :, 1]) - 1.0) < 0.3  # lifted by the root translation
-    bad = runner.invoke(app, ["synth", str(tmp_path / "b.ply"), "-c", "knee_angle_r=4"])
-    assert bad.exit_code == 2 and "joint limits" in bad.output
-    bad = runner.invoke(app, ["synth", str(tmp_path / "b.ply"), "-c", "knee"])
-    assert bad.exit_code == 2 and "NAME=RADIANS" in bad.output
+def kinds_of_files(tmp_path: Path) -> dict[str, Path]:
+    """One small file of each kind: a raw scan (.npz of points), a marker trial and a sequence."""
+    np.savez(tmp_path / "scan.npz", points=np.zeros((10, 3)))
+    np.savez(tmp_path / "seq.npz", frames=np.zeros((2, 13348, 3), np.float32))
+    return {"scan": tmp_path / "scan.npz", "markers": TRIAL, "sequence": tmp_path / "seq.npz"}
 
 
-def test_upgrade_writes_opensim_files(tmp_path: Path) -> None:
-    data = DATA / "smpl_format"
-    args = ["upgrade", str(data / "cmu_131_smpl.npz"), "--smpl-model", str(data / "smpl_like_model.npz")]
-    result = runner.invoke(app, [*args, "--out", str(tmp_path)])
-    assert result.exit_code == 0, result.output
-    summary = json.loads((tmp_path / "cmu_131_smpl.json").read_text())
-    assert summary["path"] == "a" and summary["frames"] == 60 and summary["limit_violations"] == 0
-    assert (tmp_path / "cmu_131_smpl.osim").exists() and (tmp_path / "cmu_131_smpl.mot").exists()
-    rotations = runner.invoke(
-        app,
-        ["upgrade", str(data / "cmu_131_smpl.npz"), "--out", str(tmp_path / "b")],
-        env={"BODYFIT_SMPL_MODEL": ""},
+@pytest.mark.parametrize(
+    ("given", "expected"),
+    [
+        ("scan", "markers"),
+        ("scan", "sequence"),
+        ("markers", "scan"),
+        ("markers", "sequence"),
+        ("sequence", "scan"),
+        ("sequence", "markers"),
+    ],
+)
+def test_a_file_given_to_the_wrong_kind_says_which_command_fits_it(
+    tmp_path: Path, given: str, expected: str
+) -> None:
+    """`bodyfit fit markers scan.npz` and the like stop before any fit: the message says what the file is,
+    what the subcommand takes, and the command that fits it."""
+    path = kinds_of_files(tmp_path)[given]
+    result = runner.invoke(app, ["fit", expected, str(path), "--out", str(tmp_path / "o")])
+    assert result.exit_code == 2, result.output
+    assert f"error: {path} is a" in result.output
+    assert (
+        f"fit it with `bodyfit fit {given} {path}`" in result.output and "detects the kind" in result.output
     )
-    assert rotations.exit_code == 0 and "path (b)" in rotations.output
-    assert json.loads((tmp_path / "b" / "cmu_131_smpl.json").read_text())["path"] == "b"
+    assert "Traceback" not in result.output and not (tmp_path / "o").exists()
 
 
-def test_serve_takes_its_settings_from_options_then_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
-    """`bodyfit serve` options win over BODYFIT_* variables, which win over the defaults (the container
-    moves its ports with BODYFIT_REST_PORT / BODYFIT_GRPC_PORT)."""
-    import bodyfit.api.server
-    from bodyfit.api.settings import ServiceSettings
+@pytest.mark.parametrize("option_first", [False, True])
+@pytest.mark.parametrize("kind", ["scan", "markers", "sequence"])
+def test_no_kind_detects_it_and_runs_that_subcommands_fit(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, kind: str, option_first: bool
+) -> None:
+    """`bodyfit fit FILE --out DIR` (or with the options first) runs the fit of the file's kind with that
+    kind's defaults (the fits are stubbed: the routing is tested)."""
+    import bodyfit.cli.fit.commands as commands
 
-    seen: list[ServiceSettings] = []
-    monkeypatch.setattr(bodyfit.api.server, "run_server", seen.append)
-    monkeypatch.setenv("BODYFIT_REST_PORT", "18000")
-    monkeypatch.setenv("BODYFIT_GRPC_PORT", "0")
-    monkeypatch.setenv("BODYFIT_HOST", "0.0.0.0")
-    assert runner.invoke(app, ["serve", "--port", "9100"]).exit_code == 0
-    assert (seen[0].host, seen[0].rest_port, seen[0].grpc_port) == ("0.0.0.0", 9100, 0)
-    for name in ("BODYFIT_REST_PORT", "BODYFIT_GRPC_PORT", "BODYFIT_HOST"):
-        monkeypatch.delenv(name)
-    assert runner.invoke(app, ["serve", "--threads", "3"]).exit_code == 0
-    assert (seen[1].host, seen[1].rest_port, seen[1].grpc_port, seen[1].threads) == (
-        "127.0.0.1",
-        8000,
-        50051,
-        3,
-    )
+    seen: list[tuple[str, tuple[object, ...]]] = []
+    for name in ("scan", "markers", "sequence"):
+        runner_name = {"scan": "run_scans", "markers": "run_markers", "sequence": "run_sequences"}[name]
+        monkeypatch.setattr(commands, runner_name, lambda *args, k=name: seen.append((k, args)))
+    path, out = kinds_of_files(tmp_path)[kind], tmp_path / "o"
+    args = ["--out", str(out), str(path)] if option_first else [str(path), "--out", str(out)]
+    result = runner.invoke(app, ["fit", *args])
+    assert result.exit_code == 0, result.output
+    ((ran, called),) = seen
+    assert ran == kind and called[:2] == ([path], out)
+    defaults = {"scan": ("auto", None), "sequence": (30.0,)}
+    if kind == "markers":
+        options = called[2]
+        assert isinstance(options, commands.MarkerOptions)
+        assert (options.calibration, options.marker_set, options.up, options.forward) == (
+            "auto",
+            "auto",
+            "y",
+            "x",
+        )
+    else:
+        assert called[2:] == defaults[kind]
+
+
+def test_no_kind_refuses_an_option_of_another_kind(tmp_path: Path) -> None:
+    result = runner.invoke(app, ["fit", str(TRIAL), "--fps", "30", "--out", str(tmp_path / "o")])
+    assert result.exit_code == 2
+    assert "--fps is an option of `bodyfit fit sequence`" in result.output
+    assert "is a motion-capture marker trial" in result.output and "leave --fps out" in result.output
+
+
+def test_fit_help_lists_the_kinds(tmp_path: Path) -> None:
+    for args in (["fit"], ["fit", "--help"]):
+        result = runner.invoke(app, args)
+        assert "Commands:" in result.output
+        for kind in ("scan", "markers", "sequence", "auto"):
+            assert f"\n  {kind} " in result.output, kind
+    missing = runner.invoke(app, ["fit", str(tmp_path / "none.ply")])
+    assert missing.exit_code == 2 and "does not exist" in missing.output
