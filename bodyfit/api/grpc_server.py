@@ -26,12 +26,24 @@ from grpc_reflection.v1alpha import reflection
 
 from bodyfit.api import bodyfit_pb2 as pb
 from bodyfit.api import bodyfit_pb2_grpc as pb_grpc
-from bodyfit.api.grpc_wire import FLOATS, WireError, from_proto, optional, to_proto
+from bodyfit.api import wire
+from bodyfit.api.grpc_wire import (
+    FLOATS,
+    WireError,
+    from_proto,
+    mesh_fit_message,
+    model_message,
+    optional,
+    progress_message,
+    sequence_event,
+    to_proto,
+    upgrade_event,
+)
 from bodyfit.api.metrics import Metrics
 from bodyfit.api.settings import ServiceSettings
-from bodyfit.service.core import BodyService, MeshFit, SynthRequest, shape_hints
+from bodyfit.service.core import BodyService, SynthRequest, shape_hints
 from bodyfit.service.errors import InvalidInputError, ServiceError, as_service_error
-from bodyfit.service.formats import MEDIA_TYPES, encode_bodies, json_bytes
+from bodyfit.service.formats import MEDIA_TYPES, encode_bodies
 from bodyfit.service.jobs import Job, Progress
 
 LOG = logging.getLogger("bodyfit.grpc")
@@ -53,24 +65,8 @@ def message_limit(settings: ServiceSettings) -> int:
     return min(settings.limits().max_upload_bytes + (1 << 20), (1 << 31) - 1)
 
 
-def _json(doc: Any) -> str:
-    """``doc`` as JSON text, NaN and infinities as null (:func:`json_bytes`)."""
-    return json_bytes(doc).decode()
-
-
 def _progress(p: Progress) -> pb.Progress:
-    return pb.Progress(stage=p.stage, done=p.done, total=p.total, message=p.message)
-
-
-def _mesh_fit(fit: MeshFit, dof_names: list[str], joint_names: list[str]) -> pb.MeshFitResult:
-    arrays = {k: to_proto(np.asarray(v, np.float32)) for k, v in fit.arrays().items()}
-    return pb.MeshFitResult(
-        fitted_as=fit.fitted_as,
-        dof_names=dof_names,
-        joint_names=joint_names,
-        report_json=_json(fit.report.to_dict()),
-        **arrays,
-    )
+    return progress_message(wire.progress_event(p))
 
 
 class BodyfitServicer(pb_grpc.BodyfitServicer):
@@ -86,22 +82,7 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
         return self._unary("GetModelInfo", context, self._model_info)
 
     def _model_info(self) -> pb.ModelInfo:
-        info = self.service.info()
-        return pb.ModelInfo(
-            version=info.version,
-            dofs=[
-                pb.Dof(name=n, min=float(lo), max=float(hi), unit=u)
-                for n, (lo, hi), u in zip(info.dof_names, info.dof_ranges, info.dof_units, strict=True)
-            ],
-            n_bone=info.n_bone,
-            n_identity=info.n_identity,
-            n_vertices=info.n_vertices,
-            n_faces=info.n_faces,
-            joint_names=list(info.joint_names),
-            asset_format=info.asset_format,
-            asset_sources=info.asset_sources,
-            asset_sha256=info.asset_sha256,
-        )
+        return model_message(self.service.info())
 
     def Synthesize(
         self, request: pb.SynthesizeRequest, context: grpc.ServicerContext
@@ -147,7 +128,8 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
         def work(job: Job) -> list[pb.FitScanEvent]:
             scan = service.read_scan(request.data, request.format or "", request.units or "auto")
             fit = service.fit_mesh(scan, job)
-            return [pb.FitScanEvent(result=_mesh_fit(fit, list(info.dof_names), list(info.joint_names)))]
+            result = wire.mesh_fit_result(fit, list(info.dof_names), list(info.joint_names))
+            return [pb.FitScanEvent(result=mesh_fit_message(result))]
 
         return self._stream("FitScan", context, work, lambda p: pb.FitScanEvent(progress=_progress(p)))
 
@@ -169,28 +151,8 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
             if frames.ndim >= 1 and len(frames) > service.limits.max_frames:
                 service.fit_sequence(frames)  # raises the limit error
             fit = service.fit_sequence(frames, weights, job)
-            events = []
-            for lo in range(0, len(fit.coordinates), chunk):
-                hi = min(len(fit.coordinates), lo + chunk)
-                errors = np.array([r.distances.mean for r in fit.reports[lo:hi]])
-                part = pb.SequenceChunk(
-                    start=lo,
-                    stop=hi,
-                    coordinates=to_proto(fit.coordinates[lo:hi]),
-                    root=to_proto(fit.root[lo:hi]),
-                    vertices=to_proto(fit.registration(lo, hi)),
-                    joints=to_proto(fit.joints[lo:hi].astype(np.float32)),
-                    error_mm=to_proto(errors),
-                )
-                events.append(pb.FitSequenceEvent(chunk=part))
-            summary = pb.SequenceSummary(
-                shape=to_proto(fit.shape),
-                dof_names=list(fit.dof_names),
-                joint_names=joint_names,
-                stats_json=_json(fit.stats.to_dict()),
-                limit_violations=sum(r.limit_violations for r in fit.reports),
-            )
-            return [*events, pb.FitSequenceEvent(result=summary)]
+            chunks = [sequence_event(e) for e in wire.sequence_chunks(fit, chunk)]
+            return [*chunks, sequence_event(wire.sequence_summary(fit, joint_names))]
 
         return self._stream(
             "FitSequence", context, work, lambda p: pb.FitSequenceEvent(progress=_progress(p))
@@ -211,28 +173,8 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
             )
             result = service.upgrade(service.read_upgrade(request.data, name), job, hints)
             files = service.upgrade_files(result, Path(name).stem or "upgrade")
-            events = []
-            for lo in range(0, len(result.coordinates), chunk):
-                hi = min(len(result.coordinates), lo + chunk)
-                part = pb.UpgradeChunk(
-                    start=lo,
-                    stop=hi,
-                    coordinates=to_proto(result.coordinates[lo:hi]),
-                    root=to_proto(result.root[lo:hi]),
-                    joints=to_proto(result.joints[lo:hi].astype(np.float32)),
-                    error_mm=to_proto(result.error_mm[lo:hi]),
-                    bad_frames=to_proto(result.bad_frames[lo:hi]),
-                )
-                events.append(pb.UpgradeEvent(chunk=part))
-            summary = pb.UpgradeSummary(
-                dof_names=list(result.dof_names),
-                joint_names=list(result.joint_names),
-                shape=to_proto(result.shape),
-                scales=to_proto(result.scales),
-                summary_json=_json(result.summary()),
-                files=files,
-            )
-            return [*events, pb.UpgradeEvent(result=summary)]
+            chunks = [upgrade_event(e) for e in wire.upgrade_chunks(result, chunk)]
+            return [*chunks, upgrade_event(wire.upgrade_summary(result, files))]
 
         return self._stream("Upgrade", context, work, lambda p: pb.UpgradeEvent(progress=_progress(p)))
 

@@ -1,5 +1,6 @@
-"""Arrays on the gRPC wire (``bodyfit.v1.Array``: dtype, shape, little-endian C-order bytes), shared by
-the server and the gRPC client: both sides of the contract, numpy only."""
+"""The gRPC wire: arrays (``bodyfit.v1.Array``: dtype, shape, little-endian C-order bytes), shared by the
+server and the gRPC client, and the server's messages built from the documents of :mod:`bodyfit.wire`, so
+that REST and gRPC answer the same content."""
 
 from __future__ import annotations
 
@@ -9,26 +10,17 @@ from typing import Any
 
 import numpy as np
 
+from bodyfit import wire as w
 from bodyfit.api import bodyfit_pb2 as pb
+from bodyfit.wire.arrays import MAX_NDIM
 
-DTYPES = ("float32", "float64", "int32", "int64", "bool")
+DTYPES = w.DTYPES
 FLOATS = ("float32", "float64")
 """The dtypes of real-valued inputs (parameters, frames): the server refuses int and bool arrays for them,
 as the service core does for every transport."""
-MAX_NDIM = 8
 MAX_DIMENSION = (1 << 31) - 1
 """Largest declared dimension: no gRPC message holds more elements (an empty array may declare any size,
 so a size is checked against this as well as against the data's length)."""
-STATUS_KINDS = {
-    "INVALID_ARGUMENT": "invalid_argument",
-    "RESOURCE_EXHAUSTED": "resource_exhausted",
-    "UNAVAILABLE": "unavailable",
-    "DEADLINE_EXCEEDED": "deadline_exceeded",
-    "CANCELLED": "cancelled",
-    "UNIMPLEMENTED": "not_found",
-    "NOT_FOUND": "not_found",
-}
-"""gRPC status code name -> the error kind shared with REST problem documents."""
 
 
 class WireError(ValueError):
@@ -42,11 +34,7 @@ class WireError(ValueError):
 
 def to_proto(a: np.ndarray) -> pb.Array:
     """A numpy array as ``Array`` (float16 / uint types are widened to a wire dtype)."""
-    arr = np.asarray(a)
-    if arr.dtype.name not in DTYPES:
-        arr = arr.astype(np.float64 if arr.dtype.kind == "f" else np.int64)
-    little = np.ascontiguousarray(arr, dtype=arr.dtype.newbyteorder("<"))
-    return pb.Array(dtype=arr.dtype.name, shape=list(arr.shape), data=little.tobytes())
+    return array_message(w.WireArray.from_numpy(a))
 
 
 def from_proto(msg: pb.Array, field: str, dtypes: Sequence[str] = DTYPES) -> np.ndarray:
@@ -85,3 +73,79 @@ def optional(parent: Any, field: str, dtypes: Sequence[str] = DTYPES) -> np.ndar
     """The array in message field ``field`` of ``parent`` (:func:`from_proto`), or None when the field was
     not set."""
     return from_proto(getattr(parent, field), field, dtypes) if parent.HasField(field) else None
+
+
+# -- the server's messages from the wire documents -------------------------------------------------------
+
+
+def array_message(a: w.WireArray) -> pb.Array:
+    """A wire array as ``Array`` (the same dtype, shape and bytes)."""
+    return pb.Array(dtype=a.dtype, shape=list(a.shape), data=a.data)
+
+
+def array_fields(arrays: w.WireModel) -> dict[str, pb.Array]:
+    """The arrays of a document's ``arrays`` as message fields of the same names."""
+    return {name: array_message(a) for name, a in arrays if isinstance(a, w.WireArray)}
+
+
+def json_text(doc: w.WireModel) -> str:
+    """A document as the JSON text of a ``*_json`` field (NaN and infinities as null)."""
+    return doc.model_dump_json()
+
+
+def progress_message(p: w.Progress) -> pb.Progress:
+    return pb.Progress(stage=p.stage, done=p.done, total=p.total, message=p.message)
+
+
+def model_message(info: w.ModelInfo) -> pb.ModelInfo:
+    return pb.ModelInfo(
+        version=info.version,
+        dofs=[pb.Dof(name=d.name, min=d.min, max=d.max, unit=d.unit) for d in info.dofs],
+        n_bone=info.n_bone,
+        n_identity=info.n_identity,
+        n_vertices=info.n_vertices,
+        n_faces=info.n_faces,
+        joint_names=list(info.joint_names),
+        asset_format=info.assets["format"],
+        asset_sources=info.assets["sources"],
+        asset_sha256=info.assets["sha256"],
+    )
+
+
+def mesh_fit_message(e: w.MeshFit) -> pb.MeshFitResult:
+    return pb.MeshFitResult(
+        fitted_as=e.fitted_as,
+        dof_names=e.dof_names,
+        joint_names=e.joint_names,
+        report_json=json_text(e.report),
+        **array_fields(e.arrays),
+    )
+
+
+def sequence_event(e: w.SequenceChunkEvent | w.SequenceResultEvent) -> pb.FitSequenceEvent:
+    """A chunk or the result of a sequence fit as the stream's message."""
+    if isinstance(e, w.SequenceChunkEvent):
+        chunk = pb.SequenceChunk(start=e.start, stop=e.stop, **array_fields(e.arrays))
+        return pb.FitSequenceEvent(chunk=chunk)
+    summary = pb.SequenceSummary(
+        dof_names=e.dof_names,
+        joint_names=e.joint_names,
+        stats_json=json_text(e.stats),
+        limit_violations=e.limit_violations,
+        **array_fields(e.arrays),
+    )
+    return pb.FitSequenceEvent(result=summary)
+
+
+def upgrade_event(e: w.UpgradeChunkEvent | w.UpgradeResultEvent) -> pb.UpgradeEvent:
+    """A chunk or the result of an upgrade as the stream's message."""
+    if isinstance(e, w.UpgradeChunkEvent):
+        return pb.UpgradeEvent(chunk=pb.UpgradeChunk(start=e.start, stop=e.stop, **array_fields(e.arrays)))
+    summary = pb.UpgradeSummary(
+        dof_names=e.dof_names,
+        joint_names=e.joint_names,
+        summary_json=json_text(e.summary),
+        files=e.files,
+        **array_fields(e.arrays),
+    )
+    return pb.UpgradeEvent(result=summary)

@@ -10,6 +10,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException
 
+from bodyfit import wire as w
 from bodyfit.models.errors import BodyfitError
 from bodyfit.service.errors import ServiceError, as_service_error
 
@@ -28,17 +29,19 @@ _KIND_OF_STATUS = {400: "invalid_argument", 404: "not_found", 405: "not_found", 
 
 
 def problem(kind: str, title: str, detail: str, status: int, field: str | None = None) -> dict[str, Any]:
-    """The problem document: RFC 7807 members plus ``kind`` (shared with gRPC) and ``field``."""
-    doc: dict[str, Any] = {
-        "type": f"https://bodyfit.dev/problems/{kind}",
-        "title": title,
-        "status": status,
-        "detail": detail,
-        "kind": kind,
-    }
-    if field is not None:
-        doc["field"] = field
-    return doc
+    """The problem document (:class:`bodyfit.wire.Problem`): RFC 7807 members plus ``kind`` (shared with
+    gRPC) and ``field`` (left out when there is none)."""
+    doc = w.Problem.model_validate(
+        {
+            "type": f"https://bodyfit.dev/problems/{kind}",
+            "title": title,
+            "status": status,
+            "detail": detail,
+            "kind": kind,
+            "field": field,
+        }
+    )
+    return doc.model_dump(exclude_none=True)
 
 
 def service_problem(exc: ServiceError) -> dict[str, Any]:

@@ -8,6 +8,10 @@ import json
 from collections.abc import Mapping
 from typing import Any
 
+from pydantic import ValidationError
+
+from bodyfit.wire import GRPC_STATUS_KINDS
+
 
 class BodyfitClientError(Exception):
     """Base class. ``status``: the HTTP status (or the gRPC code's name); ``detail``: what was wrong and
@@ -136,8 +140,6 @@ def error_from_status(
     """The typed exception of a gRPC status: ``code`` its name, ``trailing`` its metadata (the server's
     "bodyfit-kind" and "bodyfit-field"). UNAVAILABLE without a kind is gRPC's own (no server answered);
     the runtime's RESOURCE_EXHAUSTED for too many concurrent calls means busy, not too large."""
-    from bodyfit.api.grpc_wire import STATUS_KINDS  # the gRPC half of the wire contract (needs protobuf)
-
     if "bodyfit-kind" not in trailing:
         if code == "UNAVAILABLE":
             sent = not any(words in details.lower() for words in _NOT_SENT)
@@ -145,8 +147,21 @@ def error_from_status(
             return ConnectionFailedError(message, code, retry_after=retry_after, sent=sent)
         if code == "RESOURCE_EXHAUSTED" and "concurrent rpc limit" in details.lower():
             return ServerBusyError(details, code, retry_after=retry_after)
-    kind = str(trailing.get("bodyfit-kind") or STATUS_KINDS.get(code, "internal"))
+    kind = str(trailing.get("bodyfit-kind") or GRPC_STATUS_KINDS.get(code, "internal"))
     field = trailing.get("bodyfit-field")
     return ERRORS.get(kind, ServerError)(
         details, code, None if field is None else str(field), retry_after=retry_after
+    )
+
+
+def error_from_validation(exc: ValidationError, what: str) -> ServerError:
+    """The error of an answer that does not match the wire contract (:mod:`bodyfit.wire`): ``what`` the
+    answer was, and where it differs (the first few keys at fault, as ``arrays.vertices: Field
+    required``)."""
+    errors = exc.errors(include_url=False)
+    places = [f"{'.'.join(str(p) for p in e['loc']) or 'the document'}: {e['msg']}" for e in errors[:3]]
+    more = f"; {len(errors) - 3} more" if len(errors) > 3 else ""
+    return ServerError(
+        f"the server's {what} does not match this SDK's wire models ({'; '.join(places)}{more}); is the "
+        "server a different bodyfit version?"
     )

@@ -1,10 +1,11 @@
 """gRPC clients of the bodyfit service: :class:`GrpcClient` (sync) and :class:`AsyncGrpcClient` (grpc.aio).
 
-The same methods and results as the REST clients (:mod:`bodyfit.clients.core` declares them once); numpy
-in and out over raw little-endian arrays; statuses become the typed exceptions of
+The same methods and results as the REST clients (:mod:`bodyfit.clients.core` declares them once and
+reads the answers of both with the models of :mod:`bodyfit.wire`); numpy in and out over raw little-endian
+arrays; statuses become the typed exceptions of
 :mod:`bodyfit.clients.errors` (the field at fault from the trailing metadata); default timeouts; retries by
 :class:`~bodyfit.clients.core.RetryPolicy`. This module only turns an operation into a request message and
-the answers into events. Needs the ``grpc`` extra (grpcio, protobuf).
+the answers into documents of the REST answers' shape. Needs the ``grpc`` extra (grpcio, protobuf).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from google.protobuf.message import Message
 
 from bodyfit.api import bodyfit_pb2 as pb
 from bodyfit.api import bodyfit_pb2_grpc as pb_grpc
-from bodyfit.api.grpc_wire import from_proto, to_proto
+from bodyfit.api.grpc_wire import to_proto
 from bodyfit.clients.core import AsyncClientCore, Event, Operation, SyncClientCore, parse_retry_after
 from bodyfit.clients.core.base import retry_policy
 from bodyfit.clients.core.operations import Coordinates
@@ -87,15 +88,20 @@ def synth_request(a: dict[str, Any], file: bool) -> pb.SynthesizeRequest:
 
 
 def message_doc(msg: Message) -> dict[str, Any]:
-    """A message as the REST event's dict: arrays under "arrays", ``*_json`` strings parsed (without the
-    suffix), repeated fields as lists, maps as dicts."""
+    """A message as the REST document of the same content: arrays under "arrays" as
+    ``{"dtype", "shape", "data"}`` (raw bytes), ``*_json`` strings parsed (without the suffix), repeated
+    fields as lists, maps as dicts.
+
+    Raises:
+        ValueError: a ``*_json`` field that is not JSON.
+    """
     doc: dict[str, Any] = {}
     arrays = {}
     for f in msg.DESCRIPTOR.fields:
         value = getattr(msg, f.name)
         if f.message_type is pb.Array.DESCRIPTOR:
             if msg.HasField(f.name):
-                arrays[f.name] = from_proto(value, f.name)
+                arrays[f.name] = {"dtype": value.dtype, "shape": list(value.shape), "data": value.data}
         elif f.name.endswith("_json"):
             doc[f.name.removesuffix("_json")] = json.loads(value)
         elif f.message_type is not None and f.message_type.GetOptions().map_entry:
@@ -111,7 +117,7 @@ def model_doc(res: pb.ModelInfo) -> dict[str, Any]:
     """GetModelInfo's answer as REST's GET /v1/model document."""
     return {
         "dofs": [{"name": d.name, "min": d.min, "max": d.max, "unit": d.unit} for d in res.dofs],
-        "shape": {"n_bone": res.n_bone, "n_identity": res.n_identity},
+        "shape": {"n_bone": res.n_bone, "n_identity": res.n_identity, "n_shape": res.n_bone + res.n_identity},
         "mesh": {"n_vertices": res.n_vertices, "n_faces": res.n_faces},
         "joint_names": list(res.joint_names),
         "assets": {
@@ -124,16 +130,23 @@ def model_doc(res: pb.ModelInfo) -> dict[str, Any]:
 
 
 def answer_event(op: Operation[Any], res: Any) -> Event:
-    """The result event of a unary answer."""
-    return {"event": "result", **(model_doc(res) if op.name == "model_info" else message_doc(res))}
+    """The document of a unary answer."""
+    return model_doc(res) if op.name == "model_info" else _doc(res)
 
 
 def stream_event(event: Any) -> Event:
-    """A streamed ``*Event`` message as an event."""
+    """A streamed ``*Event`` message as the document of its event."""
     kind = event.WhichOneof("event")
     if kind is None:
         raise ServerError("the server streamed an empty event")
-    return {"event": kind, **message_doc(getattr(event, kind))}
+    return {"event": kind, **_doc(getattr(event, kind))}
+
+
+def _doc(msg: Message) -> dict[str, Any]:
+    try:
+        return message_doc(msg)
+    except ValueError as exc:
+        raise ServerError(f"the server's {type(msg).__name__} holds text that is not JSON: {exc}") from None
 
 
 def _channel_options() -> list[tuple[str, int]]:

@@ -5,12 +5,11 @@ server's problem+json; default timeouts; retries by :class:`~bodyfit.clients.cor
 loading server, ``Retry-After`` honoured; connections never made). Pass ``http_client`` to inject a
 transport (e.g. an in-process app in tests). The methods, checks and results are those of
 :mod:`bodyfit.clients.core`; this module only turns an operation into an HTTP request and the answer into
-events.
+documents (JSON text, one per NDJSON line), which the core reads with the models of :mod:`bodyfit.wire`.
 """
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import AsyncGenerator, Generator
 from typing import Any, Generic, TypeVar
@@ -29,7 +28,7 @@ from bodyfit.clients.errors import (
     ServerError,
     error_from_http,
 )
-from bodyfit.clients.results import decode_array, synthesis_event
+from bodyfit.clients.results import synthesis_event
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 DEFAULT_TIMEOUT = httpx.Timeout(30.0, read=600.0)
@@ -91,22 +90,12 @@ def request_of(op: Operation[Any]) -> tuple[str, str, dict[str, Any]]:
 
 
 def answer_event(op: Operation[Any], content: bytes) -> Event:
-    """The result event of a unary answer."""
+    """The document of a unary answer: the synthesis's npz arrays, a file's bytes, or the JSON body."""
     if op.name == "synthesize":
-        return {"event": "result", **synthesis_event(content)}
+        return synthesis_event(content)
     if op.name == "synthesize_file":
-        return {"event": "result", "data": content}
-    return {"event": "result", **json.loads(content)}
-
-
-def stream_event(line: str) -> Event:
-    """One NDJSON line as an event (its arrays decoded)."""
-    doc = json.loads(line)
-    if not isinstance(doc, dict):
-        raise ServerError(f"the server streamed something other than an event: {line[:100]!r}")
-    if "arrays" in doc:
-        doc["arrays"] = {k: decode_array(v) for k, v in doc["arrays"].items()}
-    return doc
+        return {"data": content}
+    return content
 
 
 def raise_for_problem(response: httpx.Response) -> None:
@@ -176,7 +165,7 @@ class Client(_Rest[httpx.Client], SyncClientCore):
                     return
                 for line in response.iter_lines():
                     if line.strip():
-                        yield stream_event(line)
+                        yield line
         except httpx.HTTPError as exc:
             raise transport_error(exc, self.base_url) from exc
 
@@ -204,7 +193,7 @@ class AsyncClient(_Rest[httpx.AsyncClient], AsyncClientCore):
                     return
                 async for line in response.aiter_lines():
                     if line.strip():
-                        yield stream_event(line)
+                        yield line
         except httpx.HTTPError as exc:
             raise transport_error(exc, self.base_url) from exc
 

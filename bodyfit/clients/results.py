@@ -1,71 +1,78 @@
-"""What the SDK returns: numpy results decoded from the wire (shared by the REST and gRPC clients)."""
+"""What the SDK returns: numpy results read from the server's answers (shared by the REST and gRPC
+clients). The answers are read with the models of :mod:`bodyfit.wire`; an answer that does not match them
+raises :class:`~bodyfit.clients.errors.ServerError` saying where."""
 
 from __future__ import annotations
 
-import base64
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
+from pydantic import TypeAdapter, ValidationError
 
-from bodyfit.clients.errors import ServerError, error_from_problem
+from bodyfit import wire as w
+from bodyfit.clients.errors import ServerError, error_from_problem, error_from_validation
 from bodyfit.io.errors import FileFormatError, FileLimitError
 from bodyfit.io.npz import FLOAT, INTEGER, TEXT, ArraySpec, Dim, read_npz
+from bodyfit.wire import ModelInfo
 
 ProgressCallback = Callable[[dict[str, Any]], None]
 """Called with each progress event: ``{"stage", "done", "total", "message"}``."""
+T = TypeVar("T")
+Document = str | bytes | dict[str, Any]
+"""An answer as the transport has it: JSON text (REST) or a dict of Python values (gRPC)."""
+
+__all__ = [
+    "EventCollector",
+    "MeshFitResult",
+    "ModelInfo",
+    "ProgressCallback",
+    "SequenceResult",
+    "Synthesis",
+    "UpgradeOutput",
+    "decode_array",
+    "reader",
+]
 
 
-def decode_array(doc: dict[str, Any] | np.ndarray) -> np.ndarray:
-    """The inverse of the server's array encoding ``{"dtype", "shape", "data": base64 little-endian}``
-    (an array already decoded, as the gRPC transport gives, is returned as it is)."""
+def reader(adapter: TypeAdapter[T], what: str) -> Callable[[Document], T]:
+    """A function reading a document with ``adapter`` (JSON text or Python values).
+
+    The function raises ServerError when the document does not match (its message names the keys at fault).
+    """
+
+    def read(doc: Document) -> T:
+        try:
+            if isinstance(doc, str | bytes):
+                return adapter.validate_json(doc)
+            return adapter.validate_python(doc)
+        except ValidationError as exc:
+            raise error_from_validation(exc, what) from None
+
+    return read
+
+
+read_model_info = reader(TypeAdapter(ModelInfo), "model info")
+
+
+def decode_array(doc: w.WireArray | dict[str, Any] | np.ndarray) -> np.ndarray:
+    """The numpy array of a wire array (a :class:`~bodyfit.wire.WireArray` or its document); an array
+    already decoded is returned as it is.
+
+    Raises:
+        ServerError: a document that is not a wire array (unknown dtype, a byte count that does not
+            match dtype and shape, ...).
+    """
     if isinstance(doc, np.ndarray):
         return doc
-    dtype = np.dtype(str(doc["dtype"])).newbyteorder("<")
-    return (
-        np.frombuffer(base64.b64decode(doc["data"]), dtype=dtype)
-        .reshape(doc["shape"])
-        .astype(dtype.newbyteorder("="))
-    )
+    if isinstance(doc, w.WireArray):
+        return doc.to_numpy()
+    return _read_array(doc).to_numpy()
 
 
-@dataclass(frozen=True)
-class ModelInfo:
-    """dof_names, dof_ranges (n_dof, 2), dof_units ("rad" / "m"); shape counts; mesh sizes; joint names;
-    the asset version and per-file sha256."""
-
-    dof_names: tuple[str, ...]
-    dof_ranges: np.ndarray
-    dof_units: tuple[str, ...]
-    n_bone: int
-    n_identity: int
-    n_vertices: int
-    n_faces: int
-    joint_names: tuple[str, ...]
-    assets: dict[str, Any]
-    version: str
-
-    @property
-    def n_shape(self) -> int:
-        return self.n_bone + self.n_identity
-
-    @classmethod
-    def from_dict(cls, doc: dict[str, Any]) -> ModelInfo:
-        dofs = doc["dofs"]
-        return cls(
-            dof_names=tuple(d["name"] for d in dofs),
-            dof_ranges=np.array([[d["min"], d["max"]] for d in dofs], np.float64),
-            dof_units=tuple(d["unit"] for d in dofs),
-            n_bone=int(doc["shape"]["n_bone"]),
-            n_identity=int(doc["shape"]["n_identity"]),
-            n_vertices=int(doc["mesh"]["n_vertices"]),
-            n_faces=int(doc["mesh"]["n_faces"]),
-            joint_names=tuple(doc["joint_names"]),
-            assets=dict(doc["assets"]),
-            version=str(doc["version"]),
-        )
+_read_array = reader(TypeAdapter(w.WireArray), "array")
 
 
 @dataclass(frozen=True)
@@ -91,8 +98,15 @@ class Synthesis:
 
     @classmethod
     def from_event(cls, doc: dict[str, Any]) -> Synthesis:
-        """From ``{"arrays": {vertices, joints[, faces, bones, bone_faces]}, "joint_names"}``."""
+        """From ``{"arrays": {vertices, joints[, faces, bones, bone_faces]}, "joint_names"}``, the arrays
+        numpy arrays or wire arrays.
+
+        Raises:
+            ServerError: vertices or joints missing, or an array that is not a wire array.
+        """
         a = {k: decode_array(v) for k, v in doc["arrays"].items()}
+        if "vertices" not in a or "joints" not in a:
+            raise ServerError(f"the server's synthesis holds {sorted(a)}, without vertices and joints")
         names = tuple(str(n) for n in doc["joint_names"])
         return cls(a["vertices"], a["joints"], names, a.get("faces"), a.get("bones"), a.get("bone_faces"))
 
@@ -142,18 +156,18 @@ class MeshFitResult:
         return bool(self.report.get("confident"))
 
     @classmethod
-    def from_event(cls, doc: dict[str, Any]) -> MeshFitResult:
-        a = {k: decode_array(v) for k, v in doc["arrays"].items()}
+    def from_event(cls, doc: w.MeshFit) -> MeshFitResult:
+        a = doc.arrays
         return cls(
-            str(doc["fitted_as"]),
-            a["shape"],
-            a["coordinates"],
-            a["root"],
-            a["vertices"],
-            a["joints"],
-            tuple(doc["dof_names"]),
-            tuple(doc["joint_names"]),
-            dict(doc["report"]),
+            doc.fitted_as,
+            a.shape.to_numpy(),
+            a.coordinates.to_numpy(),
+            a.root.to_numpy(),
+            a.vertices.to_numpy(),
+            a.joints.to_numpy(),
+            doc.dof_names,
+            doc.joint_names,
+            doc.report.model_dump(mode="json"),
         )
 
 
@@ -174,48 +188,81 @@ class SequenceResult:
     limit_violations: int = 0
 
     @classmethod
-    def from_events(cls, chunks: list[dict[str, Any]], result: dict[str, Any]) -> SequenceResult:
+    def from_events(cls, chunks: Sequence[w.SequenceChunk], result: w.SequenceFit) -> SequenceResult:
+        """Raises ServerError when the chunks do not cover the frames once each, in order."""
         arrays = per_frame(chunks, ("coordinates", "root", "vertices", "joints", "error_mm"))
         return cls(
-            shape=decode_array(result["arrays"]["shape"]),
-            dof_names=tuple(result["dof_names"]),
-            joint_names=tuple(result["joint_names"]),
-            stats=dict(result.get("stats", {})),
-            limit_violations=int(result.get("limit_violations", 0)),
+            shape=result.arrays.shape.to_numpy(),
+            dof_names=result.dof_names,
+            joint_names=result.joint_names,
+            stats=result.stats.model_dump(mode="json"),
+            limit_violations=result.limit_violations,
             **arrays,
         )
 
 
-def per_frame(chunks: list[dict[str, Any]], keys: tuple[str, ...]) -> dict[str, np.ndarray]:
-    """The per-frame arrays ``keys`` of a stream's chunk events, joined in frame order (by ``start``)."""
-    ordered = sorted(chunks, key=lambda c: int(c["start"]))
-    return {key: np.concatenate([decode_array(c["arrays"][key]) for c in ordered]) for key in keys}
+def per_frame(
+    chunks: Sequence[w.SequenceChunk | w.UpgradeChunk], keys: tuple[str, ...]
+) -> dict[str, np.ndarray]:
+    """The per-frame arrays ``keys`` of a stream's chunk events, joined in frame order (by ``start``).
+
+    Raises:
+        ServerError: no chunks, chunks that leave out or repeat frames, or whose arrays do not hold
+            ``stop - start`` frames.
+    """
+    ordered = sorted(chunks, key=lambda c: c.start)
+    if not ordered:
+        raise ServerError("the server's stream has no chunk of frames")
+    stop = 0
+    for c in ordered:
+        if c.start != stop or c.stop < c.start:
+            raise ServerError(
+                f"the server's chunks are not contiguous: frames [{c.start}, {c.stop}) follow frame {stop}"
+            )
+        stop = c.stop
+    out = {}
+    for key in keys:
+        parts = [getattr(c.arrays, key) for c in ordered]
+        for c, a in zip(ordered, parts, strict=True):
+            if not a.shape or a.shape[0] != c.stop - c.start:
+                raise ServerError(
+                    f"the server's chunk [{c.start}, {c.stop}) has {key} of shape {list(a.shape)}, not "
+                    f"{c.stop - c.start} frames"
+                )
+        out[key] = np.concatenate([a.to_numpy() for a in parts])
+    return out
 
 
 class EventCollector:
-    """Consumes a stream of events: forwards progress, keeps chunks, raises the typed error of an
-    ``error`` event; :meth:`feed` returns True at the ``result`` event."""
+    """Consumes the documents of an answer, each read by ``parse``: forwards progress, keeps chunks,
+    raises the typed error of an ``error`` event; :meth:`feed` returns True at the result (a unary
+    answer's only document)."""
 
-    def __init__(self, progress: ProgressCallback | None) -> None:
+    def __init__(self, progress: ProgressCallback | None, parse: Callable[[Any], Any]) -> None:
         self.progress = progress
-        self.chunks: list[dict[str, Any]] = []
-        self.result: dict[str, Any] | None = None
+        self.parse = parse
+        self.chunks: list[w.SequenceChunk | w.UpgradeChunk] = []
+        self.result: Any = None
         self.events = 0
 
-    def feed(self, event: dict[str, Any]) -> bool:
+    def feed(self, doc: Any) -> bool:
+        """Returns True at the result; raises ServerError for a document that is not what the server
+        sends, or the typed error of an ``error`` event."""
         self.events += 1
-        kind = event.get("event")
-        if kind == "progress" and self.progress is not None:
-            self.progress({k: v for k, v in event.items() if k != "event"})
-        elif kind == "chunk":
+        event = self.parse(doc)
+        if isinstance(event, w.ProgressEvent):
+            if self.progress is not None:
+                self.progress(event.model_dump(mode="json", exclude={"event"}))
+        elif isinstance(event, w.ErrorEvent):
+            raise error_from_problem(event.model_dump(mode="json", exclude_none=True), event.status)
+        elif isinstance(event, w.SequenceChunk | w.UpgradeChunk):
             self.chunks.append(event)
-        elif kind == "error":
-            raise error_from_problem(event, event.get("status"))
-        elif kind == "result":
+        else:
             self.result = event
-        return self.result is not None
+            return True
+        return False
 
-    def finish(self) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    def finish(self) -> tuple[list[w.SequenceChunk | w.UpgradeChunk], Any]:
         """(chunks, result)."""
         if self.result is None:
             raise ServerError("the server's stream ended without a result (the connection was cut?)")
@@ -252,19 +299,15 @@ class UpgradeOutput:
         return paths
 
     @classmethod
-    def from_events(cls, chunks: list[dict[str, Any]], result: dict[str, Any]) -> UpgradeOutput:
+    def from_events(cls, chunks: Sequence[w.UpgradeChunk], result: w.UpgradeResult) -> UpgradeOutput:
+        """Raises ServerError when the chunks do not cover the frames once each, in order."""
         arrays = per_frame(chunks, ("coordinates", "root", "joints", "error_mm", "bad_frames"))
         return cls(
-            shape=decode_array(result["arrays"]["shape"]),
-            scales=decode_array(result["arrays"]["scales"]),
-            dof_names=tuple(result["dof_names"]),
-            joint_names=tuple(result["joint_names"]),
-            summary=dict(result["summary"]),
-            files={ext: _file_bytes(data) for ext, data in result["files"].items()},
+            shape=result.arrays.shape.to_numpy(),
+            scales=result.arrays.scales.to_numpy(),
+            dof_names=result.dof_names,
+            joint_names=result.joint_names,
+            summary=result.summary.model_dump(mode="json"),
+            files=dict(result.files),
             **arrays,
         )
-
-
-def _file_bytes(data: str | bytes) -> bytes:
-    """A file of an upgrade: base64 text in JSON, bytes over gRPC."""
-    return bytes(data) if isinstance(data, bytes | bytearray) else base64.b64decode(data)

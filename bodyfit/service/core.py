@@ -57,74 +57,36 @@ from bodyfit.service.validation import (
     check_scan,
     invalid_input,
 )
+from bodyfit.wire import Dof, FittedAs, MeshSizes, ModelInfo, ShapeSizes
 
 LOG = logging.getLogger("bodyfit.service")
 
 
-
-@dataclass(frozen=True)
-class ModelInfo:
-    """What clients need to build requests: DOF names, ranges (n_dof, 2) and units ("rad" / "m"), shape
-    coefficient counts, mesh sizes, joint names, and the asset version with each file's sha256."""
-
-    dof_names: tuple[str, ...]
-    dof_ranges: np.ndarray
-    dof_units: tuple[str, ...]
-    n_bone: int
-    n_identity: int
-    n_vertices: int
-    n_faces: int
-    joint_names: tuple[str, ...]
-    asset_format: str
-    asset_sources: dict[str, str]
-    asset_sha256: dict[str, str]
-    version: str
-
-    @property
-    def n_shape(self) -> int:
-        return self.n_bone + self.n_identity
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "version": self.version,
-            "dofs": [
-                {"name": n, "min": float(lo), "max": float(hi), "unit": u}
-                for n, (lo, hi), u in zip(self.dof_names, self.dof_ranges, self.dof_units, strict=True)
-            ],
-            "shape": {"n_bone": self.n_bone, "n_identity": self.n_identity, "n_shape": self.n_shape},
-            "mesh": {"n_vertices": self.n_vertices, "n_faces": self.n_faces},
-            "joint_names": list(self.joint_names),
-            "assets": {
-                "format": self.asset_format,
-                "sources": self.asset_sources,
-                "sha256": self.asset_sha256,
-            },
-        }
-
-    @classmethod
-    def of(cls, model: BodyModel, manifest: dict[str, Any]) -> ModelInfo:
-        """The info of a loaded ``model`` and its asset ``manifest``."""
-        skel = model.skeleton
-        units = tuple("m" if c.motion == "translational" else "rad" for c in skel.spec.coordinates)
-        try:
-            pkg = version("bodyfit")
-        except PackageNotFoundError:  # pragma: no cover - running from a source tree without install
-            pkg = "unknown"
-        files = manifest.get("files", {})
-        return cls(
-            dof_names=tuple(model.dof_names),
-            dof_ranges=skel.ranges.copy(),
-            dof_units=units,
-            n_bone=model.n_bone,
-            n_identity=model.n_identity,
-            n_vertices=model.n_vertices,
-            n_faces=len(model.faces),
-            joint_names=tuple(model.joint_names),
-            asset_format=str(manifest.get("format", "")),
-            asset_sources=dict(manifest.get("sources", {})),
-            asset_sha256={name: str(entry.get("sha256", "")) for name, entry in files.items()},
-            version=pkg,
-        )
+def model_info(model: BodyModel, manifest: dict[str, Any]) -> ModelInfo:
+    """What clients need to build requests (``GET /v1/model``) for a loaded ``model`` and its asset
+    ``manifest``: DOF names, ranges and units ("rad" / "m"), shape coefficient counts, mesh sizes, joint
+    names, and the package version with each asset file's sha256."""
+    skel = model.skeleton
+    try:
+        pkg = version("bodyfit")
+    except PackageNotFoundError:  # pragma: no cover - running from a source tree without install
+        pkg = "unknown"
+    files = manifest.get("files", {})
+    return ModelInfo(
+        version=pkg,
+        dofs=tuple(
+            Dof(name=name, min=float(lo), max=float(hi), unit="m" if c.motion == "translational" else "rad")
+            for name, (lo, hi), c in zip(model.dof_names, skel.ranges, skel.spec.coordinates, strict=True)
+        ),
+        shape=ShapeSizes(n_bone=model.n_bone, n_identity=model.n_identity, n_shape=model.n_shape),
+        mesh=MeshSizes(n_vertices=model.n_vertices, n_faces=len(model.faces)),
+        joint_names=tuple(model.joint_names),
+        assets={
+            "format": str(manifest.get("format", "")),
+            "sources": dict(manifest.get("sources", {})),
+            "sha256": {name: str(entry.get("sha256", "")) for name, entry in files.items()},
+        },
+    )
 
 
 @dataclass(frozen=True)
@@ -138,10 +100,10 @@ class PendingSynthesis:
     future: Future[Outputs]
 
 
-
 # how :meth:`BodyService.fit_mesh` fits a mesh (:meth:`BodyService.route`), as ``MeshFit.fitted_as`` says
-REGISTERED, SMPL_TOPOLOGY, RAW_SCAN = "registered", "SMPL topology", "raw scan"
-
+REGISTERED: FittedAs = "registered"
+SMPL_TOPOLOGY: FittedAs = "SMPL topology"
+RAW_SCAN: FittedAs = "raw scan"
 
 
 @dataclass(frozen=True)
@@ -150,7 +112,7 @@ class MeshFit:
     :data:`RAW_SCAN`), the parameters shape (n_shape,), coordinates (n_dof,), root (3,), the registration
     ``vertices`` (V, 3) in our topology, ``joints`` (J, 3), and the error report."""
 
-    fitted_as: str
+    fitted_as: FittedAs
     shape: np.ndarray
     coordinates: np.ndarray
     root: np.ndarray
@@ -198,7 +160,7 @@ class BodyService:
         self._slots = threading.BoundedSemaphore(self.limits.max_concurrent)
         self._batcher = SynthBatcher(self.session, max_bodies=self.limits.max_batch)
         self._faces = self.model.faces.astype(np.int32)
-        self._info = ModelInfo.of(self.model, self.manifest)
+        self._info = model_info(self.model, self.manifest)
 
     @classmethod
     def load(
@@ -279,7 +241,8 @@ class BodyService:
 
         Raises:
             InvalidInputError: wrong shapes, NaN, unknown DOF names, out-of-range values (the message
-                names the field and the fix); LimitExceededError: more bodies than ``limits.max_batch``.
+                names the field and the fix).
+            LimitExceededError: more bodies than ``limits.max_batch``.
         """
         pending = self.start_synthesis(request)
         return self.finish_synthesis(pending, *pending.future.result())
@@ -323,7 +286,7 @@ class BodyService:
         """Read an uploaded registered sequence (:func:`bodyfit.service.uploads.read_sequence`)."""
         return uploads.read_sequence(data, self.limits, self.model.n_vertices)
 
-    def route(self, scan: Scan) -> str:
+    def route(self, scan: Scan) -> FittedAs:
         """How :meth:`fit_mesh` fits ``scan``: :data:`REGISTERED` (our topology's vertex count),
         :data:`SMPL_TOPOLOGY` (6,890 vertices with faces) or :data:`RAW_SCAN` (anything else)."""
         if scan.n_points == self.model.n_vertices:
@@ -347,9 +310,11 @@ class BodyService:
         anything else -> raw scan (orientation searched, no landmarks).
 
         Raises:
-            InvalidInputError: a scan that cannot be a body (:meth:`check_scan`), found so during the fit,
-            or whose fit is not finite; BusyError: no worker slot within ``limits.queue_seconds``;
-            JobCancelledError / DeadlineExceededError via ``job``.
+            InvalidInputError: a scan that cannot be a body (:meth:`check_scan`), found so during the
+                fit, or whose fit is not finite.
+            BusyError: no worker slot within ``limits.queue_seconds``.
+            JobCancelledError: ``job`` was cancelled (the client went away).
+            DeadlineExceededError: ``job`` ran past its time limit.
         """
         job = job or Job(timeout_s=self.limits.max_seconds)
         self.check_scan(scan)
@@ -389,7 +354,8 @@ class BodyService:
         :func:`check_frames` (dtype, shape, finite in float32, weights, every frame a human-sized body).
 
         Raises:
-            LimitExceededError: too many frames; InvalidInputError: what is wrong and the fix.
+            LimitExceededError: too many frames.
+            InvalidInputError: what is wrong and the fix.
         """
         x = np.asarray(frames)
         limit, fix = self.frame_limit(SEQUENCE_BYTES_PER_FRAME)
@@ -409,8 +375,11 @@ class BodyService:
 
         Raises:
             InvalidInputError: wrong shape or dtype, NaN, no frames, a frame that is not a body
-            (:meth:`check_sequence`), or a fit that is not finite; LimitExceededError: more than
-            ``limits.max_frames``; BusyError, JobCancelledError, DeadlineExceededError.
+                (:meth:`check_sequence`), or a fit that is not finite.
+            LimitExceededError: more than ``limits.max_frames`` frames.
+            BusyError: no worker slot within ``limits.queue_seconds``.
+            JobCancelledError: ``job`` was cancelled (the client went away).
+            DeadlineExceededError: ``job`` ran past its time limit.
         """
         job = job or Job(timeout_s=self.limits.max_seconds)
         x = np.asarray(frames)
@@ -452,8 +421,10 @@ class BodyService:
         mean (the result's notes say which ran).
 
         Raises:
-            InvalidInputError: a sequence found unusable during the work, or whose result is not finite;
-            BusyError, JobCancelledError, DeadlineExceededError.
+            InvalidInputError: a sequence found unusable during the work, or whose result is not finite.
+            BusyError: no worker slot within ``limits.queue_seconds``.
+            JobCancelledError: ``job`` was cancelled (the client went away).
+            DeadlineExceededError: ``job`` ran past its time limit.
         """
         job = job or Job(timeout_s=self.limits.max_seconds)
         with self._slot():
@@ -522,7 +493,7 @@ def shape_hints(sex: str | None, height_m: float | None, mass_kg: float | None) 
         raise InvalidInputError(str(exc), field=exc.field) from exc
 
 
-def _first(fit: BodyFit, kind: str) -> MeshFit:
+def _first(fit: BodyFit, kind: FittedAs) -> MeshFit:
     return MeshFit(
         kind, fit.shape[0], fit.coordinates[0], fit.root[0], fit.vertices[0], fit.joints[0], fit.reports[0]
     )

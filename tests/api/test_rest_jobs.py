@@ -11,12 +11,13 @@ from typing import Any
 from bodyfit.api.rest.jobs import stream
 from bodyfit.service.errors import JobCancelledError
 from bodyfit.service.jobs import Job
+from bodyfit.wire import WireModel
 
 
 def test_closing_the_stream_cancels_the_work() -> None:
     stopped = threading.Event()
 
-    def work(job: Job) -> list[dict[str, Any]]:
+    def work(job: Job) -> list[WireModel]:
         try:
             for k in range(10_000):
                 job.report("fit", k, 10_000)
@@ -24,7 +25,7 @@ def test_closing_the_stream_cancels_the_work() -> None:
         except JobCancelledError:
             stopped.set()
             raise
-        return [{"event": "result"}]
+        return []
 
     async def client_reads_one_line_and_leaves() -> dict[str, Any]:
         job = Job()
@@ -40,7 +41,7 @@ def test_closing_the_stream_cancels_the_work() -> None:
 
 
 def test_a_failure_midway_is_an_error_event() -> None:
-    def work(job: Job) -> list[dict[str, Any]]:
+    def work(job: Job) -> list[WireModel]:
         job.report("fit", 0, 2)
         raise JobCancelledError("stopped on purpose")
 

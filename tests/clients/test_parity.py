@@ -54,7 +54,41 @@ MODEL = {
     "version": "1",
 }
 PROGRESS: dict[str, Any] = {"stage": "fit", "done": 1, "total": 2, "message": "halfway"}
-REPORT = {"confident": True, "distances": {"mean": 1.5}}
+# complete documents, as the server sends them (bodyfit.wire reads them; tests/api/test_wire_models.py checks
+# that the server's own answers match)
+REPORT = {
+    "distances": {"mean": 1.5, "median": 1.2, "p95": 3.0, "max": 4.5},
+    "limit_violations": 0,
+    "iterations": 40,
+    "seconds": 0.25,
+    "confident": True,
+    "reasons": [],
+    "extra": {"stage_loss_mm2": {"all": 2.25}},
+}
+STATS = {
+    "frames": 3,
+    "seconds": 0.1,
+    "fps": 30.0,
+    "mean_mm": 1.5,
+    "jitter_input_mm": None,
+    "jitter_fit_mm": None,
+    "jitter_ratio": None,
+    "shape_keyframes": [0, 2],
+    "jitter_note": "jitter needs three consecutive frames",
+}
+SUMMARY = {
+    "path": "a",
+    "frames": 3,
+    "bad_frames": [1],
+    "frame_rate": 30.0,
+    "seconds": 0.2,
+    "fps": 15.0,
+    "v2v_mean_mm": 2.5,
+    "v2v_max_frame_mm": 4.0,
+    "limit_violations": 0,
+    "max_frame_jump_deg": 3.5,
+    "notes": [],
+}
 FILES = {"npz": b"PK\x03\x04", "mot": b"time\tknee\n"}
 
 
@@ -137,7 +171,7 @@ def rest_answers() -> dict[str, Callable[[httpx.Request], httpx.Response]]:
             {
                 "event": "result",
                 **names,
-                "stats": {"fps": 30},
+                "stats": STATS,
                 "limit_violations": 2,
                 "arrays": {"shape": b64(F32["shape"])},
             },
@@ -147,7 +181,7 @@ def rest_answers() -> dict[str, Callable[[httpx.Request], httpx.Response]]:
             {
                 "event": "result",
                 **names,
-                "summary": {"path": "a"},
+                "summary": SUMMARY,
                 "arrays": {"shape": b64(F32["shape"]), "scales": b64(F32["scales"])},
                 "files": {k: base64.b64encode(v).decode() for k, v in FILES.items()},
             },
@@ -215,7 +249,7 @@ def grpc_answers() -> dict[str, Callable[[Any], Any]]:
             *seq,
             pb.FitSequenceEvent(
                 result=pb.SequenceSummary(
-                    shape=a["shape"], stats_json='{"fps": 30}', limit_violations=2, **names
+                    shape=a["shape"], stats_json=json.dumps(STATS), limit_violations=2, **names
                 )
             ),
         ],
@@ -233,7 +267,11 @@ def grpc_answers() -> dict[str, Callable[[Any], Any]]:
             ),
             pb.UpgradeEvent(
                 result=pb.UpgradeSummary(
-                    shape=a["shape"], scales=a["scales"], summary_json='{"path": "a"}', files=FILES, **names
+                    shape=a["shape"],
+                    scales=a["scales"],
+                    summary_json=json.dumps(SUMMARY),
+                    files=FILES,
+                    **names,
                 )
             ),
         ],

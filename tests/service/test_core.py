@@ -29,7 +29,9 @@ def test_info_lists_every_dof_with_range_and_unit(body_service: BodyService) -> 
         "m" if c.motion == "translational" else "rad" for c in skel.spec.coordinates
     )
     assert info.n_shape == body_service.model.n_shape and info.n_vertices == 13348
-    assert all(len(h) == 64 for h in info.asset_sha256.values()) and "body.onnx" in info.asset_sha256
+    sha256 = info.assets["sha256"]
+    assert all(len(h) == 64 for h in sha256.values()) and "body.onnx" in sha256
+    assert np.array_equal(info.dof_ranges, skel.ranges)
 
 
 def test_onnx_synthesis_matches_the_torch_model(body_service: BodyService) -> None:

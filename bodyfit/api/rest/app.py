@@ -11,7 +11,7 @@ from fastapi import FastAPI
 
 from bodyfit.api import problems
 from bodyfit.api.metrics import Metrics
-from bodyfit.api.rest import routes_fit, routes_model, routes_ops, routes_synth, routes_upgrade
+from bodyfit.api.rest import openapi, routes_fit, routes_model, routes_ops, routes_synth, routes_upgrade
 from bodyfit.api.rest.limits import BodyLimit
 from bodyfit.api.rest.measured import Measured
 from bodyfit.api.rest.state import AppState
@@ -21,8 +21,9 @@ from bodyfit.service.core import BodyService
 DESCRIPTION = """Parametric human bodies with a biomechanical skeleton inside.
 
 Errors are RFC 7807 problem+json documents whose `detail` says what was wrong and how to fix it, with
-`kind` (also used by gRPC) and `field`. Long work (fits) streams NDJSON when asked with
-`Accept: application/x-ndjson`; closing the connection cancels it."""
+`kind` (also used by gRPC) and `field`. Long work (fits, upgrades) streams NDJSON when asked with
+`Accept: application/x-ndjson`; closing the connection cancels it. The answers and events are the models of
+`bodyfit.wire`, shared with the Python SDK."""
 
 
 def create_app(
@@ -53,6 +54,7 @@ def create_app(
     )
     app.state.bodyfit = state
     problems.install(app)
+    openapi.install(app)
     for router in (
         routes_model.router,
         routes_synth.router,

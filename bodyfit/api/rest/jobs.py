@@ -4,12 +4,13 @@ JSON answer; a client that goes away cancels the work (at the core's next progre
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncGenerator, Callable
+from collections.abc import AsyncGenerator, Callable, Sequence
 from typing import Any
 
 from fastapi import Request
 from fastapi.responses import JSONResponse, StreamingResponse
 
+from bodyfit import wire as w
 from bodyfit.api import problems
 from bodyfit.api.wire import progress_event
 from bodyfit.service.errors import as_service_error
@@ -17,16 +18,19 @@ from bodyfit.service.formats import json_bytes, json_ready
 from bodyfit.service.jobs import Job, Progress
 
 NDJSON = "application/x-ndjson"
-Work = Callable[[Job], list[dict[str, Any]]]
-"""Runs in a worker thread; returns the result events (the last one is the ``"result"`` event)."""
+Work = Callable[[Job], Sequence[w.WireModel]]
+"""Runs in a worker thread; returns the result events (chunks, then the ``result`` event last)."""
 
 
 def wants_stream(request: Request) -> bool:
     return NDJSON in request.headers.get("accept", "")
 
 
-def _line(doc: dict[str, Any]) -> bytes:
-    return json_bytes(doc) + b"\n"  # NaN as null: a line every JSON parser reads
+def _line(doc: w.WireModel | dict[str, Any]) -> bytes:
+    """One NDJSON line; NaN as null, so that every JSON parser reads it."""
+    if isinstance(doc, w.WireModel):
+        doc = doc.model_dump(mode="json")
+    return json_bytes(doc) + b"\n"
 
 
 async def stream(work: Work, job: Job) -> AsyncGenerator[bytes, None]:
@@ -54,10 +58,11 @@ async def stream(work: Work, job: Job) -> AsyncGenerator[bytes, None]:
         except Exception as exc:
             error = as_service_error(exc)  # the model layer's input errors are the client's: 422
             if error is not None:
-                yield _line({"event": "error", **problems.service_problem(error)})
+                yield _line(w.ErrorEvent.model_validate(problems.service_problem(error)))
                 return
             problems.LOG.exception("unhandled error in a streamed job")
-            yield _line({"event": "error", **problems.problem("internal", "Internal error", _BUG, 500)})
+            bug = problems.problem("internal", "Internal error", _BUG, 500)
+            yield _line(w.ErrorEvent.model_validate(bug))
             return
         for event in events:
             yield _line(event)
@@ -66,8 +71,9 @@ async def stream(work: Work, job: Job) -> AsyncGenerator[bytes, None]:
 
 
 async def answer(request: Request, work: Work, job: Job) -> StreamingResponse | JSONResponse:
-    """Stream NDJSON when the client accepts it, else wait and answer with the result event as JSON
-    (errors then get their own HTTP status)."""
+    """Stream NDJSON when the client accepts it, else wait and answer with the result event as JSON, and
+    the chunk events under ``chunks`` when there are any, without their ``event`` (errors then get their
+    own HTTP status)."""
     if wants_stream(request):
         return StreamingResponse(stream(work, job), media_type=NDJSON)
     loop = asyncio.get_running_loop()
@@ -83,9 +89,9 @@ async def answer(request: Request, work: Work, job: Job) -> StreamingResponse | 
         if error is None or error is exc:
             raise
         raise error from exc
-    result = {k: v for k, v in events[-1].items() if k != "event"}
+    result = events[-1].model_dump(mode="json", exclude={"event"})
     if len(events) > 1:
-        result["chunks"] = [{k: v for k, v in e.items() if k != "event"} for e in events[:-1]]
+        result["chunks"] = [e.model_dump(mode="json", exclude={"event"}) for e in events[:-1]]
     return JSONResponse(json_ready(result))  # NaN as null: JSONResponse refuses NaN
 
 

@@ -4,32 +4,27 @@ or answered as one JSON document."""
 from __future__ import annotations
 
 from pathlib import PurePath
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, File, Form, Query, Request, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse, StreamingResponse
 
+from bodyfit import wire as w
 from bodyfit.api import wire
-from bodyfit.api.rest.jobs import NDJSON, answer
+from bodyfit.api.rest.jobs import answer
+from bodyfit.api.rest.openapi import streamed
 from bodyfit.api.rest.state import Service
 from bodyfit.service.errors import InvalidInputError
 from bodyfit.service.jobs import Job
 
 router = APIRouter(prefix="/v1/fit", tags=["fitting"])
-STREAM_DOC: dict[int | str, dict[str, Any]] = {
-    200: {
-        "description": "With Accept: application/x-ndjson, one JSON event per line: progress events, then "
-        "the result (sequences: chunk events first); a failure mid-way is an 'error' event.",
-        "content": {NDJSON: {}, "application/json": {}},
-    }
-}
 
 
 @router.post(
     "/scan",
     summary="Fit a mesh or point cloud (any topology and placement)",
-    responses=STREAM_DOC,
+    responses=streamed(w.MeshFit, "ScanFitEvent", "The fit: parameters, registration and report"),
     response_model=None,
 )
 async def fit_scan(
@@ -49,7 +44,7 @@ async def fit_scan(
     await run_in_threadpool(service.check_scan, scan)  # a scan that cannot be a body: 422 before streaming
     info = service.info()
 
-    def work(job: Job) -> list[dict[str, Any]]:
+    def work(job: Job) -> list[w.MeshFitEvent]:
         fit = service.fit_mesh(scan, job)
         return [wire.mesh_fit_result(fit, list(info.dof_names), list(info.joint_names))]
 
@@ -59,7 +54,7 @@ async def fit_scan(
 @router.post(
     "/sequence",
     summary="Fit a registered mesh sequence (one person, our topology): one shape, per-frame pose",
-    responses=STREAM_DOC,
+    responses=streamed(w.SequenceAnswer, "SequenceFitEvent", "The fit: the summary and every chunk"),
     response_model=None,
 )
 async def fit_sequence(
@@ -75,7 +70,7 @@ async def fit_sequence(
     await run_in_threadpool(service.check_sequence, frames, weights)  # 422 before streaming or fitting
     joint_names = list(service.info().joint_names)
 
-    def work(job: Job) -> list[dict[str, Any]]:
+    def work(job: Job) -> list[w.SequenceChunkEvent | w.SequenceResultEvent]:
         fit = service.fit_sequence(frames, weights, job, checked=True)
         return [*wire.sequence_chunks(fit, chunk), wire.sequence_summary(fit, joint_names)]
 

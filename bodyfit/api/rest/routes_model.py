@@ -2,15 +2,20 @@
 
 from __future__ import annotations
 
-from typing import Any
-
 from fastapi import APIRouter
 
+from bodyfit.api.rest.openapi import PROBLEMS
 from bodyfit.api.rest.state import Service
+from bodyfit.wire import ModelInfo
 
 router = APIRouter(prefix="/v1", tags=["model"])
 
 
-@router.get("/model", summary="Model info: DOF names, ranges and units, shape sizes, joints, asset hashes")
-def model_info(service: Service) -> dict[str, Any]:
-    return service.info().to_dict()
+@router.get(
+    "/model",
+    summary="Model info: DOF names, ranges and units, shape sizes, joints, asset hashes",
+    response_model=ModelInfo,
+    responses=PROBLEMS,
+)
+def model_info(service: Service) -> ModelInfo:
+    return service.info()

@@ -8,11 +8,13 @@ import numpy as np
 from fastapi import APIRouter, Response
 from fastapi.concurrency import run_in_threadpool
 
+from bodyfit.api.rest.openapi import PROBLEMS
 from bodyfit.api.rest.state import Service
 from bodyfit.api.schemas import SynthesizeRequest
 from bodyfit.service.core import SynthRequest
 from bodyfit.service.errors import InvalidInputError
 from bodyfit.service.formats import MEDIA_TYPES, encode_bodies
+from bodyfit.wire import SynthesisJSON
 
 router = APIRouter(prefix="/v1", tags=["synthesis"])
 
@@ -32,7 +34,14 @@ def _array(value: list[list[float]] | None, field: str) -> np.ndarray | None:
     "/synthesize",
     summary="Parameters -> posed skin (and skeleton) as npz, ply, obj, glb or json",
     response_class=Response,
-    responses={200: {"content": {t: {} for t in MEDIA_TYPES.values()}}},
+    responses={
+        200: {
+            "model": SynthesisJSON,
+            "description": "The posed bodies in the format asked for (json: the schema below)",
+            "content": {t: {} for t in MEDIA_TYPES.values() if t != "application/json"},
+        },
+        **PROBLEMS,
+    },
 )
 async def synthesize(body: SynthesizeRequest, service: Service) -> Response:
     coords = body.coordinates

@@ -3,15 +3,16 @@
 from __future__ import annotations
 
 from pathlib import PurePath
-from typing import Annotated, Any
+from typing import Annotated
 
 from fastapi import APIRouter, File, Form, Query, Request, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse, StreamingResponse
 
+from bodyfit import wire as w
 from bodyfit.api import wire
 from bodyfit.api.rest.jobs import answer
-from bodyfit.api.rest.routes_fit import STREAM_DOC
+from bodyfit.api.rest.openapi import streamed
 from bodyfit.api.rest.state import Service
 from bodyfit.service.core import shape_hints
 from bodyfit.service.jobs import Job
@@ -22,7 +23,7 @@ router = APIRouter(prefix="/v1", tags=["upgrade"])
 @router.post(
     "/upgrade",
     summary="Upgrade an AMASS-style SMPL sequence (.npz) to biomechanical coordinates and OpenSim files",
-    responses=STREAM_DOC,
+    responses=streamed(w.UpgradeAnswer, "UpgradeEvent", "The upgrade: the summary, files and every chunk"),
     response_model=None,
 )
 async def upgrade(
@@ -44,7 +45,7 @@ async def upgrade(
     name = file.filename or "upload.npz"
     sequence = await run_in_threadpool(service.read_upgrade, data, name)
 
-    def work(job: Job) -> list[dict[str, Any]]:
+    def work(job: Job) -> list[w.UpgradeChunkEvent | w.UpgradeResultEvent]:
         result = service.upgrade(sequence, job, hints)
         files = service.upgrade_files(result, PurePath(name).stem or "upgrade")
         return [*wire.upgrade_chunks(result, chunk), wire.upgrade_summary(result, files)]

@@ -87,7 +87,7 @@ class SyncClientCore:
     def _call(self, op: Operation[R]) -> R:
         retrying = self.retry.start(op.idempotent)
         while True:
-            events = EventCollector(op.progress)
+            events = EventCollector(op.progress, op.parse)
             try:
                 with closing(self._send(op)) as stream:
                     for event in stream:
@@ -128,7 +128,7 @@ class AsyncClientCore:
     async def _call(self, op: Operation[R]) -> R:
         retrying = self.retry.start(op.idempotent)
         while True:
-            events = EventCollector(op.progress)
+            events = EventCollector(op.progress, op.parse)
             try:
                 async with aclosing(self._send(op)) as stream:
                     async for event in stream:

@@ -1,10 +1,10 @@
 """The SDK's operations, transport-neutral: each public method builds an :class:`Operation` here (its
-arguments checked and normalised once, for REST and gRPC alike) and turns the transport's events into
-the result types of :mod:`bodyfit.clients.results`.
+arguments checked and normalised once, for REST and gRPC alike) that reads the transport's documents with
+the models of :mod:`bodyfit.wire` and turns them into the result types of :mod:`bodyfit.clients.results`.
 
-An event is a dict ``{"event": "progress" | "chunk" | "result" | "error", ...}`` whose ``"arrays"`` are
-numpy arrays or the server's base64 documents (:func:`bodyfit.clients.results.decode_array` reads both);
-a unary call answers one ``result`` event.
+A transport yields an answer's documents as it has them (:data:`Event`): JSON text (REST: an NDJSON line,
+a JSON body) or a dict of Python values (gRPC messages, arrays with raw bytes); a stream's events are
+``progress``, ``chunk``, ``result`` or ``error``; a unary call answers one document.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from typing import Any, Generic, TypeVar
 
 import numpy as np
 
+from bodyfit import wire as w
 from bodyfit.clients.results import (
     MeshFitResult,
     ModelInfo,
@@ -25,11 +26,14 @@ from bodyfit.clients.results import (
     SequenceResult,
     Synthesis,
     UpgradeOutput,
+    read_model_info,
+    reader,
 )
 from bodyfit.clients.uploads import ScanInput, scan_upload
 
 R = TypeVar("R")
-Event = dict[str, Any]
+Event = str | bytes | dict[str, Any]
+"""One document of an answer, as the transport has it: JSON text or a dict of Python values."""
 Array = np.ndarray | None
 Coordinates = np.ndarray | Mapping[str, float | Sequence[float] | np.ndarray] | None
 SequenceInput = str | os.PathLike[str] | bytes
@@ -39,12 +43,14 @@ FORMATS = ("npz", "ply", "obj", "glb", "json")
 
 @dataclass(frozen=True)
 class Operation(Generic[R]):
-    """One call: ``name`` (model_info, synthesize, fit_scan, fit_sequence, upgrade), its checked
-    ``args``, whether sending it twice is harmless (``idempotent``), whether the server streams events
-    (``stream``), the ``progress`` callback, and ``finish``: (chunks, result event) -> the result."""
+    """One call: ``name`` (model_info, synthesize, fit_scan, fit_sequence, upgrade), ``parse`` reading
+    each document of the answer (into a :mod:`bodyfit.wire` model), ``finish``: (chunk events, result) ->
+    the result; its checked ``args``, whether sending it twice is harmless (``idempotent``), whether the
+    server streams events (``stream``), and the ``progress`` callback."""
 
     name: str
-    finish: Callable[[list[Event], Event], R]
+    parse: Callable[[Event], Any]
+    finish: Callable[[list[Any], Any], R]
     args: dict[str, Any] = field(default_factory=dict)
     idempotent: bool = False
     stream: bool = False
@@ -88,25 +94,32 @@ def synthesis_args(
     }
 
 
-def _model_info(_: list[Event], result: Event) -> ModelInfo:
-    return ModelInfo.from_dict(result)
+def _result(_: list[Any], result: R) -> R:
+    return result
 
 
-def _synthesis_result(_: list[Event], result: Event) -> Synthesis:
-    return Synthesis.from_event(result)
+def _synthesis(doc: Event) -> Synthesis:
+    assert isinstance(doc, dict)  # the transports give a synthesis's arrays as a dict
+    return Synthesis.from_event(doc)
 
 
-def _file(_: list[Event], result: Event) -> bytes:
-    return bytes(result["data"])
+def _file(doc: Event) -> bytes:
+    assert isinstance(doc, dict)  # {"data": the file's bytes}
+    return bytes(doc["data"])
 
 
-def _mesh_fit(_: list[Event], result: Event) -> MeshFitResult:
+def _mesh_fit(_: list[Any], result: w.MeshFit) -> MeshFitResult:
     return MeshFitResult.from_event(result)
+
+
+_scan_events = reader(w.SCAN_EVENTS, "scan fit event")
+_sequence_events = reader(w.SEQUENCE_EVENTS, "sequence fit event")
+_upgrade_events = reader(w.UPGRADE_EVENTS, "upgrade event")
 
 
 def model_info() -> Operation[ModelInfo]:
     """DOF names, ranges and units, shape sizes, joint names, asset hashes."""
-    return Operation("model_info", _model_info, idempotent=True)
+    return Operation("model_info", read_model_info, _result, idempotent=True)
 
 
 def synthesize(
@@ -120,7 +133,7 @@ def synthesize(
     """Posed bodies as arrays. shape (B, n_shape); coordinates (B, n_dof) or {name: value(s)}; root
     (B, 3); see :meth:`synthesize_file` for npz / ply / obj / glb / json bytes."""
     args = synthesis_args(shape, coordinates, root, skeleton, faces, batch, "npz")
-    return Operation("synthesize", _synthesis_result, args, idempotent=True)
+    return Operation("synthesize", _synthesis, _result, args, idempotent=True)
 
 
 def synthesize_file(
@@ -135,7 +148,7 @@ def synthesize_file(
     Raises:
         ValueError: another format (before anything is sent)."""
     args = synthesis_args(shape, coordinates, root, skeleton, True, None, format)
-    return Operation("synthesize_file", _file, args, idempotent=True)
+    return Operation("synthesize_file", _file, _result, args, idempotent=True)
 
 
 def fit_scan(
@@ -148,7 +161,7 @@ def fit_scan(
     auto, m or mm; ``progress`` gets each progress event."""
     name, data = scan_upload(scan, format)
     args = {"name": name, "data": data, "format": Path(name).suffix.lstrip("."), "units": units}
-    return Operation("fit_scan", _mesh_fit, args, stream=True, progress=progress)
+    return Operation("fit_scan", _scan_events, _mesh_fit, args, stream=True, progress=progress)
 
 
 def fit_sequence(
@@ -161,7 +174,9 @@ def fit_sequence(
     ``weights`` (T, V) optional; the server answers in chunks of ``chunk`` frames."""
     f32 = None if weights is None else np.asarray(weights, np.float32)
     args = {"frames": np.asarray(frames, np.float32), "weights": f32, "chunk": chunk}
-    return Operation("fit_sequence", SequenceResult.from_events, args, stream=True, progress=progress)
+    return Operation(
+        "fit_sequence", _sequence_events, SequenceResult.from_events, args, stream=True, progress=progress
+    )
 
 
 def upgrade(
@@ -178,7 +193,9 @@ def upgrade(
     name, data = upgrade_upload(sequence)
     hints = {k: v for k, v in (("sex", sex), ("height_m", height_m), ("mass_kg", mass_kg)) if v is not None}
     args = {"name": name, "data": data, "chunk": chunk, "hints": hints}
-    return Operation("upgrade", UpgradeOutput.from_events, args, stream=True, progress=progress)
+    return Operation(
+        "upgrade", _upgrade_events, UpgradeOutput.from_events, args, stream=True, progress=progress
+    )
 
 
 def upgrade_upload(sequence: SequenceInput) -> tuple[str, bytes]:
