@@ -252,7 +252,9 @@ class RegisteredFitter:
 
     def coordinates(self, z_u: torch.Tensor) -> torch.Tensor:
         """(B, n_dof) coordinates, within the limits and differentiable, of the state's preconditioned
-        unbounded values ``z_u`` (B, n_dof) (:meth:`start_state`)."""
+        unbounded values ``z_u`` (B, n_dof) (:meth:`start_state`), through BLSM's tanh mapping (Wang, Güler,
+        Kokkinos, Papandreou, Zafeiriou, "BLSM: A Bone-Level Skinned Model of the Human Mesh", ECCV 2020,
+        eq. 6)."""
         return self.model.skeleton.from_unbounded(z_u * self._scales[0])
 
     def free_variables(self, stage: Stage) -> tuple[torch.Tensor, torch.Tensor]:
@@ -265,9 +267,11 @@ class RegisteredFitter:
     def optimise(
         self, stage: Stage, z: State, data_term: DataTerm, metric: torch.Tensor | None = None
     ) -> tuple[int, float]:
-        """Minimise ``data_term`` + shape prior over the stage's parameters by :func:`batched_lbfgs`: one
-        problem per mesh, or one for the whole batch when the shape is shared. Updates ``z`` (u: (B, n_dof),
-        root: (B, 3), c: (1 or B, n_shape), from :meth:`start_state`) in place.
+        """Minimise ``data_term`` + shape prior over the stage's parameters by :func:`batched_lbfgs` (L-BFGS:
+        Liu and Nocedal, "On the limited memory BFGS method for large scale optimization", Mathematical
+        Programming, 1989): one problem per mesh, or one for the whole batch when the shape is shared.
+        Updates ``z`` (u: (B, n_dof), root: (B, 3), c: (1 or B, n_shape), from :meth:`start_state`) in
+        place.
 
         Args:
             data_term: maps the model's vertices ``self.index[stage.vertices]`` (B, V_stage, 3) in mm to a

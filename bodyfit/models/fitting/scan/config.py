@@ -1,7 +1,8 @@
 """How a raw scan is fitted (:class:`.fitter.ScanFitter`): its phases, its branches and the settings.
 
-The phases and their numbers are explained where the fitter is (:mod:`.fitter`): they were chosen on the
-held-out scans of ``benchmarks/fit_scans.py`` and ``benchmarks/fit_busts.py``.
+The phases and their numbers are explained where the fitter is (:mod:`.fitter`); they are tuned on the
+held-out scans of ``benchmarks/fit_scans.py`` and ``benchmarks/fit_busts.py``. Every config here is
+keyword-only and checks its values where it is built, so a typo fails there rather than deep inside a fit.
 """
 
 from __future__ import annotations
@@ -23,8 +24,8 @@ class ScanPhase:
     (:class:`.limb_search.LimbSearch`) before the phase; search_distal: a grid search of the head, hands
     and toes (:data:`.fitter.DISTAL_SEARCH`) before the phase; straighten: before the phase (and the
     searches), add to the best :data:`.fitter.STRAIGHTENED` hypotheses of a full scan a twin with a
-    straight spine (:meth:`.fitter.ScanFitter._straighten_spine`; on single-view scans it picked wrong
-    twins, so they go without);
+    straight spine (:meth:`.fitter.ScanFitter._straighten_spine`; single-view scans go without, as their
+    twins are picked wrongly);
     scapula_twin: before the phase (and the searches), add to every hypothesis a twin with the scapulae at
     the middle of their ranges (:meth:`.fitter.ScanFitter._scapula_twin`);
     flipped_margin: after the phase, also keep the best hypothesis that faces the other way from the best
@@ -61,10 +62,10 @@ class ScanPhase:
         check_at_least("ScanPhase", "flipped_margin", self.flipped_margin, 0.0)
 
 
-# A body seen from behind can fit a scan nearly as well as the right one until its limbs are posed: the CC BY
-# man in a T-pose, as bare points, was fitted backwards with his legs crossed: the backward fit scored 1.2%
-# below the right heading after the shape phase, and 12% above it after the limbs phase. On 102 held-out
-# synthetic scans the best hypothesis facing the other way scored 28-74% above the best after the shape phase.
+# A body seen from behind can fit a scan nearly as well as the right one until its limbs are posed (the CC BY
+# T-posed man as bare points: 1.2% below the right heading after the shape phase, 12% above it after the
+# limbs phase), while on held-out synthetic scans the best hypothesis facing the other way scores 28-74% above
+# the best after the shape phase: a margin of 5% keeps the near-ties only.
 FLIPPED_MARGIN = 0.05
 
 
@@ -119,13 +120,11 @@ DEFAULT_PHASES = (
 
 # A scan smaller than a body (:attr:`ScanFitConfig.partial_extent`) is fitted as a head and shoulders: the
 # "upper" vertex set (RegisteredFitter.index) placed by the trunk's, neck's and scapulae's DOFs, the rest of
-# the body in the start pose, and the whole scan fitted two ways in three phases; the shape is fitted in the
-# last one only, once the bust is in place (fitted from the first, before the placement was right, it grew
-# giant shoulders into the scan). The Kinect head and shoulders of tests/data/scans, fitted so from three
-# random turns, gave the same bust each time (1.7 mm mean, the orientation searched); the full-body phases
-# had folded the whole body into it. benchmarks/fit_busts.py, heads within 10 mm: 68% with the first phase's
-# scale at 80 mm, 74% at 40 (forearms in the crop tilt the trunk less), 75% with the shape fitted (median
-# head error 5.3 -> 4.0 mm).
+# the body in the start pose, and the whole scan fitted two ways in three phases. The full-body phases would
+# fold the whole body into a bust. The shape is fitted in the last phase only, once the bust is in place:
+# fitted before, it grows shoulders into the scan to make up for a wrong placement. The first phase's scale
+# is 40 mm because forearms in the crop then tilt the trunk less than at 80 (benchmarks/fit_busts.py: heads
+# within 10 mm, 74% against 68%).
 UPPER_BODY_PHASES = (
     ScanPhase(
         stage=Stage(name="upper_orient", coordinates="upper", shape="none", vertices="upper", iterations=30),
@@ -168,11 +167,10 @@ class ScanBranch:
 
 # Two branches from the shape phase to the valley phase, and the one whose hypothesis scores best after the
 # first point-to-plane phase goes on. The second runs the subset phases in the metric too, with more damping:
-# on their own, either ends in a gross error (an arm or the head placed wrong) on scans where the other does
-# not (102 held-out scans of every condition: 10.9 and 12.0 mm alone). Chosen by the point-to-plane phase's
-# robust score, 8.2 mm; by the refined registrations' distance to the scan, after both had run to the end, 9.0
-# (a non-rigid registration lies close to the scan even where its body does not) at one more valley phase and
-# refinement per scan.
+# either alone ends in a gross error (an arm or the head placed wrong) on scans where the other does not. The
+# point-to-plane phase's robust score picks between them better than the refined registrations' distance to
+# the scan would, since a non-rigid registration lies close to the scan even where its body does not
+# (benchmarks/fit_scans.py gives the current numbers).
 DEFAULT_BRANCHES = (
     ScanBranch(metric_phases=frozenset({"fine", "valley"}), damping=1e-3),
     ScanBranch(metric_phases=frozenset({"shape", "limbs", "fine", "valley"}), damping=1e-2),

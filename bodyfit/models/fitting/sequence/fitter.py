@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
@@ -51,13 +50,12 @@ from bodyfit.models.fitting.registered.fitter import (
     BodyFit,
     RegisteredFitConfig,
     RegisteredFitter,
-    Stage,
-    vertex_term,
 )
 from bodyfit.models.fitting.retarget.fitter import wrap_pelvis
 from bodyfit.models.fitting.sequence.config import FRAME_STAGES, KEY_STAGES, PELVIS_WEIGHT, SequenceConfig
 from bodyfit.models.fitting.sequence.frames import FrameArrays, Headings, blend_joints, to_world, turn, yaw
 from bodyfit.models.fitting.sequence.offsets import OffsetConfig, fit_rest_offsets
+from bodyfit.models.fitting.sequence.poses import fit_poses
 from bodyfit.models.fitting.sequence.result import SequenceFit, SequenceFrames
 from bodyfit.models.fitting.sequence.stats import JitterSum, SequenceStats, jitter
 from bodyfit.models.skeleton.model import PELVIS_ROTATIONS
@@ -253,8 +251,8 @@ class SequenceFitter:
             k = keys[lo : lo + cfg.chunk]
             x_k, w_k, G_k, o_k = self._frames(source, k)
             q0, r0 = self.fitter.bone_start(turn(x_k, G_k, o_k), w_k)
-            q_key[lo : lo + len(k)], r_key[lo : lo + len(k)] = self._pose(
-                pose_fitter, x_k, w_k, G_k, o_k, c, q0, r0, cfg.key_stages
+            q_key[lo : lo + len(k)], r_key[lo : lo + len(k)] = fit_poses(
+                pose_fitter, x_k, w_k, G_k, o_k, c, q0, r0, cfg.key_stages, cfg.workers
             )
         q_init = np.stack([np.interp(np.arange(T), keys, q_key[:, j]) for j in range(n_dof)], 1)
         r_init = np.stack([np.interp(np.arange(T), keys, r_key[:, j]) for j in range(3)], 1)
@@ -280,8 +278,9 @@ class SequenceFitter:
         for lo in range(0, T, chunk):
             hi = min(T, lo + chunk)
             x, w, out.G[lo:hi], out.origin[lo:hi] = self._frames(source, np.arange(lo, hi))
-            out.q_c[lo:hi], out.root_c[lo:hi] = self._pose(
-                pose_fitter, x, w, out.G[lo:hi], out.origin[lo:hi], c, q_init[lo:hi], r_init[lo:hi], stages
+            G, origin = out.G[lo:hi], out.origin[lo:hi]
+            out.q_c[lo:hi], out.root_c[lo:hi] = fit_poses(
+                pose_fitter, x, w, G, origin, c, q_init[lo:hi], r_init[lo:hi], stages, self.config.workers
             )
             if pending is not None:  # one chunk behind: its last frame's blend needs this chunk's first
                 self._finish(out, skin, dtype, *pending, progress, on_frames)
@@ -357,45 +356,6 @@ class SequenceFitter:
             raise ShapeError(f"the frame source gave {len(x)} frames for {len(idx)} requested")
         heading, origin = self.headings(x, w)
         return x, w, yaw(-heading), origin
-
-    def _pose(
-        self,
-        fitter: RegisteredFitter,
-        x: np.ndarray,
-        w: np.ndarray,
-        G: np.ndarray,
-        origin: np.ndarray,
-        c: np.ndarray,
-        q0: np.ndarray,
-        r0: np.ndarray,
-        stages: tuple[Stage, ...],
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Pose-only fit, in the canonical frames (G, origin), of world frames x (B, V, 3) with weights
-        w (B, V), the shape c (1, n_shape) frozen, from q0 (B, n_dof) and r0 (B, 3): one problem per frame,
-        the frames split into ``config.workers`` runs fitted at once, a thread each. Only the stages'
-        vertices are turned. Returns coordinates (B, n_dof) and root (B, 3)."""
-        dtype = fitter.config.dtype
-
-        def fit(rows: slice) -> tuple[np.ndarray, np.ndarray]:
-            w_r, G_r, o_r = w[rows], G[rows], origin[rows]
-            w_mean = w_r.mean(axis=1, keepdims=True)
-            z = fitter.start_state(q0[rows], r0[rows], np.repeat(c, len(w_r), axis=0))
-            for stage in stages:
-                idx = fitter.index[stage.vertices]
-                xt = torch.as_tensor(turn(x[rows, idx], G_r, o_r) * 1000.0, dtype=dtype)
-                wt = torch.as_tensor(w_r[:, idx] / w_mean, dtype=dtype)
-                fitter.optimise(stage, z, vertex_term(xt, wt))
-            _, q, root = fitter.parameters(z)
-            return q.numpy(), root.numpy()
-
-        runs = [
-            slice(int(r[0]), int(r[-1]) + 1)
-            for r in np.array_split(np.arange(len(x)), self.config.workers)
-            if len(r)
-        ]
-        with ThreadPoolExecutor(len(runs)) as pool:
-            done = list(pool.map(fit, runs))
-        return np.concatenate([q for q, _ in done]), np.concatenate([root for _, root in done])
 
     def _report(self, stats: DistanceStats, q: np.ndarray, iterations: int, seconds: float) -> FitReport:
         """One frame's report from its distances (mm), coordinates q (n_dof,) in range and its share of

@@ -1,18 +1,21 @@
 """Rest-pose offsets: one person's surface detail beyond the shape space, fitted on posed frames of them.
 
 A linear shape space of a few dozen coefficients cannot follow every body: hands, feet and faces of other
-templates are shaped differently. As in SMPL+D and BLiSS's refinement (paper 003, section 3.3), per-vertex
-offsets D (V, 3) are added to the person's template before skinning, so they move with the body: a posed
-vertex becomes ``v + A_v D_v`` with ``A_v = sum_j w_vj R_j R_bind,j^T``
-(:meth:`~bodyfit.models.body.model.BodyDecoder.blended_rotations`).
+templates are shaped differently. As in SMPL+D (Alldieck, Magnor, Xu, Theobalt, Pons-Moll, "Video Based
+Reconstruction of 3D People Models", CVPR 2018), per-vertex offsets D (V, 3) are added to the person's
+template before skinning, so they move with the body; they play the part of BLiSS's refinement beyond its
+linear shape space (Muralikrishnan, Huang, Ceylan, Mitra, "BLiSS: Bootstrapped Linear Shape Space", 3DV 2024,
+section 3.3), linear here and solved in closed form. A posed vertex becomes ``v + A_v D_v`` with
+``A_v = sum_j w_vj R_j R_bind,j^T`` (:meth:`~bodyfit.models.body.model.BodyDecoder.blended_rotations`).
 Fitted on K posed frames of the same person with residuals ``r = target - fitted vertex``:
 
     sum_k sum_v w_kv |A_kv D_v - r_kv|^2 + smoothness |L D|^2 + stiffness |D|^2      (L: mesh Laplacian)
 
 The blended rotations are close to orthonormal (exactly so on rigid parts), so the data term is taken as
-``w_kv |D_v - A_kv^T r_kv|^2``, which leaves one sparse system per axis (:func:`solve_offsets`). Where no
-frame has data (weight 0) the offsets follow their neighbours and fade to zero. Offsets never move the
-skeleton: joints and bone scales stay those of the shape coefficients.
+``w_kv |D_v - A_kv^T r_kv|^2``, which leaves one sparse system per axis
+(:func:`~bodyfit.models.fitting.common.nonrigid.solve_offsets`). Where no frame has data (weight 0) the
+offsets follow their neighbours and fade to zero. Offsets never move the skeleton: joints and bone scales stay
+those of the shape coefficients.
 """
 
 from __future__ import annotations
