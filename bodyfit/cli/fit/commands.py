@@ -211,9 +211,7 @@ def auto(
         Path | None, typer.Option(exists=True, dir_okay=False, help=f"Markers: {STATIC_HELP}")
     ] = None,
     static_pose: Annotated[list[str] | None, typer.Option(help=f"Markers: {STATIC_POSE_HELP}")] = None,
-    calibration: Annotated[
-        Calibration | None, typer.Option(help=f"Markers: {CALIBRATION_HELP}")
-    ] = None,
+    calibration: Annotated[Calibration | None, typer.Option(help=f"Markers: {CALIBRATION_HELP}")] = None,
     marker_set: Annotated[str | None, typer.Option(help=f"Markers: {MARKER_SET_HELP}")] = None,
     up: Annotated[str | None, typer.Option(help=f"Markers: {UP_HELP} Default: y.")] = None,
     forward: Annotated[str | None, typer.Option(help=f"Markers: {FORWARD_HELP} Default: x.")] = None,
