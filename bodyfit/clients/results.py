@@ -104,10 +104,10 @@ class Synthesis:
         Raises:
             ServerError: vertices or joints missing, or an array that is not a wire array.
         """
-        a = {k: decode_array(v) for k, v in doc["arrays"].items()}
+        a = {k: decode_array(v) for k, v in doc.get("arrays", {}).items()}
         if "vertices" not in a or "joints" not in a:
             raise ServerError(f"the server's synthesis holds {sorted(a)}, without vertices and joints")
-        names = tuple(str(n) for n in doc["joint_names"])
+        names = tuple(str(n) for n in doc.get("joint_names", ()))
         return cls(a["vertices"], a["joints"], names, a.get("faces"), a.get("bones"), a.get("bone_faces"))
 
 

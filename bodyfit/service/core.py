@@ -11,7 +11,7 @@ import logging
 import tempfile
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
@@ -330,16 +330,7 @@ class BodyService:
                 total = steps
                 job.report("fit", done, steps, line)
 
-            if route == REGISTERED:
-                fit = _first(fitters.registered.fit(scan.points), REGISTERED)
-            else:
-                if route == SMPL_TOPOLOGY:  # placed through the map, then refined on the mesh's surface
-                    placed = fit_smpl_meshes(fitters.registered, scan.points)[0]
-                    assert scan.faces is not None  # the route needs them
-                    f = refine_smpl_fit(fitters.scan, placed, scan.points, scan.faces, progress=progress)
-                else:
-                    f = fitters.scan.fit(scan, progress=progress)
-                fit = MeshFit(route, f.shape, f.coordinates, f.root, f.registration, f.joints, f.report)
+            fit = _fit_routed(fitters, route, scan, progress)
             check_finite_result(
                 "fit",
                 {**fit.arrays(), "report distances": np.array(fit.report.distances.mean)},
@@ -393,19 +384,7 @@ class BodyService:
 
             with invalid_input("frames"):
                 fit = self.fitters.sequence.fit(x, weights, progress=progress)
-            check_finite_result(
-                "sequence fit",
-                {
-                    "shape": fit.shape,
-                    "coordinates": fit.coordinates,
-                    "root": fit.root,
-                    "joints": fit.joints,
-                    "vertices": fit.vertices,
-                    "error_mm": np.array([r.distances.mean for r in fit.reports]),
-                },
-                "check that the frames are one person in our topology, in metres, in time order",
-                "frames",
-            )
+            _check_sequence_fit(fit)
             return fit
 
     # -- SMPL upgrade ----------------------------------------------------------------------------------
@@ -439,19 +418,7 @@ class BodyService:
                     result = upgrade_from_rotations(sequence, fitters.upgrade, fitters.proxy, hints, progress)
                 else:
                     result = upgrade_with_model(sequence, self._smpl, fitters.upgrade, progress=progress)
-            check_finite_result(
-                "upgrade",  # error_mm is NaN by design where there is no input mesh (path b, bad frames)
-                {
-                    "coordinates": result.coordinates,
-                    "root": result.root,
-                    "joints": result.joints,
-                    "shape": result.shape,
-                    "scales": result.scales,
-                    "offsets": result.offsets,
-                },
-                "check the sequence's poses (axis-angle radians), trans (metres) and betas",
-                "file",
-            )
+            _check_upgrade(result)
             if hints is not None and result.path == "a":
                 note = "shape hints were not used: path (a) shapes the body from the sequence's betas"
                 result = replace(result, notes=(*result.notes, note))
@@ -491,6 +458,57 @@ def shape_hints(sex: str | None, height_m: float | None, mass_kg: float | None) 
         return ShapeHints.given(sex, height_m, mass_kg)
     except ShapeHintError as exc:
         raise InvalidInputError(str(exc), field=exc.field) from exc
+
+
+def _fit_routed(
+    fitters: _Fitters, route: FittedAs, scan: Scan, progress: Callable[[int, int, str], None]
+) -> MeshFit:
+    """Fit ``scan`` the way ``route`` says (:meth:`BodyService.route`); ``progress`` (done, steps, line)
+    gets the scan fitter's steps."""
+    if route == REGISTERED:
+        return _first(fitters.registered.fit(scan.points), REGISTERED)
+    if route == SMPL_TOPOLOGY:  # placed through the map, then refined on the mesh's surface
+        placed = fit_smpl_meshes(fitters.registered, scan.points)[0]
+        assert scan.faces is not None  # the route needs them
+        f = refine_smpl_fit(fitters.scan, placed, scan.points, scan.faces, progress=progress)
+    else:
+        f = fitters.scan.fit(scan, progress=progress)
+    return MeshFit(route, f.shape, f.coordinates, f.root, f.registration, f.joints, f.report)
+
+
+def _check_sequence_fit(fit: SequenceFit) -> None:
+    """Raises InvalidInputError when any array of a sequence fit is not finite."""
+    check_finite_result(
+        "sequence fit",
+        {
+            "shape": fit.shape,
+            "coordinates": fit.coordinates,
+            "root": fit.root,
+            "joints": fit.joints,
+            "vertices": fit.vertices,
+            "error_mm": np.array([r.distances.mean for r in fit.reports]),
+        },
+        "check that the frames are one person in our topology, in metres, in time order",
+        "frames",
+    )
+
+
+def _check_upgrade(result: UpgradeResult) -> None:
+    """Raises InvalidInputError when an array of an upgrade is not finite; error_mm is left out, NaN by
+    design where there is no input mesh (path b, bad frames)."""
+    check_finite_result(
+        "upgrade",
+        {
+            "coordinates": result.coordinates,
+            "root": result.root,
+            "joints": result.joints,
+            "shape": result.shape,
+            "scales": result.scales,
+            "offsets": result.offsets,
+        },
+        "check the sequence's poses (axis-angle radians), trans (metres) and betas",
+        "file",
+    )
 
 
 def _first(fit: BodyFit, kind: FittedAs) -> MeshFit:
