@@ -215,7 +215,7 @@ def per_frame(
         raise ServerError("the server's stream has no chunk of frames")
     stop = 0
     for c in ordered:
-        if c.start != stop or c.stop < c.start:
+        if c.start != stop:
             raise ServerError(
                 f"the server's chunks are not contiguous: frames [{c.start}, {c.stop}) follow frame {stop}"
             )
@@ -241,7 +241,7 @@ class EventCollector:
     def __init__(self, progress: ProgressCallback | None, parse: Callable[[Any], Any]) -> None:
         self.progress = progress
         self.parse = parse
-        self.chunks: list[w.SequenceChunk | w.UpgradeChunk] = []
+        self.chunks: list[w.FrameChunk] = []
         self.result: Any = None
         self.events = 0
 
@@ -255,14 +255,14 @@ class EventCollector:
                 self.progress(event.model_dump(mode="json", exclude={"event"}))
         elif isinstance(event, w.ErrorEvent):
             raise error_from_problem(event.model_dump(mode="json", exclude_none=True), event.status)
-        elif isinstance(event, w.SequenceChunk | w.UpgradeChunk):
+        elif isinstance(event, w.FrameChunk):
             self.chunks.append(event)
         else:
             self.result = event
             return True
         return False
 
-    def finish(self) -> tuple[list[w.SequenceChunk | w.UpgradeChunk], Any]:
+    def finish(self) -> tuple[list[w.FrameChunk], Any]:
         """(chunks, result)."""
         if self.result is None:
             raise ServerError("the server's stream ended without a result (the connection was cut?)")

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import Field, TypeAdapter
+from pydantic import Field, TypeAdapter, model_validator
 
 from bodyfit.wire.arrays import Base64Bytes, WireArray
 from bodyfit.wire.base import OpenDocument, WireModel
@@ -151,6 +151,19 @@ class MeshFitEvent(MeshFit, _ResultTag):
 # -- a registered sequence fit ---------------------------------------------------------------------------
 
 
+class FrameChunk(WireModel):
+    """Frames ``[start, stop)`` of a sequence, counted from 0."""
+
+    start: int = Field(ge=0)
+    stop: int = Field(ge=0)
+
+    @model_validator(mode="after")
+    def _ordered(self) -> FrameChunk:
+        if self.stop < self.start:
+            raise ValueError(f"stop {self.stop} comes before start {self.start}")
+        return self
+
+
 class SequenceChunkArrays(WireModel):
     """Frames ``[start, stop)``, k of them: coordinates (k, n_dof); root (k, 3); vertices (k, V, 3)
     float32; joints (k, J, 3) float32; error_mm (k,), each frame's mean distance."""
@@ -162,11 +175,9 @@ class SequenceChunkArrays(WireModel):
     error_mm: WireArray
 
 
-class SequenceChunk(WireModel):
+class SequenceChunk(FrameChunk):
     """The fitted frames ``[start, stop)`` of a sequence."""
 
-    start: int = Field(ge=0)
-    stop: int = Field(ge=0)
     arrays: SequenceChunkArrays
 
 
@@ -232,11 +243,9 @@ class UpgradeChunkArrays(WireModel):
     bad_frames: WireArray
 
 
-class UpgradeChunk(WireModel):
+class UpgradeChunk(FrameChunk):
     """The upgraded frames ``[start, stop)``."""
 
-    start: int = Field(ge=0)
-    stop: int = Field(ge=0)
     arrays: UpgradeChunkArrays
 
 
