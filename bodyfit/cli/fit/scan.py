@@ -11,9 +11,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from bodyfit.service.core import BodyService
 
-# raw scans in one `bodyfit fit` from which a helper process pays for its start: with the fits on one torch
-# thread either way, two clean scans took 7.8-7.9 s with it and without, three 10.1-10.4 against 10.7
-# (BENCHMARKS.md)
+# raw scans in one `bodyfit fit` from which a second process pays for its own start-up (loading torch and
+# the model): below this, fitting in this process alone is as fast
 HELPER_SCANS = 3
 
 
