@@ -26,7 +26,7 @@ from grpc_reflection.v1alpha import reflection
 
 from bodyfit.api import bodyfit_pb2 as pb
 from bodyfit.api import bodyfit_pb2_grpc as pb_grpc
-from bodyfit.api import wire
+from bodyfit.api import results
 from bodyfit.api.grpc_wire import (
     FLOATS,
     WireError,
@@ -66,7 +66,7 @@ def message_limit(settings: ServiceSettings) -> int:
 
 
 def _progress(p: Progress) -> pb.Progress:
-    return progress_message(wire.progress_event(p))
+    return progress_message(results.progress_event(p))
 
 
 class BodyfitServicer(pb_grpc.BodyfitServicer):
@@ -128,7 +128,7 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
         def work(job: Job) -> list[pb.FitScanEvent]:
             scan = service.read_scan(request.data, request.format or "", request.units or "auto")
             fit = service.fit_mesh(scan, job)
-            result = wire.mesh_fit_result(fit, list(info.dof_names), list(info.joint_names))
+            result = results.mesh_fit_result(fit, list(info.dof_names), list(info.joint_names))
             return [pb.FitScanEvent(result=mesh_fit_message(result))]
 
         return self._stream("FitScan", context, work, lambda p: pb.FitScanEvent(progress=_progress(p)))
@@ -151,8 +151,8 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
             if frames.ndim >= 1 and len(frames) > service.limits.max_frames:
                 service.fit_sequence(frames)  # raises the limit error
             fit = service.fit_sequence(frames, weights, job)
-            chunks = [sequence_event(e) for e in wire.sequence_chunks(fit, chunk)]
-            return [*chunks, sequence_event(wire.sequence_summary(fit, joint_names))]
+            chunks = [sequence_event(e) for e in results.sequence_chunks(fit, chunk)]
+            return [*chunks, sequence_event(results.sequence_summary(fit, joint_names))]
 
         return self._stream(
             "FitSequence", context, work, lambda p: pb.FitSequenceEvent(progress=_progress(p))
@@ -173,8 +173,8 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
             )
             result = service.upgrade(service.read_upgrade(request.data, name), job, hints)
             files = service.upgrade_files(result, Path(name).stem or "upgrade")
-            chunks = [upgrade_event(e) for e in wire.upgrade_chunks(result, chunk)]
-            return [*chunks, upgrade_event(wire.upgrade_summary(result, files))]
+            chunks = [upgrade_event(e) for e in results.upgrade_chunks(result, chunk)]
+            return [*chunks, upgrade_event(results.upgrade_summary(result, files))]
 
         return self._stream("Upgrade", context, work, lambda p: pb.UpgradeEvent(progress=_progress(p)))
 

@@ -12,7 +12,7 @@ from fastapi.responses import JSONResponse, StreamingResponse
 
 from bodyfit import wire as w
 from bodyfit.api import problems
-from bodyfit.api.wire import progress_event
+from bodyfit.api.results import progress_event
 from bodyfit.service.errors import as_service_error
 from bodyfit.service.formats import json_bytes, json_ready
 from bodyfit.service.jobs import Job, Progress

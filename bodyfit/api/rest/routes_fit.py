@@ -11,7 +11,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse, StreamingResponse
 
 from bodyfit import wire as w
-from bodyfit.api import wire
+from bodyfit.api import results
 from bodyfit.api.rest.jobs import answer
 from bodyfit.api.rest.openapi import streamed
 from bodyfit.api.rest.state import Service
@@ -46,7 +46,7 @@ async def fit_scan(
 
     def work(job: Job) -> list[w.MeshFitEvent]:
         fit = service.fit_mesh(scan, job)
-        return [wire.mesh_fit_result(fit, list(info.dof_names), list(info.joint_names))]
+        return [results.mesh_fit_result(fit, list(info.dof_names), list(info.joint_names))]
 
     return await answer(request, work, Job(timeout_s=service.limits.max_seconds))
 
@@ -72,6 +72,6 @@ async def fit_sequence(
 
     def work(job: Job) -> list[w.SequenceChunkEvent | w.SequenceResultEvent]:
         fit = service.fit_sequence(frames, weights, job, checked=True)
-        return [*wire.sequence_chunks(fit, chunk), wire.sequence_summary(fit, joint_names)]
+        return [*results.sequence_chunks(fit, chunk), results.sequence_summary(fit, joint_names)]
 
     return await answer(request, work, Job(timeout_s=service.limits.max_seconds))

@@ -10,7 +10,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse, StreamingResponse
 
 from bodyfit import wire as w
-from bodyfit.api import wire
+from bodyfit.api import results
 from bodyfit.api.rest.jobs import answer
 from bodyfit.api.rest.openapi import streamed
 from bodyfit.api.rest.state import Service
@@ -48,6 +48,6 @@ async def upgrade(
     def work(job: Job) -> list[w.UpgradeChunkEvent | w.UpgradeResultEvent]:
         result = service.upgrade(sequence, job, hints)
         files = service.upgrade_files(result, PurePath(name).stem or "upgrade")
-        return [*wire.upgrade_chunks(result, chunk), wire.upgrade_summary(result, files)]
+        return [*results.upgrade_chunks(result, chunk), results.upgrade_summary(result, files)]
 
     return await answer(request, work, Job(timeout_s=service.limits.max_seconds))

@@ -1,5 +1,6 @@
-"""The server's results as the documents of :mod:`bodyfit.wire`: one place decides what a fit's result,
-a sequence's chunks and an upgrade's summary hold, for REST (JSON / NDJSON) and gRPC alike."""
+"""The service's results (fits, sequence fits, upgrades, progress) as the documents of :mod:`bodyfit.wire`:
+one place decides what a fit's result, a sequence's chunks and an upgrade's summary hold, for REST (JSON /
+NDJSON) and gRPC alike."""
 
 from __future__ import annotations
 
