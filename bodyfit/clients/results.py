@@ -16,25 +16,13 @@ from bodyfit import wire as w
 from bodyfit.clients.errors import ServerError, error_from_problem, error_from_validation
 from bodyfit.io.errors import FileFormatError, FileLimitError
 from bodyfit.io.npz import FLOAT, INTEGER, TEXT, ArraySpec, Dim, read_npz
-from bodyfit.wire import ModelInfo
+from bodyfit.wire import ModelInfo  # the SDK's model info is the wire's
 
 ProgressCallback = Callable[[dict[str, Any]], None]
 """Called with each progress event: ``{"stage", "done", "total", "message"}``."""
 T = TypeVar("T")
 Document = str | bytes | dict[str, Any]
 """An answer as the transport has it: JSON text (REST) or a dict of Python values (gRPC)."""
-
-__all__ = [
-    "EventCollector",
-    "MeshFitResult",
-    "ModelInfo",
-    "ProgressCallback",
-    "SequenceResult",
-    "Synthesis",
-    "UpgradeOutput",
-    "decode_array",
-    "reader",
-]
 
 
 def reader(adapter: TypeAdapter[T], what: str) -> Callable[[Document], T]:

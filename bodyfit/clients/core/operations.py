@@ -20,6 +20,7 @@ import numpy as np
 
 from bodyfit import wire as w
 from bodyfit.clients.results import (
+    Document,
     MeshFitResult,
     ModelInfo,
     ProgressCallback,
@@ -32,7 +33,7 @@ from bodyfit.clients.results import (
 from bodyfit.clients.uploads import ScanInput, scan_upload
 
 R = TypeVar("R")
-Event = str | bytes | dict[str, Any]
+Event = Document
 """One document of an answer, as the transport has it: JSON text or a dict of Python values."""
 Array = np.ndarray | None
 Coordinates = np.ndarray | Mapping[str, float | Sequence[float] | np.ndarray] | None
