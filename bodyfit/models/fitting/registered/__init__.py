@@ -1,5 +1,6 @@
-"""Fitting registered meshes (our topology, or SMPL's through :mod:`.smpl_topology`): the fitter is in
-:mod:`.fitter`.
+"""Fitting registered meshes (our topology, or SMPL's through :mod:`.smpl_topology`): the fitter's pipeline
+is in :mod:`.fitter`, its stages and what they select in :mod:`.stages`, its rigid start in :mod:`.start`
+and the Gauss-Newton metric and preconditioner of its variables in :mod:`.metric`.
 
 Deprecated: the module ``bodyfit.models.fitting.registered`` moved to
 :mod:`bodyfit.models.fitting.registered.fitter`;

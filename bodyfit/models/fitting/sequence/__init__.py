@@ -1,5 +1,7 @@
 """Fitting sequences of registered meshes or BVH motion, with rest-pose offsets for the person's detail
-(:mod:`.offsets`): the fitter is in :mod:`.fitter`.
+(:mod:`.offsets`): the fitter's pipeline is in :mod:`.fitter`, its settings in :mod:`.config`, the frames of
+reference and per-frame arrays in :mod:`.frames`, the pose fits in :mod:`.poses`, the sequence-level numbers
+in :mod:`.stats` and the results in :mod:`.result`.
 
 Deprecated: the module ``bodyfit.models.fitting.sequence`` moved to
 :mod:`bodyfit.models.fitting.sequence.fitter`;

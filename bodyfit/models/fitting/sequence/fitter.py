@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -82,6 +82,38 @@ vertex order, metres, and per-vertex weights (k, V) (None: ones)."""
 FramesCallback = Callable[[SequenceFrames], None]
 """``on_frames(block)``: called with each block of final frames, in time order, while the fit runs."""
 Progress = Callable[[int, int], None]
+
+
+@dataclass(frozen=True)
+class _FramePass:
+    """One fit's pass over every frame: where the frames come from and go, the pose fitter and the frozen
+    shape c (1, n_shape) with its skin, and whom the pass tells."""
+
+    source: FrameSource
+    out: FrameArrays
+    fitter: RegisteredFitter
+    shape: np.ndarray
+    skin: PosedSkin
+    progress: Progress | None
+    on_frames: FramesCallback | None
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.fitter.config.dtype
+
+    @classmethod
+    def of(
+        cls,
+        source: FrameSource,
+        out: FrameArrays,
+        fitter: RegisteredFitter,
+        c: np.ndarray,
+        progress: Progress | None,
+        on_frames: FramesCallback | None,
+    ) -> _FramePass:
+        """The pass with the skin of shape c (1, n_shape) posed by ``fitter``'s decoder."""
+        skin = fitter.decoder.posed(torch.as_tensor(c, dtype=fitter.config.dtype))
+        return cls(source, out, fitter, c, skin, progress, on_frames)
 
 
 class SequenceFitter:
@@ -180,7 +212,7 @@ class SequenceFitter:
         # Pose keyframes with the frozen shape, then every frame from their interpolation.
         q_init, r_init = self._key_poses(source, T, c, pose_fitter)
         out = FrameArrays(T, self.model, keep_vertices, self.pelvis_dofs)
-        self._fit_every_frame(source, out, pose_fitter, c, q_init, r_init, progress, on_frames)
+        self._fit_every_frame(_FramePass.of(source, out, pose_fitter, c, progress, on_frames), q_init, r_init)
         seconds = time.perf_counter() - start
         return self._result(out, c, offsets, shape_keys, seconds)
 
@@ -258,58 +290,46 @@ class SequenceFitter:
         r_init = np.stack([np.interp(np.arange(T), keys, r_key[:, j]) for j in range(3)], 1)
         return q_init, r_init
 
-    def _fit_every_frame(
-        self,
-        source: FrameSource,
-        out: FrameArrays,
-        pose_fitter: RegisteredFitter,
-        c: np.ndarray,
-        q_init: np.ndarray,
-        r_init: np.ndarray,
-        progress: Progress | None,
-        on_frames: FramesCallback | None,
-    ) -> None:
-        """Nothing; fills ``out`` with the pose fit of every frame, in chunks, from q_init (T, n_dof) and
-        r_init (T, 3) with the shape c (1, n_shape), and streams each finished chunk to ``on_frames``."""
+    def _fit_every_frame(self, run: _FramePass, q_init: np.ndarray, r_init: np.ndarray) -> None:
+        """Nothing; fills ``run.out`` with the pose fit of every frame, in chunks, from q_init (T, n_dof) and
+        r_init (T, 3), and streams each finished chunk to ``run.on_frames``."""
         T, chunk, stages = len(q_init), self.config.chunk, self.config.frame_stages
-        dtype = pose_fitter.config.dtype
-        skin = pose_fitter.decoder.posed(torch.as_tensor(c, dtype=dtype))
+        out = run.out
         pending: tuple[int, int, np.ndarray, np.ndarray] | None = None
         for lo in range(0, T, chunk):
             hi = min(T, lo + chunk)
-            x, w, out.G[lo:hi], out.origin[lo:hi] = self._frames(source, np.arange(lo, hi))
+            x, w, out.G[lo:hi], out.origin[lo:hi] = self._frames(run.source, np.arange(lo, hi))
             G, origin = out.G[lo:hi], out.origin[lo:hi]
             out.q_c[lo:hi], out.root_c[lo:hi] = fit_poses(
-                pose_fitter, x, w, G, origin, c, q_init[lo:hi], r_init[lo:hi], stages, self.config.workers
+                run.fitter,
+                x,
+                w,
+                G,
+                origin,
+                run.shape,
+                q_init[lo:hi],
+                r_init[lo:hi],
+                stages,
+                self.config.workers,
             )
             if pending is not None:  # one chunk behind: its last frame's blend needs this chunk's first
-                self._finish(out, skin, dtype, *pending, progress, on_frames)
+                self._finish(run, *pending)
             pending = (lo, hi, x, w)
         if pending is not None:
-            self._finish(out, skin, dtype, *pending, progress, on_frames)
+            self._finish(run, *pending)
 
-    def _finish(
-        self,
-        out: FrameArrays,
-        skin: PosedSkin,
-        dtype: torch.dtype,
-        lo: int,
-        hi: int,
-        x: np.ndarray,
-        w: np.ndarray,
-        progress: Progress | None,
-        on_frames: FramesCallback | None,
-    ) -> None:
-        """Nothing; blends, turns back to the world, unwraps, skins and measures frames lo:hi of ``out``
-        (every neighbour's pose is known by now), then hands them to ``on_frames``. x: (k, V, 3) the input
-        frames, w: (k, V) their weights."""
+    def _finish(self, run: _FramePass, lo: int, hi: int, x: np.ndarray, w: np.ndarray) -> None:
+        """Nothing; blends, turns back to the world, unwraps, skins and measures frames lo:hi of ``run.out``
+        (every neighbour's pose is known by now), then hands them to ``run.on_frames``. x: (k, V, 3) the
+        input frames, w: (k, V) their weights."""
+        out, dtype = run.out, run.dtype
         blended = blend_joints(out.q_c, lo, hi, self.config.blend, self._joint_dofs)
         out.q[lo:hi], out.root[lo:hi] = to_world(
             blended, out.root_c[lo:hi], out.G[lo:hi], out.origin[lo:hi], self.pelvis_dofs
         )
         out.coordinates[lo:hi] = out.unwrap(out.q[lo:hi])
         with torch.no_grad():
-            v, j = skin.with_joints(
+            v, j = run.skin.with_joints(
                 torch.as_tensor(out.q[lo:hi], dtype=dtype), torch.as_tensor(out.root[lo:hi], dtype=dtype)
             )
         v_world = v.numpy().astype(np.float32, copy=False)  # float32 whatever the fitter's dtype
@@ -317,21 +337,12 @@ class SequenceFitter:
         if out.verts is not None:
             out.verts[lo:hi] = v_world
         out.totals.add(x, v_world, w)
-        if on_frames is not None:
+        if run.on_frames is not None:
             errors = np.array([st.mean for st in out.totals.frames[lo:hi]])
-            on_frames(
-                SequenceFrames(
-                    lo,
-                    hi,
-                    out.coordinates[lo:hi].copy(),
-                    out.root[lo:hi].copy(),
-                    v_world,
-                    out.joints[lo:hi].copy(),
-                    errors,
-                )
-            )
-        if progress is not None:
-            progress(hi, len(out.q))
+            block = (out.coordinates[lo:hi].copy(), out.root[lo:hi].copy(), v_world, out.joints[lo:hi].copy())
+            run.on_frames(SequenceFrames(lo, hi, *block, errors))
+        if run.progress is not None:
+            run.progress(hi, len(out.q))
 
     def _offsets(self, shaped: BodyFit, x: np.ndarray, w: np.ndarray, config: OffsetConfig) -> np.ndarray:
         """Rest-pose offsets (V, 3) from the shape fit ``shaped`` of keyframes x (K, V, 3) (canonical frames)
