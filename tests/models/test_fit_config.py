@@ -27,6 +27,7 @@ from bodyfit.models.fitting.scan.config import (
     ScanPhase,
 )
 from bodyfit.models.fitting.sequence.fitter import FRAME_STAGES, KEY_STAGES, SequenceConfig
+from bodyfit.models.fitting.sequence.offsets import OffsetConfig
 
 GOOD: dict[str, Any] = {
     "name": "x",
@@ -110,6 +111,8 @@ def test_stages_and_phases_are_keyword_only() -> None:
         ),
         (lambda: RegisteredFitConfig(stages=()), "RegisteredFitConfig.len(stages) must be at least 1; got 0"),
         (lambda: SequenceConfig(chunk=0), "SequenceConfig.chunk must be at least 1; got 0"),
+        (lambda: OffsetConfig(smoothness=-1.0), "OffsetConfig.smoothness must be at least 0.0; got -1.0"),
+        (lambda: OffsetConfig(max_residual=0.0), "OffsetConfig.max_residual must be positive; got 0.0"),
         (lambda: SequenceConfig(workers=0), "SequenceConfig.workers must be at least 1; got 0"),
         (lambda: SequenceConfig(blend=0.5), "SequenceConfig.blend must be in [0, 0.5); got 0.5"),
         (

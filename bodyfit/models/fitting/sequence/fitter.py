@@ -197,7 +197,8 @@ class SequenceFitter:
         ``config.chunk`` frames (the last one shorter), each as soon as its frames are final: after the
         next chunk's poses are fitted (the blend reads one frame past the block), the last block at the end
         of the frame pass, all before this returns. The blocks' arrays are the final ones: concatenated, they
-        equal the returned fit's coordinates, root, vertices and joints, and its reports' mean distances.
+        equal the returned fit's coordinates, root, vertices and joints, and its reports' mean distances. An
+        exception raised by ``on_frames`` stops the fit and propagates.
 
         Raises:
             ShapeError / NonFiniteError: bad frames from the source (wrong shape, NaN, bad weights).

@@ -28,16 +28,27 @@ import scipy.sparse as sp
 from bodyfit.models.errors import ShapeError
 from bodyfit.models.fitting.common.nonrigid import solve_offsets
 from bodyfit.models.fitting.common.surface import laplacian
+from bodyfit.models.fitting.registered.stages import check_at_least
 
 
 @dataclass(frozen=True)
 class OffsetConfig:
     """smoothness, stiffness: weights of |L D|^2 and |D|^2 against a data weight of one per vertex and
-    frame; max_residual: residuals longer than this (m) are left out (not this body's surface)."""
+    frame; max_residual: residuals longer than this (m) are left out (not this body's surface).
+
+    Raises:
+        ValueError: a negative weight or a residual limit that is not positive (the message names the field).
+    """
 
     smoothness: float = 1.0
     stiffness: float = 0.02
     max_residual: float = 0.08
+
+    def __post_init__(self) -> None:
+        check_at_least("OffsetConfig", "smoothness", self.smoothness, 0.0)
+        check_at_least("OffsetConfig", "stiffness", self.stiffness, 0.0)
+        if not self.max_residual > 0:
+            raise ValueError(f"OffsetConfig.max_residual must be positive; got {self.max_residual!r}")
 
 
 def fit_rest_offsets(
