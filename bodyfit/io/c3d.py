@@ -8,6 +8,9 @@ frame rate), then the parameter section (a 4-byte header whose last byte is the 
 DEC, 86 MIPS), then per frame ``n_points`` x (X, Y, Z, residual) followed by the analog samples. Integer
 data are multiplied by |POINT:SCALE|; a negative residual marks a missing sample. DEC floats are VAX
 F-floats: swap the 16-bit halves, read as IEEE and divide by 4. Pure functions, no I/O.
+
+The files it reads, and why it is kept rather than ezc3d, are in docs/readers.md (vendor files in
+tests/data/vendors).
 """
 
 from __future__ import annotations

@@ -114,3 +114,20 @@ def test_bad_arguments_and_missing_file(tmp_path: Path) -> None:
     m = parse_bvh(SMALL)
     with pytest.raises(MocapFormatError, match="no joint 'Elbow'; joints: Hips, Knee"):
         m.index("Elbow")
+
+
+def test_position_channels_replace_the_offset() -> None:
+    """A joint with position channels sits where the channels put it, whatever its OFFSET (the rest
+    value): LAFAN1-style exports repeat the root's first-frame position as its OFFSET, and a non-root joint
+    with six channels (Blender-style) carries its rest offset in both."""
+    text = SMALL.replace("  OFFSET 0 0 0\n  CHANNELS 6", "  OFFSET 1 2 3\n  CHANNELS 6").replace(
+        "    OFFSET 0 -10 0\n    CHANNELS 3 Zrotation Xrotation Yrotation",
+        "    OFFSET 0 -10 0\n    CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation",
+    )
+    text = text.replace("1 2 3 0 0 0 0 0 0\n", "1 2 3 0 0 0 0 -10 0 0 0 0\n").replace(
+        "1 2 3 0 90 0 90 0 0\n", "5 2 3 0 0 0 0 -8 0 0 0 0\n"
+    )
+    p, _, names = parse_bvh(text, rotation=np.eye(3)).world(end_sites=True)
+    np.testing.assert_allclose(p[:, names.index("Hips")], [[1, 2, 3], [5, 2, 3]])
+    np.testing.assert_allclose(p[:, names.index("Knee")], [[1, -8, 3], [5, -6, 3]])
+    np.testing.assert_allclose(p[:, names.index("Knee_end")], [[1, -18, 3], [5, -16, 3]])
