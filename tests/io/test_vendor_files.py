@@ -177,7 +177,7 @@ def test_c3d_matches_ezc3d(name: str) -> None:
 
 
 # ezc3d refuses MIPS (SGI) files; these numbers are py-c3d 0.6.0's (the package ``c3d``).
-SGI = {
+SGI: dict[str, dict[str, Any]] = {
     "vicon370_sgi_int.c3d": dict(
         missing=228, sample=[117.815, 174.614, 55.674], mean=[252.58, 1190.718, 737.508]
     ),
