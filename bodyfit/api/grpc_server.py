@@ -150,9 +150,10 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
                 raise InvalidInputError(f"chunk must be at least 1; got {chunk}", "chunk")
             if frames.ndim >= 1 and len(frames) > service.limits.max_frames:
                 service.fit_sequence(frames)  # raises the limit error
-            fit = service.fit_sequence(frames, weights, job)
-            chunks = [sequence_event(e) for e in results.sequence_chunks(fit, chunk)]
-            return [*chunks, sequence_event(results.sequence_summary(fit, joint_names))]
+            chunks = results.SequenceChunker(chunk, lambda e: job.emit(sequence_event(e)))
+            fit = service.fit_sequence(frames, weights, job, on_frames=chunks)
+            chunks.flush()
+            return [sequence_event(results.sequence_summary(fit, joint_names))]
 
         return self._stream(
             "FitSequence", context, work, lambda p: pb.FitSequenceEvent(progress=_progress(p))
@@ -217,11 +218,13 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
         work: Callable[[Job], list[T]],
         progress_event: Callable[[Progress], T],
     ) -> Iterator[T]:
-        """Run ``work`` in a thread; yield its progress as events, then its result events."""
+        """Run ``work`` in a thread; yield its progress and the events it emits (already messages) as they
+        come, then its result events."""
         remaining = context.time_remaining()
         limit = self.service.limits.max_seconds
-        events: queue.SimpleQueue[Progress | None] = queue.SimpleQueue()
-        job = Job(timeout_s=limit if remaining is None else min(limit, remaining), on_progress=events.put)
+        events: queue.SimpleQueue[Progress | T | None] = queue.SimpleQueue()
+        timeout = limit if remaining is None else min(limit, remaining)
+        job = Job(timeout_s=timeout, on_progress=events.put, on_event=events.put)
         context.add_callback(job.cancel)  # the RPC ended: stop the work if it still runs
         result: list[T] = []
         failure: list[BaseException] = []
@@ -238,7 +241,7 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
             threading.Thread(target=run, name=f"bodyfit-{name}", daemon=True).start()
             try:
                 while (p := events.get()) is not None:
-                    yield progress_event(p)
+                    yield progress_event(p) if isinstance(p, Progress) else p
                 if failure:
                     raise failure[0]
                 yield from result

@@ -4,11 +4,13 @@ NDJSON) and gRPC alike."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from bodyfit import wire as w
 from bodyfit.models.fitting.common.report import FitReport
-from bodyfit.models.fitting.sequence.fitter import SequenceFit
+from bodyfit.models.fitting.sequence.fitter import SequenceFit, SequenceFrames
 from bodyfit.models.upgrade.upgrade import UpgradeResult
 from bodyfit.service.core import MeshFit
 from bodyfit.service.formats import json_ready
@@ -57,15 +59,40 @@ def sequence_chunk(
     return w.SequenceChunkEvent(start=start, stop=start + len(coordinates), arrays=arrays)
 
 
-def sequence_chunks(fit: SequenceFit, chunk: int) -> list[w.SequenceChunkEvent]:
-    """Per-chunk events of a sequence fit: frames ``[start, stop)``, ``chunk`` at a time."""
-    events = []
-    for lo in range(0, len(fit.coordinates), chunk):
-        hi = min(len(fit.coordinates), lo + chunk)
-        errors = np.array([r.distances.mean for r in fit.reports[lo:hi]])
-        frames = (fit.coordinates[lo:hi], fit.root[lo:hi], fit.registration(lo, hi), fit.joints[lo:hi])
-        events.append(sequence_chunk(lo, *frames, errors))
-    return events
+class SequenceChunker:
+    """Re-slices the blocks of final frames a sequence fit streams
+    (:class:`~bodyfit.models.fitting.sequence.result.SequenceFrames`, the fitter's own block size) into chunk
+    events of ``chunk`` frames, handing each to ``emit`` as soon as its frames are all in: call it with each
+    block in time order, then :meth:`flush` once the fit has returned, for the last, shorter chunk."""
+
+    def __init__(self, chunk: int, emit: Callable[[w.SequenceChunkEvent], None]) -> None:
+        self.chunk = chunk
+        self.emit = emit
+        self.start = 0  # the first frame not yet emitted
+        self._held: list[SequenceFrames] = []
+
+    def __call__(self, block: SequenceFrames) -> None:
+        if block.start != self.start + sum(b.stop - b.start for b in self._held):
+            raise ValueError(f"frames {block.start}-{block.stop - 1} came out of order")
+        self._held.append(block)
+        while sum(b.stop - b.start for b in self._held) >= self.chunk:
+            self._send(self.chunk)
+
+    def flush(self) -> None:
+        """Emit the frames still held (fewer than ``chunk``)."""
+        held = sum(b.stop - b.start for b in self._held)
+        if held:
+            self._send(held)
+
+    def _send(self, k: int) -> None:
+        """Emit the first k held frames as one chunk event; keep the rest."""
+        parts = ("coordinates", "root", "vertices", "joints", "error_mm")
+        joined = {name: np.concatenate([getattr(b, name) for b in self._held]) for name in parts}
+        self.emit(sequence_chunk(self.start, *(joined[name][:k] for name in parts)))
+        rest = {name: a[k:] for name, a in joined.items()}
+        stop = self.start + len(joined["coordinates"])
+        self.start += k
+        self._held = [SequenceFrames(start=self.start, stop=stop, **rest)] if stop > self.start else []
 
 
 def sequence_summary(fit: SequenceFit, joint_names: list[str]) -> w.SequenceResultEvent:

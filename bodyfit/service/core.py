@@ -33,7 +33,7 @@ from bodyfit.models.fitting.registered.fitter import BodyFit, RegisteredFitter
 from bodyfit.models.fitting.registered.smpl_topology import SMPL_VERTICES, fit_smpl_meshes, refine_smpl_fit
 from bodyfit.models.fitting.scan.config import ScanFitConfig
 from bodyfit.models.fitting.scan.fitter import ScanFitter
-from bodyfit.models.fitting.sequence.fitter import SequenceFit, SequenceFitter
+from bodyfit.models.fitting.sequence.fitter import SequenceFit, SequenceFitter, SequenceFrames
 from bodyfit.models.upgrade.proxy import ShapeHintError, ShapeHints, SmplProxy, load_proxy
 from bodyfit.models.upgrade.smpl_model import SmplModel, load_smpl_model
 from bodyfit.models.upgrade.upgrade import (
@@ -360,9 +360,13 @@ class BodyService:
         weights: np.ndarray | None = None,
         job: Job | None = None,
         checked: bool = False,
+        on_frames: Callable[[SequenceFrames], None] | None = None,
     ) -> SequenceFit:
         """Fit a registered sequence (T, V, 3) of one person (one shape, per-frame pose). ``checked``: the
-        caller ran :meth:`check_sequence` on these arrays already (it runs here otherwise).
+        caller ran :meth:`check_sequence` on these arrays already (it runs here otherwise). ``on_frames``:
+        called with each block of final frames while the fit runs, in time order, every frame once
+        (:meth:`bodyfit.models.fitting.sequence.fitter.SequenceFitter.fit_frames`), each block checked
+        finite first, so that a transport streams the first frames while the rest are fitted.
 
         Raises:
             InvalidInputError: wrong shape or dtype, NaN, no frames, a frame that is not a body
@@ -382,8 +386,15 @@ class BodyService:
             def progress(done: int, total: int) -> None:
                 job.report("fit", done, total, f"{done}/{total} frames")
 
+            def checked_frames(block: SequenceFrames) -> None:
+                _check_sequence_frames(block)
+                if on_frames is not None:
+                    on_frames(block)
+
             with invalid_input("frames"):
-                fit = self.fitters.sequence.fit(x, weights, progress=progress)
+                fit = self.fitters.sequence.fit(
+                    x, weights, progress=progress, on_frames=None if on_frames is None else checked_frames
+                )
             _check_sequence_fit(fit)
             return fit
 
@@ -487,6 +498,22 @@ def _check_sequence_fit(fit: SequenceFit) -> None:
             "joints": fit.joints,
             "vertices": fit.vertices,
             "error_mm": np.array([r.distances.mean for r in fit.reports]),
+        },
+        "check that the frames are one person in our topology, in metres, in time order",
+        "frames",
+    )
+
+
+def _check_sequence_frames(block: SequenceFrames) -> None:
+    """Raises InvalidInputError when an array of a streamed block of sequence frames is not finite."""
+    check_finite_result(
+        f"sequence fit (frames {block.start}-{block.stop - 1})",
+        {
+            "coordinates": block.coordinates,
+            "root": block.root,
+            "joints": block.joints,
+            "vertices": block.vertices,
+            "error_mm": block.error_mm,
         },
         "check that the frames are one person in our topology, in metres, in time order",
         "frames",

@@ -1,8 +1,10 @@
-"""Control of one long-running request: cancellation, a deadline and a progress sink.
+"""Control of one long-running request: cancellation, a deadline, a progress sink and a sink for partial
+results.
 
 The core calls :meth:`Job.report` between steps of a long computation; that is where a cancelled or late
-job stops (by raising). Transports create the job, wire ``cancel()`` to the client going away, and forward
-the reported events to the client.
+job stops (by raising). Work that has final results before it ends (a sequence fit's first frames) hands
+them to :meth:`Job.emit`, so a client reads them while the rest is computed. Transports create the job,
+wire ``cancel()`` to the client going away, and forward the reported and emitted events to the client.
 """
 
 from __future__ import annotations
@@ -34,10 +36,13 @@ class Job:
     """Args:
     timeout_s: wall-clock limit from creation (None: no limit).
     on_progress: called with each :class:`Progress` (from the worker thread).
+    on_event: called with each partial result the work emits (from the worker thread), in order; what an
+        event is is the transport's business (a wire document, a protobuf message).
     """
 
     timeout_s: float | None = None
     on_progress: Callable[[Progress], None] | None = None
+    on_event: Callable[[Any], None] | None = None
     started: float = field(default_factory=time.monotonic)
     _cancelled: threading.Event = field(default_factory=threading.Event)
 
@@ -68,3 +73,14 @@ class Job:
         self.check()
         if self.on_progress is not None:
             self.on_progress(Progress(stage, done, total, message))
+
+    def emit(self, event: Any) -> None:
+        """Check for cancellation and deadline, then hand a partial result to the transport.
+
+        Raises:
+            RuntimeError: the job has no ``on_event`` sink, so the event would be lost.
+        """
+        self.check()
+        if self.on_event is None:
+            raise RuntimeError("this job has no on_event sink; the transport must collect emitted events")
+        self.on_event(event)

@@ -19,7 +19,8 @@ from bodyfit.service.jobs import Job, Progress
 
 NDJSON = "application/x-ndjson"
 Work = Callable[[Job], Sequence[w.WireModel]]
-"""Runs in a worker thread; returns the result events (chunks, then the ``result`` event last)."""
+"""Runs in a worker thread; may emit partial results (:meth:`Job.emit`) while it runs; returns the result
+events, the ``result`` event last."""
 
 
 def wants_stream(request: Request) -> bool:
@@ -34,23 +35,26 @@ def _line(doc: w.WireModel | dict[str, Any]) -> bytes:
 
 
 async def stream(work: Work, job: Job) -> AsyncGenerator[bytes, None]:
-    """NDJSON lines: ``progress`` events while the work runs, then its result events, or one ``error``
-    event (a problem document) if it failed. Closing the stream early cancels the job."""
+    """NDJSON lines: ``progress`` events and the events the work emits (:meth:`Job.emit`: a sequence's
+    chunks) while it runs, then its result events, or one ``error`` event (a problem document) if it
+    failed. Closing the stream early cancels the job."""
     loop = asyncio.get_running_loop()
-    queue: asyncio.Queue[Progress] = asyncio.Queue()
+    queue: asyncio.Queue[Progress | w.WireModel] = asyncio.Queue()
 
-    def forward(p: Progress) -> None:
-        loop.call_soon_threadsafe(queue.put_nowait, p)
+    def forward(item: Progress | w.WireModel) -> None:
+        loop.call_soon_threadsafe(queue.put_nowait, item)
 
     job.on_progress = forward
+    job.on_event = forward
     task = loop.run_in_executor(None, work, job)
     try:
         while not task.done() or not queue.empty():
-            getter: asyncio.Future[Progress] = asyncio.ensure_future(queue.get())
+            getter: asyncio.Future[Progress | w.WireModel] = asyncio.ensure_future(queue.get())
             pending: set[asyncio.Future[Any]] = {getter, task}
             await asyncio.wait(pending, return_when=asyncio.FIRST_COMPLETED)
             if getter.done():
-                yield _line(progress_event(getter.result()))
+                item = getter.result()
+                yield _line(progress_event(item) if isinstance(item, Progress) else item)
             else:
                 getter.cancel()
         try:
@@ -76,6 +80,8 @@ async def answer(request: Request, work: Work, job: Job) -> StreamingResponse | 
     own HTTP status)."""
     if wants_stream(request):
         return StreamingResponse(stream(work, job), media_type=NDJSON)
+    emitted: list[w.WireModel] = []
+    job.on_event = emitted.append  # the chunks the work emits come first in the answer
     loop = asyncio.get_running_loop()
     task = loop.run_in_executor(None, work, job)
     while not task.done():
@@ -83,7 +89,7 @@ async def answer(request: Request, work: Work, job: Job) -> StreamingResponse | 
         if not task.done() and await request.is_disconnected():
             job.cancel()
     try:
-        events = task.result()  # ServiceError -> the app's problem handler
+        events = [*emitted, *task.result()]  # ServiceError -> the app's problem handler
     except Exception as exc:
         error = as_service_error(exc)
         if error is None or error is exc:

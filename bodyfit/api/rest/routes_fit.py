@@ -70,8 +70,10 @@ async def fit_sequence(
     await run_in_threadpool(service.check_sequence, frames, weights)  # 422 before streaming or fitting
     joint_names = list(service.info().joint_names)
 
-    def work(job: Job) -> list[w.SequenceChunkEvent | w.SequenceResultEvent]:
-        fit = service.fit_sequence(frames, weights, job, checked=True)
-        return [*results.sequence_chunks(fit, chunk), results.sequence_summary(fit, joint_names)]
+    def work(job: Job) -> list[w.SequenceResultEvent]:
+        chunks = results.SequenceChunker(chunk, job.emit)  # streamed while the later frames are fitted
+        fit = service.fit_sequence(frames, weights, job, checked=True, on_frames=chunks)
+        chunks.flush()
+        return [results.sequence_summary(fit, joint_names)]
 
     return await answer(request, work, Job(timeout_s=service.limits.max_seconds))
