@@ -224,7 +224,7 @@ def test_fit_with_static_recovers_pose_and_limits_hold(body: BodyModel) -> None:
 def test_fit_errors(body: BodyModel) -> None:
     walk = read_trc(GAIT / "gait2392_subject01_walk1.trc")
     with pytest.raises(MarkerSetError, match="unknown marker set"):
-        fit_markers(walk, marker_set="plug-in-gait", model=body)
+        fit_markers(walk, marker_set="plug-in-gait", model=body)  # type: ignore[arg-type]
     with pytest.raises(MarkerSetError, match="not in the gait2392 set"):
         fit_markers(walk, weights={"NOPE": 1.0}, model=body)
     few = walk.frames(slice(0, 3))
@@ -332,7 +332,7 @@ def test_static_pose_and_calibration_errors(body: BodyModel) -> None:
     with pytest.raises(ValueError, match="static_pose"):
         fit_markers(run, static, model=body, calibration="motion")
     with pytest.raises(ValueError, match="'auto', 'static' or 'motion'"):
-        fit_markers(run, static, model=body, calibration="static trial")
+        fit_markers(run, static, model=body, calibration="static trial")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="needs the static trial"):
         fit_markers(run, model=body, calibration="static")
     with pytest.raises(UnknownCoordinateError, match="ankle_angle_r"):

@@ -8,7 +8,11 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
+
+if TYPE_CHECKING:
+    from bodyfit.models.fitting.mocap.fitter import CalibrationMode
+    from bodyfit.models.fitting.mocap.marker_sets import MarkerSetName
 
 MARKER_SUFFIXES = (".trc", ".c3d")
 
@@ -78,10 +82,11 @@ def fit_marker_trials(
         fit = fit_markers(
             motion,
             static,
-            options.marker_set,
+            # the command line's strings are checked by fit_markers, which names the valid choices
+            cast("MarkerSetName", options.marker_set),
             model=model,
             static_pose=held or None,
-            calibration=options.calibration,
+            calibration=cast("CalibrationMode", options.calibration),
         )
         files = fit.write(out, model.skeleton.spec, path.stem)
         report = fit.report

@@ -26,7 +26,7 @@ import warnings
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -41,7 +41,12 @@ from bodyfit.models.fitting.mocap.calibration import (
     place_markers,
     virtual_markers,
 )
-from bodyfit.models.fitting.mocap.marker_sets import MarkerSetError, choose_marker_set, normalise_name
+from bodyfit.models.fitting.mocap.marker_sets import (
+    MarkerSetError,
+    MarkerSetName,
+    choose_marker_set,
+    normalise_name,
+)
 from bodyfit.models.fitting.mocap.marker_solve import solve_ik
 from bodyfit.models.fitting.mocap.subject import Calibration, calibrate
 from bodyfit.models.skeleton.model import Skeleton
@@ -51,6 +56,8 @@ from bodyfit.models.skeleton.spec import SkeletonSpec
 MIN_VISIBLE = 6  # markers a frame needs for a trustworthy pose
 MAX_MEAN_ERROR = 0.02  # m: a mean marker error above this makes the fit not confident
 CALIBRATION_FRAMES = 24  # frames of the motion used when there is no static trial
+CalibrationMode = Literal["auto", "static", "motion"]
+"""How :func:`fit_markers` calibrates the subject: from the static trial, from the motion, or ``"auto"``."""
 
 
 @dataclass(frozen=True)
@@ -111,13 +118,13 @@ def _calibration_frames(observed: np.ndarray, count: int) -> np.ndarray:
 def fit_markers(
     trial: MarkerTrial,
     static: MarkerTrial | None = None,
-    marker_set: str = "auto",
+    marker_set: MarkerSetName = "auto",
     *,
     model: BodyModel | None = None,
     weights: Mapping[str, float] | None = None,
     static_window: tuple[float, float] | None = None,
     static_pose: Mapping[str, float] | None = None,
-    calibration: str = "auto",
+    calibration: CalibrationMode = "auto",
     calibration_frames: int = CALIBRATION_FRAMES,
     max_iterations: int = 50,
 ) -> MarkerFit:

@@ -31,6 +31,7 @@ and scapula joints) are pulled gently towards neutral so the Rajagopal DOFs expl
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 from bodyfit.models.errors import BodyfitError
 
@@ -280,6 +281,8 @@ RAJAGOPAL = MarkerSetDef(
 )
 
 MARKER_SETS: dict[str, MarkerSetDef] = {s.name: s for s in (GAIT2392, RAJAGOPAL)}
+MarkerSetName = Literal["auto", "gait2392", "rajagopal"]
+"""A marker set by name, or ``"auto"``: the set sharing most names with the trial."""
 
 
 def normalise_name(name: str) -> str:
@@ -287,7 +290,9 @@ def normalise_name(name: str) -> str:
     return name.rsplit(":", 1)[-1].strip()
 
 
-def choose_marker_set(names: list[str] | tuple[str, ...], marker_set: str = "auto") -> MarkerSetDef:
+def choose_marker_set(
+    names: list[str] | tuple[str, ...], marker_set: MarkerSetName | str = "auto"
+) -> MarkerSetDef:
     """The marker set for a trial's marker names: a named one, or (``"auto"``) the one sharing most names.
 
     Raises:
