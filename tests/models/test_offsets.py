@@ -91,7 +91,9 @@ def test_fit_rest_offsets_recovers_a_known_field(model: BodyModel) -> None:
     weights = np.ones((K, model.n_vertices))
     missing = np.arange(0, model.n_vertices, 7)
     weights[:, missing] = 0.0
-    fitted = fit_rest_offsets(rotations, (target - plain).numpy(), weights, model.faces, OffsetConfig(0.25))
+    fitted = fit_rest_offsets(
+        rotations, (target - plain).numpy(), weights, model.faces, OffsetConfig(smoothness=0.25)
+    )
     error = np.linalg.norm(fitted - d, axis=1)
     size = np.linalg.norm(d, axis=1).mean()
     assert error.mean() < 0.1 * size, (error.mean(), size)
@@ -114,7 +116,7 @@ def test_sequence_with_offsets_fits_detail_beyond_the_shape_space(model: BodyMod
     config = SequenceConfig(chunk=24)
     fitter = RegisteredFitter(model)
     plain = SequenceFitter(fitter, config).fit(x)
-    detailed = SequenceFitter(fitter, replace(config, offsets=OffsetConfig(0.25))).fit(x)
+    detailed = SequenceFitter(fitter, replace(config, offsets=OffsetConfig(smoothness=0.25))).fit(x)
     assert plain.offsets is None and detailed.offsets is not None
     assert detailed.stats.mean_mm < 0.5 * plain.stats.mean_mm, (detailed.stats.mean_mm, plain.stats.mean_mm)
     # Measured: 2.13 mm in the shape space alone, 0.89 mm with offsets (the field averages 6.9 mm). The body

@@ -275,7 +275,7 @@ def test_the_branches_fit_alike_one_after_the_other_or_at_once(model: BodyModel)
         dataclasses.replace(p, stage=dataclasses.replace(p.stage, iterations=5)) for p in DEFAULT_PHASES
     )
     fits = [
-        ScanFitter(model, ScanFitConfig(short, nonrigid=None, single_view=False, workers=w)).fit(
+        ScanFitter(model, ScanFitConfig(phases=short, nonrigid=None, single_view=False, workers=w)).fit(
             points, orientation=np.eye(3)
         )
         for w in (1, 2)
@@ -298,7 +298,9 @@ def test_a_phase_in_rounds_takes_its_metric_again_where_each_round_ended(
         dataclasses.replace(p, stage=dataclasses.replace(p.stage, iterations=3), rounds=3 if p.plane else 1)
         for p in DEFAULT_PHASES
     )
-    config = ScanFitConfig(phases, DEFAULT_BRANCHES[:1], nonrigid=None, single_view=False, workers=1)
+    config = ScanFitConfig(
+        phases=phases, branches=DEFAULT_BRANCHES[:1], nonrigid=None, single_view=False, workers=1
+    )
     fitter = ScanFitter(model, config)
     metrics: list[tuple[str, torch.Tensor]] = []  # (phase, u) where each metric was taken
     starts: list[tuple[str, torch.Tensor]] = []  # (stage, u) where each L-BFGS run started

@@ -25,7 +25,9 @@ from bodyfit.models.fitting.scan.fitter import ScanFitter
 BRANCHED = ("shape", "limbs", "fine")
 HELPER_START_SECONDS = 180.0  # it starts in about 5 s; the suite's other worker may hold the other core
 SHORT = ScanFitConfig(
-    tuple(dataclasses.replace(p, stage=dataclasses.replace(p.stage, iterations=4)) for p in DEFAULT_PHASES),
+    phases=tuple(
+        dataclasses.replace(p, stage=dataclasses.replace(p.stage, iterations=4)) for p in DEFAULT_PHASES
+    ),
     nonrigid=None,
 )
 

@@ -177,7 +177,7 @@ DEFAULT_BRANCHES = (
 )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class ScanFitConfig:
     """voxel: cleaning grid (m); neighbours, outlier_cutoff: a point is dropped when its mean distance to
     its neighbours exceeds the median by ``outlier_cutoff`` robust standard deviations; tangential: weight

@@ -31,7 +31,7 @@ from bodyfit.models.fitting.common.surface import laplacian
 from bodyfit.models.fitting.registered.stages import check_at_least
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class OffsetConfig:
     """smoothness, stiffness: weights of |L D|^2 and |D|^2 against a data weight of one per vertex and
     frame; max_residual: residuals longer than this (m) are left out (not this body's surface).
