@@ -1,8 +1,9 @@
 """A small software renderer for triangle meshes: gallery PNGs of bodies with the skeleton inside.
 
-Pure numpy (plus PIL for writing PNGs); no OpenGL, no matplotlib. Orthographic camera, flat per-face
-Lambert shading with the light at the camera, a vectorised z-buffer for opaque meshes and an "x-ray"
-composite for translucent ones.
+Pure numpy (plus PIL for writing PNGs and drawing their labels); no OpenGL, no matplotlib. Orthographic
+camera, flat per-face Lambert shading with the light at the camera, a vectorised z-buffer for opaque meshes
+and an "x-ray" composite for translucent ones. :func:`tile` lays renders out in a grid and
+:func:`label_grid` titles its columns and rows.
 
 World convention: metres, +Y up, +X forward (the body faces +X), +Z is the body's right. Views:
 
@@ -33,10 +34,14 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from bodyfit.models.errors import BodyfitError, NonFiniteError, ShapeError
+
+if TYPE_CHECKING:
+    from PIL import ImageDraw
 
 VIEWS = ("front", "side", "back")
 
@@ -48,6 +53,9 @@ _MARGIN = 0.04
 _CHUNK_PIXELS = 1 << 21
 # Triangles whose doubled screen area (in pixels²) is below this are degenerate and skipped.
 _MIN_AREA2 = 1e-12
+# Labels: dark grey text, and the blank pixels kept around each label.
+_INK = (34, 34, 34)
+_LABEL_MARGIN = 8
 
 
 @dataclass(frozen=True, eq=False)
@@ -217,6 +225,73 @@ def tile(
     return out
 
 
+def label_grid(
+    image: np.ndarray,
+    column_titles: Sequence[Sequence[str]],
+    row_titles: Sequence[str],
+    caption: str = "",
+    pad: int = 4,
+    font_size: int = 18,
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0),
+) -> np.ndarray:
+    """Label a grid made by :func:`tile`: titles above its columns, a label left of each row, a caption below.
+
+    Args:
+        image: (H, W, 3) uint8 grid from ``tile(images, C, pad)`` with R rows, where R = len(row_titles) and
+            C = len(column_titles[0]).
+        column_titles: ``[titles]``, one list of C titles drawn in a band above the grid, or R such lists,
+            each drawn in a band above its own row (for grids whose columns show different things in
+            different rows). Titles are centred over their column and wrapped to its width; a newline
+            starts a new line; "" leaves the place blank.
+        row_titles: R labels, each centred beside its row in a band left of the grid; a newline starts a
+            new line (row labels are not wrapped: the band grows to the widest line).
+        caption: text under the grid, wrapped to the labelled image's width (say what the colours mean);
+            "" for none.
+        pad: the ``pad`` the grid was tiled with.
+        font_size: text height in pixels (Pillow's default font: FreeType's Aileron when Pillow has
+            FreeType, else a small fixed bitmap font).
+        background: (r, g, b) in 0..1 for the bands.
+    Returns:
+        (B * T + H + K, L + W, 3) uint8 image: the grid unchanged, shifted right by the row-label band's
+        width L and down by the title bands above it, where T is a title band's height, B the number of
+        title bands (1 or R) and K the caption band's height (0 without a caption).
+    """
+    from PIL import Image, ImageDraw
+
+    img = _check_image("image", image)
+    rows, columns = _check_titles(column_titles, row_titles)
+    _check_count("pad", pad, 0)
+    _check_count("font_size", font_size, 1)
+    _check_rgb("background", background)
+    cell_h, cell_w = _cell_size(img.shape[:2], rows, columns, pad)
+    pen = _Pen(font_size)
+    titles = [[pen.wrap(t, cell_w - _LABEL_MARGIN) for t in line] for line in column_titles]
+    band_h = max(pen.size(t)[1] for line in titles for t in line) + 2 * _LABEL_MARGIN
+    band_w = max(pen.size(t)[0] for t in row_titles) + 2 * _LABEL_MARGIN
+    text = pen.wrap(caption, band_w + img.shape[1] - 2 * _LABEL_MARGIN)
+    caption_h = pen.size(text)[1] + 2 * _LABEL_MARGIN if text else 0
+    per_row = len(titles) > 1
+    height = band_h * (rows if per_row else 1) + img.shape[0] + caption_h
+    bg = tuple(round(255 * float(x)) for x in background)
+    out = Image.new("RGB", (band_w + img.shape[1], height), bg)
+    draw = ImageDraw.Draw(out)
+    pitch_y, pitch_x = cell_h + pad, cell_w + pad
+    y = 0
+    for r in range(rows):
+        if r == 0 or per_row:
+            for c, title in enumerate(titles[r if per_row else 0]):
+                pen.centred(draw, title, band_w + pad + c * pitch_x + cell_w / 2, y + band_h / 2)
+            y += band_h
+        out.paste(Image.fromarray(img[r * pitch_y : (r + 1) * pitch_y]), (band_w, y))
+        pen.centred(draw, row_titles[r], band_w / 2, y + pad + cell_h / 2)
+        y += pitch_y
+    if pad:
+        out.paste(Image.fromarray(img[rows * pitch_y :]), (band_w, y))  # the bottom pad
+    if text:
+        pen.left(draw, text, _LABEL_MARGIN, y + pad + _LABEL_MARGIN)
+    return np.asarray(out)
+
+
 # -- internals ------------------------------------------------------------------------------------------
 
 
@@ -237,6 +312,94 @@ def _check_image(what: str, image: np.ndarray) -> np.ndarray:
             f"got shape {img.shape}, dtype {img.dtype}"
         )
     return np.ascontiguousarray(img)
+
+
+def _check_titles(column_titles: Sequence[Sequence[str]], row_titles: Sequence[str]) -> tuple[int, int]:
+    """The grid's (rows, columns) from its titles, which must be strings in a consistent number."""
+    if isinstance(row_titles, str) or not all(isinstance(t, str) for t in row_titles) or not row_titles:
+        raise BodyfitError(f"row_titles must be a list of one string per row; got {row_titles!r}")
+    rows = len(row_titles)
+    lines = list(column_titles)
+    if (
+        isinstance(column_titles, str)
+        or not lines
+        or any(isinstance(line, str) or not all(isinstance(t, str) for t in line) for line in lines)
+    ):
+        raise BodyfitError(
+            f"column_titles must be [[title, ...]] (one list) or one list of titles per row; "
+            f"got {column_titles!r}"
+        )
+    columns = len(lines[0])
+    if columns < 1 or any(len(line) != columns for line in lines) or len(lines) not in (1, rows):
+        raise ShapeError(
+            f"column_titles must hold one list of titles, or {rows} (one per row), all of the same length "
+            f">= 1; got lists of lengths {[len(line) for line in lines]}"
+        )
+    return rows, columns
+
+
+def _cell_size(shape: tuple[int, ...], rows: int, columns: int, pad: int) -> tuple[int, int]:
+    """The (height, width) of one cell of a grid of ``shape`` (H, W) tiled with ``rows`` x ``columns``."""
+    cell_h, rest_h = divmod(shape[0] - pad, rows)
+    cell_w, rest_w = divmod(shape[1] - pad, columns)
+    if rest_h or rest_w or cell_h <= pad or cell_w <= pad:
+        raise ShapeError(
+            f"a {shape[0]}x{shape[1]} (H x W) image is not a grid of {rows} x {columns} tiles with "
+            f"pad {pad}; "
+            "give as many row titles as rows, as many column titles as columns, and tile()'s pad"
+        )
+    return cell_h - pad, cell_w - pad
+
+
+def _check_count(what: str, value: int, least: int) -> None:
+    if not isinstance(value, int) or isinstance(value, bool) or value < least:
+        raise BodyfitError(f"{what} must be an integer >= {least}; got {value!r}")
+
+
+class _Pen:
+    """Pillow's default font at one size: measures, wraps and draws multi-line text in ``_INK``."""
+
+    def __init__(self, font_size: int) -> None:
+        from PIL import Image, ImageDraw, ImageFont
+
+        self.font = ImageFont.load_default(size=font_size)
+        self.spacing = max(font_size // 4, 1)
+        self._measure = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+
+    def _box(self, text: str) -> tuple[float, float, float, float]:
+        return self._measure.multiline_textbbox(
+            (0, 0), text, font=self.font, spacing=self.spacing, align="center"
+        )
+
+    def size(self, text: str) -> tuple[int, int]:
+        """(width, height) in pixels of ``text``'s ink."""
+        x0, y0, x1, y1 = self._box(text)
+        return math.ceil(x1 - x0), math.ceil(y1 - y0)
+
+    def wrap(self, text: str, width: float) -> str:
+        """``text`` with its lines broken at spaces so each fits ``width`` pixels where it can."""
+        lines = []
+        for paragraph in text.split("\n"):
+            line = ""
+            for word in paragraph.split(" "):
+                candidate = f"{line} {word}" if line else word
+                if line and self.font.getlength(candidate) > width:
+                    lines.append(line)
+                    line = word
+                else:
+                    line = candidate
+            lines.append(line)
+        return "\n".join(lines)
+
+    def centred(self, draw: ImageDraw.ImageDraw, text: str, cx: float, cy: float) -> None:
+        """Draw ``text``, its lines centred, with its ink's box centred on pixel (cx, cy)."""
+        x0, y0, x1, y1 = self._box(text)
+        xy = (cx - (x0 + x1) / 2, cy - (y0 + y1) / 2)
+        draw.multiline_text(xy, text, fill=_INK, font=self.font, spacing=self.spacing, align="center")
+
+    def left(self, draw: ImageDraw.ImageDraw, text: str, x: float, y: float) -> None:
+        """Draw ``text`` left-aligned, its first line's top-left at pixel (x, y)."""
+        draw.multiline_text((x, y), text, fill=_INK, font=self.font, spacing=self.spacing)
 
 
 def _bounds(

@@ -1,4 +1,5 @@
-"""The software renderer: framing, view orientation, depth test, x-ray translucency, tiling, PNG output."""
+"""The software renderer: framing, view orientation, depth test, x-ray translucency, tiling, labels, PNG
+output."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from benchmarks.render import RenderMesh, render, save_png, tile
+from benchmarks.render import RenderMesh, label_grid, render, save_png, tile
 
 RED = (1.0, 0.0, 0.0)
 GREEN = (0.0, 1.0, 0.0)
@@ -273,6 +274,104 @@ def test_tile_lays_images_out_in_rows() -> None:
         tile([images[0], np.zeros((4, 2, 3), np.uint8)], columns=2)
     with pytest.raises(ValueError, match="columns"):
         tile(images, columns=0)
+
+
+# A 2 x 3 grid of 60 x 41 (H x W) grey tiles, pad 4: a cell pitch of 64 rows and 45 columns, 132 x 139
+# pixels in all (which 2 columns, or 3 rows, would not divide evenly).
+_CELL_H, _CELL_W, _PAD = 60, 41, 4
+
+
+def _grid() -> np.ndarray:
+    return tile([np.full((_CELL_H, _CELL_W, 3), 60 + 20 * k, np.uint8) for k in range(6)], columns=3)
+
+
+def ink(region: np.ndarray) -> bool:
+    """Whether ``region`` holds dark text pixels (the bands are white and the ink is near black)."""
+    return bool((region.max(axis=2) < 128).any())
+
+
+def _find(out: np.ndarray, grid: np.ndarray) -> tuple[int, int]:
+    """(top, left) at which ``grid`` appears unchanged in ``out``, flush with its right edge."""
+    left = out.shape[1] - grid.shape[1]
+    tops = [
+        t for t in range(out.shape[0] - grid.shape[0] + 1) if (out[t : t + len(grid), left:] == grid).all()
+    ]
+    assert len(tops) == 1, f"the grid appears at rows {tops}"
+    return tops[0], left
+
+
+def test_label_grid_adds_bands_and_draws_every_label() -> None:
+    grid = _grid()
+    out = label_grid(grid, [["input", "truth", "fit"]], ["man", "woman"], caption="Blue: the ground truth.")
+    assert out.dtype == np.uint8 and out.shape[2] == 3
+    top, left = _find(out, grid)
+    bottom = top + len(grid)
+    assert top > 0 and left > 0 and bottom < len(out)  # a title band, a row-label band, a caption band
+    for c in range(3):
+        x = left + _PAD + c * (_CELL_W + _PAD)
+        assert ink(out[:top, x : x + _CELL_W]), f"no title above column {c}"
+    for r in range(2):
+        y = top + _PAD + r * (_CELL_H + _PAD)
+        assert ink(out[y : y + _CELL_H, :left]), f"no label beside row {r}"
+    assert ink(out[bottom:])
+    assert not ink(out[:top, :left])  # the corner above the row labels stays blank
+
+
+def test_blank_titles_leave_their_place_blank() -> None:
+    grid = _grid()
+    out = label_grid(grid, [["", "truth", ""]], ["", ""])
+    top, left = _find(out, grid)
+    assert top + len(grid) == len(out)  # no caption, no caption band
+    columns = [left + _PAD + c * (_CELL_W + _PAD) for c in range(3)]
+    assert [ink(out[:top, x : x + _CELL_W]) for x in columns] == [False, True, False]
+    assert not ink(out[:, :left])
+
+
+def test_long_titles_wrap_within_their_column() -> None:
+    grid = _grid()
+    short = label_grid(grid, [["to", "", ""]], ["r", "s"])
+    wrapped = label_grid(grid, [["to be or not to be", "", ""]], ["r", "s"])
+    top_short, _ = _find(short, grid)
+    top, left = _find(wrapped, grid)
+    assert top > top_short + 30  # several lines, so a taller band
+    # every ink pixel of the title band lies over the first column (x from 4 to 45)
+    cols = np.nonzero((wrapped[:top, left:].max(axis=2) < 128).any(axis=0))[0]
+    assert cols.min() >= _PAD and cols.max() < _PAD + _CELL_W
+
+
+def test_titles_per_row_get_a_band_above_each_row() -> None:
+    grid = _grid()
+    pitch = _CELL_H + _PAD
+    out = label_grid(grid, [["points", "camera", "ahead"], ["d", "e", "f"]], ["kinect", "man"])
+    band = (len(out) - len(grid)) // 2
+    assert len(out) == 2 * band + len(grid) and band > 0
+    assert (out[band : band + pitch, -grid.shape[1] :] == grid[:pitch]).all()
+    assert (out[2 * band + pitch :, -grid.shape[1] :] == grid[pitch:]).all()
+    left = out.shape[1] - grid.shape[1]
+    for top in (0, band + pitch):
+        for c in range(3):
+            x = left + _PAD + c * (_CELL_W + _PAD)
+            assert ink(out[top : top + band, x : x + _CELL_W]), f"no title above column {c} at row {top}"
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"column_titles": ["a", "b", "c"]}, "one list"),
+        ({"column_titles": [["a", "b"]]}, "not a grid of 2 x 2"),
+        ({"column_titles": [["a", "b", "c"], ["d", "e"]]}, "same length"),
+        ({"column_titles": [["a", "b", "c"]] * 3}, "one per row"),
+        ({"row_titles": "rows"}, "row_titles"),
+        ({"row_titles": ["a", "b", "c"]}, "not a grid of 3 x 3"),
+        ({"pad": -1}, "pad"),
+        ({"font_size": 0}, "font_size"),
+        ({"image": np.zeros((10, 10), np.uint8)}, "uint8 RGB"),
+    ],
+)
+def test_bad_labels_are_refused(kwargs: dict[str, Any], match: str) -> None:
+    args: dict[str, Any] = {"image": _grid(), "column_titles": [["a", "b", "c"]], "row_titles": ["r", "s"]}
+    with pytest.raises(ValueError, match=match):
+        label_grid(**{**args, **kwargs})
 
 
 def test_save_png_round_trips_and_creates_folders(tmp_path: Path) -> None:
