@@ -323,7 +323,7 @@ class BodyService:
             route = self.route(scan)
             # a scan fit says how many steps it takes once it knows what it fits (a whole body here)
             total = fitters.scan.progress_steps() if route == RAW_SCAN else 1
-            job.report("fit", 0, total, f"{scan.n_points} points")
+            job.report("fit", 0, total, f"{scan.n_points:,} points")
 
             def progress(done: int, steps: int, line: str) -> None:
                 nonlocal total
