@@ -15,6 +15,14 @@ What is measured
   those models flex negative). Also the mean difference and the RMSE with the mean removed, because a
   constant offset can come from differing marker definitions (Hamner2010's toe marker sits on the shoe,
   2.8 cm higher on the foot than gait2392's and ours: only the static trial's pose places it).
+* Calibration (``ik_static_over_motion``): every fit with a static trial calibrates both from it and from
+  the motion and reports both mean marker errors on the motion (``report.extra["calibration_choice"]``);
+  the key is the worst ratio static / motion over the trials with a static trial: the two above and the
+  Rajagopal walk with its static trial from ``../shared/data`` when present (fitted with ``auto``; the
+  Rajagopal run, whose subject has no static trial there, is fitted from the motion only).
+  ``upper_limb_at_limit_fraction``: frames an arm coordinate spends within 0.5 degrees of a limit.
+* Observability (``ik_rmse_deg_max_observable``): the worst RMSE over the coordinates compared above that
+  the fit does not report as unobservable (``report.extra["unobservable"]``, held near neutral).
 * Speed: on the gait2392 walk, our ``fit_markers`` IK stage (all frames, staged and batched, after
   calibration; median of repeats) against ``opensim.InverseKinematicsTool`` run on our calibrated subject
   exported with ``write_osim`` and its MarkerSet, with the same marker weights, the same locked DOFs and
@@ -162,7 +170,8 @@ def time_our_ik(fit: MarkerFit, skel: Skeleton, trial: MarkerTrial, repeats: int
 
 def run(quick: bool) -> dict[str, Any]:
     """The figures (see the module docstring); keys include ``ik_rmse_deg`` (trial -> coordinate ->
-    degrees), ``ik_rmse_deg_max_flexion``, ``ik_seconds``, ``opensim_ik_seconds``, ``ik_speed_ratio``."""
+    degrees), ``ik_rmse_deg_max_flexion``, ``ik_rmse_deg_max_observable``, ``ik_static_over_motion``,
+    ``ik_seconds``, ``opensim_ik_seconds``, ``ik_speed_ratio``."""
     model = BodyModel.load()
     skel = model.skeleton
     walk = read_trc(LOCAL / "gait2392_subject01_walk1.trc")
@@ -172,7 +181,10 @@ def run(quick: bool) -> dict[str, Any]:
     run_static = read_trc(LOCAL / "hamner_subject02_static.trc")
     run_mot = hamner_dir / "hamner_subject02_running_ik.mot"
     fits = {
-        "gait2392_walk": (fit_markers(walk, static, model=model), LOCAL / "gait2392_subject01_walk1_ik.mot"),
+        "gait2392_walk": (
+            fit_markers(walk, static, model=model, calibration="static"),
+            LOCAL / "gait2392_subject01_walk1_ik.mot",
+        ),
         "hamner_running": (
             fit_markers(
                 run_trial, run_static, model=model, calibration="motion", static_pose=HAMNER_STATIC_POSE
@@ -199,6 +211,7 @@ def run(quick: bool) -> dict[str, Any]:
         "hamner_calibration": fits["hamner_running"][0].report.extra["calibration"],
         "ik_rmse_deg_hamner_motion_only": {c: v["rmse"] for c, v in motion_only.items()},
     }
+    out.update(_whole_body(fits, acc, model))
     gait_fit = fits["gait2392_walk"][0]
     timed = walk.between(0.0, 1.0) if quick else walk
     out["ik_seconds"] = time_our_ik(gait_fit, skel, timed, repeats=1 if quick else 3)
@@ -228,6 +241,60 @@ def run(quick: bool) -> dict[str, Any]:
                 if "subtalar" not in skel.dof_names[i] and "mtp" not in skel.dof_names[i]
             }
     return out | _machine()
+
+
+def _whole_body(
+    fits: dict[str, tuple[MarkerFit, Path]], acc: dict[str, dict[str, dict[str, float]]], model: BodyModel
+) -> dict[str, Any]:
+    """Static against motion calibration on every trial with a static trial (the Rajagopal walk from
+    ``../shared/data`` when present; its run has no static trial of its subject, so it is fitted from the
+    motion only), and the worst RMSE over the coordinates the marker set observes."""
+    extra: dict[str, MarkerFit] = {}
+    if (SHARED / "rajagopal_static_walk_1.trc").is_file():
+        raj_static = read_trc(SHARED / "rajagopal_static_walk_1.trc")
+        extra["rajagopal_walk"] = fit_markers(
+            read_trc(SHARED / "rajagopal_motion_capture_walk.trc"), raj_static, model=model
+        )
+        extra["rajagopal_run"] = fit_markers(
+            read_trc(SHARED / "rajagopal_motion_capture_run.trc"), model=model
+        )
+    every = {name: fit for name, (fit, _) in fits.items()} | extra
+    errors = {name: fit.report.extra["calibration_choice"]["marker_error_mm"] for name, fit in every.items()}
+    ratios = {name: e["static"] / e["motion"] for name, e in errors.items() if "static" in e}
+    observable = {
+        trial: {
+            c: v["rmse"] for c, v in table.items() if c not in fits[trial][0].report.extra["unobservable"]
+        }
+        for trial, table in acc.items()
+    }
+    worst = {trial: max(table, key=lambda c: table[c]) for trial, table in observable.items()}
+    skel = model.skeleton
+    return {
+        "ik_static_over_motion": max(ratios.values()),
+        "ik_static_over_motion_per_trial": ratios,
+        "calibration_marker_error_mm": errors,
+        "calibration_chosen": {n: f.report.extra["calibration_choice"]["chosen"] for n, f in every.items()},
+        "ik_rmse_deg_max_observable": max(observable[t][c] for t, c in worst.items()),
+        "ik_rmse_deg_max_observable_per_trial": {t: [c, observable[t][c]] for t, c in worst.items()},
+        "unobservable": {name: sorted(f.report.extra["unobservable"]) for name, f in every.items()},
+        "upper_limb_at_limit_fraction": {name: _at_limits(f, skel) for name, f in every.items()},
+        "marker_error_mm_all": {name: f.report.distances.mean for name, f in every.items()},
+    }
+
+
+UPPER_LIMB = ("arm_flex", "arm_add", "arm_rot", "elbow_flex", "pro_sup")
+
+
+def _at_limits(fit: MarkerFit, skel: Skeleton) -> dict[str, float]:
+    """Fraction of frames each upper-limb coordinate spends within 0.5 degrees of a joint limit (only the
+    coordinates that do so in some frame)."""
+    out = {}
+    for i, name in enumerate(skel.dof_names):
+        if name.startswith(UPPER_LIMB) and name not in fit.report.extra["unobservable"]:
+            near = np.abs(fit.coordinates[:, i, None] - skel.ranges[i][None]).min(axis=1) < np.radians(0.5)
+            if near.any():
+                out[name] = float(near.mean())
+    return out
 
 
 def _upper_body_off(fit: MarkerFit) -> dict[str, float]:

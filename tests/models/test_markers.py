@@ -321,7 +321,7 @@ def test_a_static_calibration_holds_the_static_pose_it_is_given(body: BodyModel)
     assert abs(free.static_coordinates[lumbar]) > np.radians(1.0) and held.static_coordinates[lumbar] == 0.0
     tilt = body.skeleton.dof_index("pelvis_tilt")
     assert abs(held.static_coordinates[tilt] - free.static_coordinates[tilt]) > np.radians(0.2)
-    assert held.report.extra["calibration"] == "static" and held.report.limit_violations == 0
+    assert held.report.extra["calibration"].startswith("static") and held.report.limit_violations == 0
 
 
 def test_static_pose_and_calibration_errors(body: BodyModel) -> None:

@@ -11,6 +11,7 @@ The solvers that use these pieces are in :mod:`.subject` (calibration) and :mod:
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, replace
 
@@ -116,6 +117,14 @@ class ScaleModel:
                 firsts.append(key)
         self.tie = torch.as_tensor([firsts.index(min(s, twin_name(s))) for s in segs])
         self.n_free = len(firsts)
+
+    def centred(self, scales: np.ndarray) -> ScaleModel:
+        """This model about a subject's ``scales`` (n_seg, 3) instead of the population mean, without the
+        bone basis (one zero row): only the per-segment corrections move the scales."""
+        out = copy.copy(self)
+        out.mean = torch.as_tensor(np.asarray(scales, np.float64))
+        out.basis = torch.zeros_like(self.basis[:1])
+        return out
 
     def __call__(self, c: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
         """c: (K,), r: (n_free, 3) -> scales (n_seg, 3)."""

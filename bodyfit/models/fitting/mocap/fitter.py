@@ -41,13 +41,16 @@ from bodyfit.models.fitting.mocap.calibration import (
     place_markers,
     virtual_markers,
 )
+from bodyfit.models.fitting.mocap.choice import choice_report, choose_calibration
 from bodyfit.models.fitting.mocap.marker_sets import (
     MarkerSetError,
     MarkerSetName,
     choose_marker_set,
     normalise_name,
 )
-from bodyfit.models.fitting.mocap.marker_solve import solve_ik
+from bodyfit.models.fitting.mocap.marker_solve import IKSolution, solve_ik
+from bodyfit.models.fitting.mocap.observability import holding_neutral, unobservable
+from bodyfit.models.fitting.mocap.static_check import check_static
 from bodyfit.models.fitting.mocap.subject import Calibration, calibrate
 from bodyfit.models.skeleton.model import Skeleton
 from bodyfit.models.skeleton.opensim_export import write_mot, write_osim
@@ -56,6 +59,8 @@ from bodyfit.models.skeleton.spec import SkeletonSpec
 MIN_VISIBLE = 6  # markers a frame needs for a trustworthy pose
 MAX_MEAN_ERROR = 0.02  # m: a mean marker error above this makes the fit not confident
 CALIBRATION_FRAMES = 24  # frames of the motion used when there is no static trial
+REFINE_SCALE_SIGMA = 0.02  # log-scale prior about the static trial's scales when refining on the motion
+LOWER_BODIES = ("pelvis", "femur", "tibia", "patella", "talus", "calcn", "toes")  # static-placed anatomy
 CalibrationMode = Literal["auto", "static", "motion"]
 """How :func:`fit_markers` calibrates the subject: from the static trial, from the motion, or ``"auto"``."""
 
@@ -134,7 +139,8 @@ def fit_markers(
         trial: the motion (:func:`~bodyfit.io.mocap.read_markers`), positions in our world frame.
         static: a standing trial of the same subject with the same markers (plus any static-only
             anatomical ones, e.g. knee and ankle markers), or None to calibrate from the motion.
-        marker_set: ``"auto"`` (the set sharing most names), ``"gait2392"`` or ``"rajagopal"``.
+        marker_set: ``"auto"`` (the set sharing most names with the motion), ``"gait2392"`` or
+            ``"rajagopal"``.
         model: the body model (loaded when None).
         weights: IK weight overrides by marker name (0 drops a marker).
         static_window: (start, stop) seconds of the static trial to average (default: all of it).
@@ -142,17 +148,23 @@ def fit_markers(
             pose, as a lab's OpenSim ScaleTool setup holds them with its coordinate tasks (e.g. the ankles
             at 0 for a subject standing in shoes): the markers placed in that pose set the zero of those
             coordinates in the motion. Default: the pose fitted to the markers.
-        calibration: ``"static"``: from the static trial (scales, standing pose and every marker it shows);
-            ``"motion"``: from frames of the motion (scales and technical marker locations; needs no
-            static trial, and with one and ``static_pose`` the markers on the bodies the held
-            coordinates move are then placed where the static trial saw them); ``"auto"``: "static"
-            when a static trial is given, else "motion".
-        calibration_frames: frames of the motion used for calibration when ``static`` is None.
+        calibration: ``"static"``: from the static trial (scales, standing pose and every marker it shows;
+            the technical and upper-body markers then refined on frames of the motion); ``"motion"``: from
+            frames of the motion (scales and technical marker locations; with a static trial and
+            ``static_pose`` the markers on the bodies the held coordinates move are then placed where the
+            static trial saw them); ``"auto"``: with a static trial both are fitted and compared on the
+            motion, the static one kept unless its mean marker error is more than
+            :data:`~.choice.STATIC_TOLERANCE` times the motion one's (:mod:`.choice`); without one,
+            "motion". The comparison is in ``report.extra["calibration_choice"]`` whenever a static trial
+            is given.
+        calibration_frames: frames of the motion used for calibration.
         max_iterations: Levenberg-Marquardt iterations per frame and pass.
     Returns:
-        :class:`MarkerFit`.
+        :class:`MarkerFit`; ``report.extra["unobservable"]`` names the coordinates the markers cannot
+        determine (held near 0, :mod:`.observability`) with the reason.
     Raises:
-        MarkerSetError: unknown set or too few shared markers. ShapeError/ValueError: bad inputs.
+        MarkerSetError: unknown set, too few shared markers, or a static trial from another marker protocol
+            or another subject (:mod:`.static_check`). ShapeError/ValueError: bad inputs.
         UnknownCoordinateError: a ``static_pose`` name that is not a coordinate.
     """
     t0 = time.perf_counter()
@@ -161,38 +173,113 @@ def fit_markers(
     mode = _calibration_mode(calibration, static, static_pose)
     model = model or BodyModel.load()
     skel = model.skeleton
-    names_all = [*trial.names, *(static.names if static is not None else ())]
-    defn = choose_marker_set(names_all, marker_set)
-    vm = _weighted(virtual_markers(defn, model), weights, defn.name)
-    in_trial = {normalise_name(n) for n in trial.names}
+    defn = choose_marker_set(trial.names, marker_set)
     window = None if static is None else static if static_window is None else static.between(*static_window)
-    used = _used_names(vm, in_trial, window if mode == "static" else None)
-    vm = vm.subset(used)
+    check = None if window is None else check_static(trial, window, defn)
     plan = DofPlan.build(skel, defn)
-    standing_plan = plan.holding(skel, static_pose) if static_pose else plan  # the static trial's pose
-    scale_model = ScaleModel(model)
-    if mode == "static":
-        assert window is not None
-        subject = _subject_from_static(skel, scale_model, vm, window, standing_plan, defn.name, in_trial)
-    else:
-        subject = _subject_from_motion(
-            skel, scale_model, vm, trial, plan, calibration_frames, window, standing_plan, static_pose
-        )
-    cal, markers = subject.cal, subject.markers
-    t_cal = time.perf_counter()
-
-    ik_names = [n for n in markers.names if n in in_trial]
-    ik_markers = markers.subset(ik_names)
-    observed = observed_positions(trial, ik_names)
-    sol = solve_ik(skel, ik_markers, cal.scales, observed, trial.times, plan, max_iterations=max_iterations)
+    setup = _Setup(
+        skel, ScaleModel(model), _weighted(virtual_markers(defn, model), weights, defn.name), defn.name,
+        plan, plan.holding(skel, static_pose) if static_pose else plan, trial, window, static_pose,
+        calibration_frames, max_iterations,
+    )  # fmt: skip
+    kinds = ["motion"] if window is None else ["static", "motion"]
+    fitted = {kind: _candidate(setup, kind) for kind in kinds}
+    errors_mm = {kind: DistanceStats.of(c.sol.errors).mean for kind, c in fitted.items()}
+    chosen, reason = choose_calibration(mode, errors_mm)
+    choice, choice_notes = choice_report(
+        mode, chosen, reason, errors_mm, {k: c.subject.cal.scales for k, c in fitted.items()},
+        list(skel.segments), _measured_segments(skel, fitted[chosen].ik_names, setup.markers),
+        None if check is None else check.as_dict(),
+    )  # fmt: skip
+    best = fitted[chosen]
+    sol, subject = best.sol, best.subject
     t_end = time.perf_counter()
-    report = _report(sol.q, sol.errors, observed, skel.ranges, cal.iterations + sol.iterations, t_end - t0)
-    unused = sorted(in_trial - set(vm.names))
-    extra = _report_extra(defn.name, subject, t_cal - t0, t_end - t_cal, sol.errors, ik_names, unused)
+    report = _report(sol.q, sol.errors, best.observed, skel.ranges, best.iterations, t_end - t0)
+    in_trial = {normalise_name(n) for n in trial.names}
+    unused = sorted(in_trial - set(setup.markers.names))
+    extra = _report_extra(
+        defn.name, subject, sum(c.calibration_seconds for c in fitted.values()),
+        sum(c.ik_seconds for c in fitted.values()), sol.errors, best.ik_names, unused,
+    )  # fmt: skip
+    extra["notes"] = [*extra["notes"], *choice_notes]
+    extra.update(calibration_choice=choice, unobservable=best.unobservable)
     return MarkerFit(
-        sol.q, sol.root, trial.times.copy(), cal.scales, markers, sol.errors,
+        sol.q, sol.root, trial.times.copy(), subject.cal.scales, subject.markers, sol.errors,
         subject.standing, defn.name, list(skel.dof_names),
         replace(report, extra=extra),
+    )  # fmt: skip
+
+
+def _measured_segments(skel: Skeleton, names: list[str], markers: VirtualMarkers) -> np.ndarray:
+    """(n_seg,) bool: the scale segments whose bodies carry at least two of the markers ``names``."""
+    count = np.zeros(len(skel.segments), int)
+    for b in markers.subset(names).body_indices(skel):
+        count[skel.spec.body_segment_index[b]] += 1
+    return count >= 2
+
+
+@dataclass(frozen=True)
+class _Setup:
+    """What every calibration of one :func:`fit_markers` call shares: the skeleton, the scale model, the
+    set's (weighted) virtual markers and name, the IK plan and the static trial's plan, the motion, the
+    static window (or None), the held coordinates and the calibration frame count and iterations."""
+
+    skel: Skeleton
+    scale_model: ScaleModel
+    markers: VirtualMarkers
+    set_name: str
+    plan: DofPlan
+    standing_plan: DofPlan
+    trial: MarkerTrial
+    window: MarkerTrial | None
+    static_pose: Mapping[str, float] | None
+    calibration_frames: int
+    max_iterations: int
+
+
+@dataclass(frozen=True)
+class _Candidate:
+    """One calibration and the IK of the whole motion with it: the subject, the IK marker names and their
+    observed positions (T, M, 3), the solution, the unobservable coordinates (name -> reason), LM steps
+    and seconds."""
+
+    subject: _Subject
+    ik_names: list[str]
+    observed: np.ndarray
+    sol: IKSolution
+    unobservable: dict[str, str]
+    iterations: int
+    calibration_seconds: float
+    ik_seconds: float
+
+
+def _candidate(setup: _Setup, kind: str) -> _Candidate:
+    """Calibrate the subject the ``kind`` way (``"static"`` / ``"motion"``), find the coordinates its
+    markers cannot determine, hold them near neutral and solve the IK of every frame."""
+    t0 = time.perf_counter()
+    skel, trial = setup.skel, setup.trial
+    in_trial = {normalise_name(n) for n in trial.names}
+    vm = setup.markers.subset(
+        _used_names(setup.markers, in_trial, setup.window if kind == "static" else None)
+    )
+    if kind == "static":
+        assert setup.window is not None
+        subject = _subject_from_static(setup, vm, in_trial)
+    else:
+        subject = _subject_from_motion(setup, vm)
+    t_cal = time.perf_counter()
+    ik_names = [n for n in subject.markers.names if n in in_trial]
+    ik_markers = subject.markers.subset(ik_names)
+    cal = subject.cal
+    hidden = unobservable(skel, ik_markers, cal.scales, cal.q, cal.root, setup.plan)
+    plan = holding_neutral(skel, setup.plan, list(hidden))
+    observed = observed_positions(trial, ik_names)
+    sol = solve_ik(
+        skel, ik_markers, cal.scales, observed, trial.times, plan, max_iterations=setup.max_iterations
+    )
+    return _Candidate(
+        subject, ik_names, observed, sol, hidden, cal.iterations + sol.iterations, t_cal - t0,
+        time.perf_counter() - t_cal,
     )  # fmt: skip
 
 
@@ -234,56 +321,81 @@ class _Subject:
     notes: list[str]
 
 
-def _subject_from_static(
-    skel: Skeleton,
-    scale_model: ScaleModel,
-    vm: VirtualMarkers,
-    window: MarkerTrial,
-    standing_plan: DofPlan,
-    set_name: str,
-    in_trial: set[str],
-) -> _Subject:
-    """The subject calibrated from the static trial ``window`` (see :func:`_calibrate_static`)."""
+def _subject_from_static(setup: _Setup, vm: VirtualMarkers, in_trial: set[str]) -> _Subject:
+    """The subject calibrated from the static trial (see :func:`_calibrate_static`), then its technical
+    markers and the markers above the pelvis refined on frames of the motion (:func:`_refine_on_motion`)."""
+    assert setup.window is not None
     used = list(vm.names)
-    static_frames = observed_positions(window, used)
-    cal, markers = _calibrate_static(skel, scale_model, vm, static_frames, standing_plan, set_name)
+    static_frames = observed_positions(setup.window, used)
+    cal, markers = _calibrate_static(
+        setup.skel, setup.scale_model, vm, static_frames, setup.standing_plan, setup.set_name
+    )
+    standing = cal.q[0]
     notes: list[str] = []
-    missing = [n for n in used if n in in_trial and not np.isfinite(observed_positions(window, [n])).any()]
+    missing = [
+        n for n in used if n in in_trial and not np.isfinite(_frame_mean(static_frames)[used.index(n)]).all()
+    ]
     if missing:
         notes.append(f"not in the static trial, left at their default locations: {', '.join(missing)}")
-    return _Subject(cal, markers, cal.q[0], "static", notes)
+    refined, described = _refine_on_motion(setup, cal, markers)
+    return _Subject(refined, refined.markers, standing, described, notes)
 
 
-def _subject_from_motion(
-    skel: Skeleton,
-    scale_model: ScaleModel,
-    vm: VirtualMarkers,
-    trial: MarkerTrial,
-    plan: DofPlan,
-    calibration_frames: int,
-    window: MarkerTrial | None,
-    standing_plan: DofPlan,
-    static_pose: Mapping[str, float] | None,
-) -> _Subject:
-    """The subject calibrated from ``calibration_frames`` frames of the motion; with a static trial
-    ``window`` and ``static_pose``, the markers on the bodies the held coordinates move are then placed
-    where the static trial saw them (see :func:`_place_from_static`)."""
-    obs = observed_positions(trial, list(vm.names))
-    frames = _calibration_frames(obs, calibration_frames)
-    first = solve_ik(skel, vm, scale_model.mean.numpy(), obs[frames], trial.times[frames], plan)
+def _refine_on_motion(setup: _Setup, static: Calibration, markers: VirtualMarkers) -> tuple[Calibration, str]:
+    """A static calibration refined on frames of the motion, as a functional calibration: the scales
+    stay within :data:`REFINE_SCALE_SIGMA` of the static trial's, the anatomical markers of the pelvis and
+    legs stay where the static trial placed them (they set the coordinates' zeros), and the technical
+    markers and the markers above the pelvis (skin over the shoulders and arms moves with the arms' pose,
+    which differs between a standing trial and the motion) move from their static places, with the prior of
+    :func:`~.subject.calibrate`. Returns the calibration (q, root: the frames') and a description."""
+    skel, trial = setup.skel, setup.trial
+    names = [n for n in markers.names if n in {normalise_name(t) for t in trial.names}]
+    moving = markers.subset(names)
+    obs = observed_positions(trial, names)
+    frames = _calibration_frames(obs, setup.calibration_frames)
+    first = solve_ik(skel, moving, static.scales, obs[frames], trial.times[frames], setup.plan)
+    lower = np.array([b.startswith(LOWER_BODIES) for b in moving.bodies])
+    place = ~moving.anatomical | ~lower
     cal = calibrate(
-        skel, scale_model, vm, obs[frames], trial.times[frames], plan, ~vm.anatomical, start=first.q
+        skel, setup.scale_model.centred(static.scales), moving, obs[frames], trial.times[frames], setup.plan,
+        place, start=first.q, scale_sigma=REFINE_SCALE_SIGMA,
+    )  # fmt: skip
+    # The markers only the static trial shows keep their static places.
+    local = markers.local.copy()
+    local[[markers.names.index(n) for n in names]] = cal.markers.local
+    cal = replace(cal, markers=replace(markers, local=local))
+    described = f"static, technical and upper-body markers refined on {len(frames)} frames of the motion"
+    return cal, described
+
+
+def _subject_from_motion(setup: _Setup, vm: VirtualMarkers) -> _Subject:
+    """The subject calibrated from frames of the motion; with a static trial and ``static_pose``, the
+    markers on the bodies the held coordinates move are then placed where the static trial saw them (see
+    :func:`_place_from_static`)."""
+    skel, trial = setup.skel, setup.trial
+    obs = observed_positions(trial, list(vm.names))
+    frames = _calibration_frames(obs, setup.calibration_frames)
+    first = solve_ik(skel, vm, setup.scale_model.mean.numpy(), obs[frames], trial.times[frames], setup.plan)
+    cal = calibrate(
+        skel,
+        setup.scale_model,
+        vm,
+        obs[frames],
+        trial.times[frames],
+        setup.plan,
+        ~vm.anatomical,
+        start=first.q,
     )
     markers, described = cal.markers, f"motion ({len(cal.q)} frames)"
     standing: np.ndarray | None = None
-    if window is not None and static_pose:
-        static_frames = observed_positions(window, list(markers.names))
+    if setup.window is not None and setup.static_pose:
+        static_frames = observed_positions(setup.window, list(markers.names))
         markers, standing, bodies = _place_from_static(
-            skel, markers, cal.scales, static_frames, standing_plan, static_pose
+            skel, markers, cal.scales, static_frames, setup.standing_plan, setup.static_pose
         )
         described += (
             f"; the markers on {', '.join(bodies)} placed from the static trial with "
-            f"{', '.join(static_pose)} held"
+            f"{', '.join(setup.static_pose)} held"
         )
     return _Subject(cal, markers, standing, described, [])
 
@@ -346,8 +458,8 @@ def _calibrate_static(
 def _calibration_mode(
     calibration: str, static: MarkerTrial | None, static_pose: Mapping[str, float] | None
 ) -> str:
-    """ "static" or "motion": how :func:`fit_markers` calibrates (see there); ValueError on a combination
-    that would leave an argument unused."""
+    """ "auto", "static" or "motion": how :func:`fit_markers` calibrates (see there; "auto" only with a
+    static trial); ValueError on a combination that would leave an argument unused."""
     if calibration not in ("auto", "static", "motion"):
         raise ValueError(f"calibration must be 'auto', 'static' or 'motion', not {calibration!r}")
     if static is None:
@@ -361,7 +473,7 @@ def _calibration_mode(
             "with calibration='motion' a static trial only places the markers of the coordinates static_pose "
             "holds: pass static_pose, or calibrate from the static trial (calibration='static')"
         )
-    return "motion" if calibration == "motion" else "static"
+    return calibration
 
 
 def _frame_mean(frames: np.ndarray) -> np.ndarray:

@@ -67,8 +67,10 @@ class _Problem:
         observed: np.ndarray,
         plan: DofPlan,
         place: np.ndarray,
+        scale_sigma: float = SCALE_SIGMA,
     ) -> None:
         dt = torch.float64
+        self.scale_sigma = scale_sigma
         self.skel, self.sm, self.plan = skel, scale_model, plan
         self.fk = skel.kinematics(dt)
         self.chain = MarkerChain.build(self.fk, markers.body_indices(skel))
@@ -138,7 +140,7 @@ class _Problem:
         dz = torch.cat(
             [
                 torch.full((self.n_b,), MARKER_SIGMA, dtype=z.dtype),
-                torch.full((self.n_r,), MARKER_SIGMA / SCALE_SIGMA, dtype=z.dtype),
+                torch.full((self.n_r,), MARKER_SIGMA / self.scale_sigma, dtype=z.dtype),
                 torch.full((self.n_l,), MARKER_SIGMA / PLACE_SIGMA, dtype=z.dtype),
             ]
         )
@@ -208,6 +210,7 @@ def calibrate(
     place: np.ndarray,
     start: np.ndarray | None = None,
     max_iterations: int = 60,
+    scale_sigma: float = SCALE_SIGMA,
 ) -> Calibration:
     """Fit scales, the locations of markers ``place`` and the poses of K frames.
 
@@ -215,11 +218,12 @@ def calibrate(
         markers: M markers (their weights are the fit weights; weight 0 leaves a marker out);
         observed: (K, M, 3) positions (NaN: missing); times: (K,); plan: free / locked / soft DOFs;
         place: (M,) bool, markers whose locations are estimated; start: (K, n_dof) starting poses or
-            None (pelvis from its markers, the rest neutral).
+            None (pelvis from its markers, the rest neutral); scale_sigma: prior on the per-segment log
+            scale corrections (about ``scale_model``'s mean).
     Returns:
         :class:`Calibration` (markers with their estimated locations).
     """
-    problem = _Problem(skel, scale_model, markers, observed, plan, place)
+    problem = _Problem(skel, scale_model, markers, observed, plan, place, scale_sigma)
     mean = scale_model.mean.numpy()
     angles, root0 = pelvis_start(skel, markers, mean, observed, times)
     q0 = np.tile(plan.locked, (len(times), 1)) if start is None else start.copy()
