@@ -1,0 +1,90 @@
+"""Mocap subject calibration: static against motion calibration compared and reported, static trials from
+another protocol or subject refused, coordinates the markers cannot determine reported and held."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bodyfit.io.mocap import MarkerTrial, read_trc
+from bodyfit.models.body.model import BodyModel
+from bodyfit.models.fitting.mocap.choice import STATIC_TOLERANCE, choose_calibration
+from bodyfit.models.fitting.mocap.fitter import fit_markers
+from bodyfit.models.fitting.mocap.marker_sets import MarkerSetError
+
+GAIT = Path(__file__).resolve().parents[1] / "data" / "opensim_gait"
+
+
+@pytest.fixture(scope="module")
+def body() -> BodyModel:
+    return BodyModel.load()
+
+
+@pytest.fixture(scope="module")
+def walk() -> MarkerTrial:
+    """0.8 s of the gait2392 walk (48 frames)."""
+    return read_trc(GAIT / "gait2392_subject01_walk1.trc").between(0.6, 1.4)
+
+
+@pytest.fixture(scope="module")
+def static() -> MarkerTrial:
+    return read_trc(GAIT / "gait2392_subject01_static.trc")
+
+
+def test_auto_compares_both_calibrations_and_reports_the_choice(body, walk, static) -> None:
+    fit = fit_markers(walk, static, model=body, calibration_frames=12)
+    choice = fit.report.extra["calibration_choice"]
+    errors = choice["marker_error_mm"]
+    assert set(errors) == {"static", "motion"} and all(5.0 < e < 20.0 for e in errors.values())
+    # The kept calibration is the one whose IK is returned.
+    assert fit.report.distances.mean == pytest.approx(errors[choice["chosen"]])
+    assert choice["requested"] == "auto" and choice["chosen"] == "static"
+    assert errors["static"] <= STATIC_TOLERANCE * errors["motion"]
+    assert "static kept" in choice["reason"] and f"{errors['motion']:.1f} mm" in choice["reason"]
+    assert choice["static_check"]["pair_distance_difference"] < 0.02
+    # An explicit choice is kept and carries the same comparison.
+    asked = fit_markers(walk, static, model=body, calibration="motion", calibration_frames=12,
+                        static_pose={"ankle_angle_r": 0.0, "ankle_angle_l": 0.0})  # fmt: skip
+    assert asked.report.extra["calibration_choice"]["chosen"] == "motion"
+    assert set(asked.report.extra["calibration_choice"]["marker_error_mm"]) == {"static", "motion"}
+    assert "asked for" in asked.report.extra["calibration_choice"]["reason"]
+
+
+def test_a_disagreeing_static_trial_falls_back_with_the_reason() -> None:
+    chosen, reason = choose_calibration("auto", {"static": 23.5, "motion": 9.6})
+    assert chosen == "motion" and "disagrees" in reason and "23.5" in reason and "9.6" in reason
+    chosen, reason = choose_calibration("static", {"static": 23.5, "motion": 9.6})
+    assert chosen == "static" and "calibration='auto' or 'motion'" in reason
+    chosen, reason = choose_calibration("auto", {"static": 10.0, "motion": 9.0})
+    assert chosen == "static" and "within" in reason
+    assert choose_calibration("auto", {"motion": 9.0})[0] == "motion"
+
+
+def test_a_static_trial_of_another_protocol_is_refused(body, walk, static) -> None:
+    renamed = [n if i < 5 else f"{n}_lab2" for i, n in enumerate(static.names)]
+    other = MarkerTrial(renamed, static.positions, static.rate, static.times)
+    with pytest.raises(MarkerSetError, match=r"shows 5 of the motion's 41 gait2392 markers.*protocol"):
+        fit_markers(walk, other, model=body)
+
+
+def test_a_static_trial_of_another_subject_is_refused(body, walk) -> None:
+    hamner_static = read_trc(GAIT / "hamner_subject02_static.trc")
+    with pytest.raises(MarkerSetError, match="another subject"):
+        fit_markers(walk, hamner_static, model=body)
+
+
+def test_unobservable_coordinates_are_reported_and_held_near_neutral(body, walk) -> None:
+    """Without the right wrist's markers nothing sees the right elbow and forearm; without head markers,
+    nothing sees the neck: they are reported with the reason and held at 0, not solved to a limit."""
+    off = {"R.Wrist.Med": 0.0, "R.Wrist.Lat": 0.0, "Top.Head": 0.0, "R.Temple": 0.0, "L.Temple": 0.0}
+    fit = fit_markers(walk, model=body, weights=off, calibration_frames=12)
+    hidden = fit.report.extra["unobservable"]
+    skel = body.skeleton
+    for name in ("elbow_flex_r", "pro_sup_r", "neck_extension", "neck_rotation"):
+        assert name in hidden and "no marker on" in hidden[name], hidden
+        assert np.abs(np.degrees(fit.coordinates[:, skel.dof_index(name)])).max() < 1.0
+    # The left forearm keeps its markers and stays observable.
+    assert "pro_sup_l" not in hidden and "elbow_flex_l" not in hidden
+    assert fit.report.limit_violations == 0
