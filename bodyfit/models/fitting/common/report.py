@@ -42,6 +42,24 @@ class DistanceStats:
             return [cls(*(float(x) * 1000.0 for x in row)) for row in rows]
         return [cls.of(row[k]) for row, k in zip(metres, keep, strict=True)]
 
+    @classmethod
+    def weighted(cls, metres: np.ndarray, weights: np.ndarray) -> DistanceStats:
+        """Statistics of distances (N,) in metres, each counted by its weight (N,) >= 0 (the surface area a
+        mesh vertex stands for, so that dense parts of a mesh do not outweigh the rest): the weighted mean,
+        median and 95th percentile (the smallest distance at or below which that share of the weight lies),
+        and the maximum over entries of positive weight; NaN entries ignored."""
+        d = np.asarray(metres, np.float64).ravel() * 1000.0
+        w = np.asarray(weights, np.float64).ravel()
+        keep = np.isfinite(d) & (w > 0)
+        d, w = d[keep], w[keep]
+        if d.size == 0:
+            return cls(float("nan"), float("nan"), float("nan"), float("nan"))
+        order = np.argsort(d)
+        ranked, share = d[order], np.cumsum(w[order]) / w.sum()
+        at = np.minimum(np.searchsorted(share, [0.5, 0.95]), d.size - 1)
+        median, p95 = float(ranked[at[0]]), float(ranked[at[1]])
+        return cls(float(np.average(d, weights=w)), median, p95, float(d.max()))
+
 
 @dataclass(frozen=True)
 class FitReport:
@@ -56,6 +74,12 @@ class FitReport:
         confident: False when the result should not be trusted; ``reasons`` says why.
         reasons: human-readable causes of low confidence (empty when confident).
         extra: fit-specific numbers (e.g. per-stage losses, scan coverage).
+        scan_to_model: raw scans: every scan point's distance to the result's surface (mm), outliers
+            included, so that ``max`` is the real maximum (``distances`` holds the inliers only); None for
+            fits with a correspondence.
+        model_to_scan: raw scans: each vertex of the result's surface to its nearest scan point (mm),
+            weighted by the area the vertex stands for, over the part of the body the scan can show
+            (``extra["model_to_scan_over"]``); None for fits with a correspondence.
     """
 
     distances: DistanceStats
@@ -65,6 +89,8 @@ class FitReport:
     confident: bool
     reasons: tuple[str, ...] = ()
     extra: dict[str, Any] = field(default_factory=dict)
+    scan_to_model: DistanceStats | None = None
+    model_to_scan: DistanceStats | None = None
 
     @classmethod
     def judged(
@@ -76,13 +102,25 @@ class FitReport:
         seconds: float,
         reasons: list[str],
         extra: dict[str, Any] | None = None,
+        scan_to_model: DistanceStats | None = None,
+        model_to_scan: DistanceStats | None = None,
     ) -> FitReport:
         """A report whose confidence follows from ``reasons`` (causes found by the fitter) plus the
         joint-limit violations of q (..., n_dof) against ``ranges`` (n_dof, 2), counted here."""
         violations = count_limit_violations(q, ranges)
         if violations:
             reasons = [*reasons, f"{violations} coordinate values outside their joint limits"]
-        return cls(distances, violations, iterations, seconds, not reasons, tuple(reasons), extra or {})
+        return cls(
+            distances,
+            violations,
+            iterations,
+            seconds,
+            not reasons,
+            tuple(reasons),
+            extra or {},
+            scan_to_model,
+            model_to_scan,
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary (distances in mm)."""
