@@ -34,6 +34,7 @@ from bodyfit.io.mocap import MarkerTrial
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting.common.report import DistanceStats, FitReport
 from bodyfit.models.fitting.mocap.calibration import (
+    SCALE_SIGMA,
     DofPlan,
     ScaleModel,
     VirtualMarkers,
@@ -61,6 +62,7 @@ MAX_MEAN_ERROR = 0.02  # m: a mean marker error above this makes the fit not con
 CALIBRATION_FRAMES = 24  # frames of the motion used when there is no static trial
 REFINE_SCALE_SIGMA = 0.02  # log-scale prior about the static trial's scales when refining on the motion
 LOWER_BODIES = ("pelvis", "femur", "tibia", "patella", "talus", "calcn", "toes")  # static-placed anatomy
+ARM_BODIES = ("scapula", "humerus", "ulna", "radius", "hand")  # their anatomical markers stay at defaults
 CalibrationMode = Literal["auto", "static", "motion"]
 """How :func:`fit_markers` calibrates the subject: from the static trial, from the motion, or ``"auto"``."""
 
@@ -337,17 +339,21 @@ def _subject_from_static(setup: _Setup, vm: VirtualMarkers, in_trial: set[str]) 
     ]
     if missing:
         notes.append(f"not in the static trial, left at their default locations: {', '.join(missing)}")
-    refined, described = _refine_on_motion(setup, cal, markers)
+    refined, described = _refine_on_motion(setup, cal, markers, vm)
     return _Subject(refined, refined.markers, standing, described, notes)
 
 
-def _refine_on_motion(setup: _Setup, static: Calibration, markers: VirtualMarkers) -> tuple[Calibration, str]:
+def _refine_on_motion(
+    setup: _Setup, static: Calibration, markers: VirtualMarkers, defaults: VirtualMarkers
+) -> tuple[Calibration, str]:
     """A static calibration refined on frames of the motion, as a functional calibration: the scales
     stay within :data:`REFINE_SCALE_SIGMA` of the static trial's, the anatomical markers of the pelvis and
     legs stay where the static trial placed them (they set the coordinates' zeros), and the technical
-    markers and the markers above the pelvis (skin over the shoulders and arms moves with the arms' pose,
-    which differs between a standing trial and the motion) move from their static places, with the prior of
-    :func:`~.subject.calibrate`. Returns the calibration (q, root: the frames') and a description."""
+    markers of the pelvis and legs move from their static places, with the prior of
+    :func:`~.subject.calibrate`. The markers above the pelvis start from and are pulled towards their
+    ``defaults`` (the template's places) instead: the skin over the shoulders and arms moves with the arms'
+    pose, and a static trial's arm pose (often abducted, its forearm rotation barely seen) places them
+    worse than the motion does. Returns the calibration (q, root: the frames') and a description."""
     skel, trial = setup.skel, setup.trial
     names = [n for n in markers.names if n in {normalise_name(t) for t in trial.names}]
     moving = markers.subset(names)
@@ -355,10 +361,14 @@ def _refine_on_motion(setup: _Setup, static: Calibration, markers: VirtualMarker
     frames = _calibration_frames(obs, setup.calibration_frames)
     first = solve_ik(skel, moving, static.scales, obs[frames], trial.times[frames], setup.plan)
     lower = np.array([b.startswith(LOWER_BODIES) for b in moving.bodies])
-    place = ~moving.anatomical | ~lower
+    arm = np.array([b.startswith(ARM_BODIES) for b in moving.bodies])
+    place = ~moving.anatomical | ~(lower | arm)
+    start_local = np.where(lower[:, None], moving.local, defaults.subset(names).local)
+    moving = replace(moving, local=start_local)
+    centre, sigma = _refine_scale_prior(skel, setup.scale_model, static.scales)
     cal = calibrate(
-        skel, setup.scale_model.centred(static.scales), moving, obs[frames], trial.times[frames], setup.plan,
-        place, start=first.q, scale_sigma=REFINE_SCALE_SIGMA,
+        skel, setup.scale_model.centred(centre), moving, obs[frames], trial.times[frames], setup.plan,
+        place, start=first.q, scale_sigma=sigma,
     )  # fmt: skip
     # The markers only the static trial shows keep their static places.
     local = markers.local.copy()
@@ -366,6 +376,21 @@ def _refine_on_motion(setup: _Setup, static: Calibration, markers: VirtualMarker
     cal = replace(cal, markers=replace(markers, local=local))
     described = f"static, technical and upper-body markers refined on {len(frames)} frames of the motion"
     return cal, described
+
+
+def _refine_scale_prior(
+    skel: Skeleton, scale_model: ScaleModel, static_scales: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Centre (n_seg, 3) and sigma (n_free, 3) of the scales when a static calibration is refined on the
+    motion: the pelvis and legs keep the static trial's scales (within :data:`REFINE_SCALE_SIGMA`); the
+    segments above start from the population mean with the motion calibration's prior (a static trial's
+    arm pose scales the arms poorly, see :func:`_refine_on_motion`)."""
+    lower = np.array([s.startswith(LOWER_BODIES) for s in skel.segments])
+    centre = np.where(lower[:, None], static_scales, scale_model.mean.numpy())
+    tie = scale_model.tie.numpy()
+    sigma = np.full((scale_model.n_free, 3), SCALE_SIGMA)
+    sigma[tie[lower]] = REFINE_SCALE_SIGMA
+    return centre, sigma
 
 
 def _subject_from_motion(setup: _Setup, vm: VirtualMarkers) -> _Subject:

@@ -67,10 +67,9 @@ class _Problem:
         observed: np.ndarray,
         plan: DofPlan,
         place: np.ndarray,
-        scale_sigma: float = SCALE_SIGMA,
+        scale_sigma: float | np.ndarray = SCALE_SIGMA,
     ) -> None:
         dt = torch.float64
-        self.scale_sigma = scale_sigma
         self.skel, self.sm, self.plan = skel, scale_model, plan
         self.fk = skel.kinematics(dt)
         self.chain = MarkerChain.build(self.fk, markers.body_indices(skel))
@@ -88,6 +87,8 @@ class _Problem:
             3 * int(place.sum()),
         )
         self.n_z = self.n_b + self.n_r + self.n_l
+        sigma = np.broadcast_to(np.asarray(scale_sigma, np.float64), (scale_model.n_free, 3))
+        self.scale_prior = torch.as_tensor(MARKER_SIGMA / sigma.reshape(-1))
         inf = torch.full((3,), torch.inf, dtype=dt)
         self.lower = torch.cat([torch.as_tensor(skel.ranges[plan.free, 0]), -inf])
         self.upper = torch.cat([torch.as_tensor(skel.ranges[plan.free, 1]), inf])
@@ -140,7 +141,7 @@ class _Problem:
         dz = torch.cat(
             [
                 torch.full((self.n_b,), MARKER_SIGMA, dtype=z.dtype),
-                torch.full((self.n_r,), MARKER_SIGMA / self.scale_sigma, dtype=z.dtype),
+                self.scale_prior.to(z.dtype),
                 torch.full((self.n_l,), MARKER_SIGMA / PLACE_SIGMA, dtype=z.dtype),
             ]
         )
@@ -210,7 +211,7 @@ def calibrate(
     place: np.ndarray,
     start: np.ndarray | None = None,
     max_iterations: int = 60,
-    scale_sigma: float = SCALE_SIGMA,
+    scale_sigma: float | np.ndarray = SCALE_SIGMA,
 ) -> Calibration:
     """Fit scales, the locations of markers ``place`` and the poses of K frames.
 
@@ -219,7 +220,7 @@ def calibrate(
         observed: (K, M, 3) positions (NaN: missing); times: (K,); plan: free / locked / soft DOFs;
         place: (M,) bool, markers whose locations are estimated; start: (K, n_dof) starting poses or
             None (pelvis from its markers, the rest neutral); scale_sigma: prior on the per-segment log
-            scale corrections (about ``scale_model``'s mean).
+            scale corrections (about ``scale_model``'s mean): one value, or (n_free, 3) per tied segment.
     Returns:
         :class:`Calibration` (markers with their estimated locations).
     """
