@@ -105,5 +105,19 @@ def fit_marker_trials(
             f"{report.extra['calibration']}): markers {report.distances.mean:.1f} mm mean, "
             f"{report.distances.p95:.1f} mm p95, {flag}"
         )
+        for line in _calibration_lines(report.extra):
+            echo(f"  {line}")
     (out / "fit.json").write_text(json.dumps(records, indent=1) + "\n")
     return records
+
+
+def _calibration_lines(extra: dict[str, Any]) -> list[str]:
+    """The calibration choice (with a static trial) and the unobservable coordinates, one line each."""
+    lines = []
+    choice = extra.get("calibration_choice") or {}
+    if len(choice.get("marker_error_mm", {})) > 1:
+        lines.append(f"calibration: {choice['reason']}")
+    hidden = extra.get("unobservable") or {}
+    if hidden:
+        lines.append(f"held near neutral, the markers cannot determine them: {', '.join(hidden)}")
+    return lines
