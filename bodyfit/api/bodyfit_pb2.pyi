@@ -152,17 +152,27 @@ class Progress(_message.Message):
     def __init__(self, stage: _Optional[str] = ..., done: _Optional[int] = ..., total: _Optional[int] = ..., message: _Optional[str] = ...) -> None: ...
 
 class FitScanRequest(_message.Message):
-    __slots__ = ("data", "format", "units")
+    __slots__ = ("data", "format", "units", "up", "facing", "pose", "sex", "height_m")
     DATA_FIELD_NUMBER: _ClassVar[int]
     FORMAT_FIELD_NUMBER: _ClassVar[int]
     UNITS_FIELD_NUMBER: _ClassVar[int]
+    UP_FIELD_NUMBER: _ClassVar[int]
+    FACING_FIELD_NUMBER: _ClassVar[int]
+    POSE_FIELD_NUMBER: _ClassVar[int]
+    SEX_FIELD_NUMBER: _ClassVar[int]
+    HEIGHT_M_FIELD_NUMBER: _ClassVar[int]
     data: bytes
     format: str
     units: str
-    def __init__(self, data: _Optional[bytes] = ..., format: _Optional[str] = ..., units: _Optional[str] = ...) -> None: ...
+    up: str
+    facing: str
+    pose: str
+    sex: str
+    height_m: float
+    def __init__(self, data: _Optional[bytes] = ..., format: _Optional[str] = ..., units: _Optional[str] = ..., up: _Optional[str] = ..., facing: _Optional[str] = ..., pose: _Optional[str] = ..., sex: _Optional[str] = ..., height_m: _Optional[float] = ...) -> None: ...
 
 class MeshFitResult(_message.Message):
-    __slots__ = ("fitted_as", "shape", "coordinates", "root", "vertices", "joints", "dof_names", "joint_names", "report_json")
+    __slots__ = ("fitted_as", "shape", "coordinates", "root", "vertices", "joints", "dof_names", "joint_names", "report_json", "to_model")
     FITTED_AS_FIELD_NUMBER: _ClassVar[int]
     SHAPE_FIELD_NUMBER: _ClassVar[int]
     COORDINATES_FIELD_NUMBER: _ClassVar[int]
@@ -172,6 +182,7 @@ class MeshFitResult(_message.Message):
     DOF_NAMES_FIELD_NUMBER: _ClassVar[int]
     JOINT_NAMES_FIELD_NUMBER: _ClassVar[int]
     REPORT_JSON_FIELD_NUMBER: _ClassVar[int]
+    TO_MODEL_FIELD_NUMBER: _ClassVar[int]
     fitted_as: str
     shape: Array
     coordinates: Array
@@ -181,7 +192,8 @@ class MeshFitResult(_message.Message):
     dof_names: _containers.RepeatedScalarFieldContainer[str]
     joint_names: _containers.RepeatedScalarFieldContainer[str]
     report_json: str
-    def __init__(self, fitted_as: _Optional[str] = ..., shape: _Optional[_Union[Array, _Mapping]] = ..., coordinates: _Optional[_Union[Array, _Mapping]] = ..., root: _Optional[_Union[Array, _Mapping]] = ..., vertices: _Optional[_Union[Array, _Mapping]] = ..., joints: _Optional[_Union[Array, _Mapping]] = ..., dof_names: _Optional[_Iterable[str]] = ..., joint_names: _Optional[_Iterable[str]] = ..., report_json: _Optional[str] = ...) -> None: ...
+    to_model: Array
+    def __init__(self, fitted_as: _Optional[str] = ..., shape: _Optional[_Union[Array, _Mapping]] = ..., coordinates: _Optional[_Union[Array, _Mapping]] = ..., root: _Optional[_Union[Array, _Mapping]] = ..., vertices: _Optional[_Union[Array, _Mapping]] = ..., joints: _Optional[_Union[Array, _Mapping]] = ..., dof_names: _Optional[_Iterable[str]] = ..., joint_names: _Optional[_Iterable[str]] = ..., report_json: _Optional[str] = ..., to_model: _Optional[_Union[Array, _Mapping]] = ...) -> None: ...
 
 class FitScanEvent(_message.Message):
     __slots__ = ("progress", "result")

@@ -44,7 +44,9 @@ from bodyfit.api.settings import ServiceSettings
 from bodyfit.service.core import BodyService, SynthRequest, shape_hints
 from bodyfit.service.errors import InvalidInputError, ServiceError, as_service_error
 from bodyfit.service.formats import MEDIA_TYPES, encode_bodies
+from bodyfit.service.hints import ScanHints
 from bodyfit.service.jobs import Job, Progress
+from bodyfit.wire.hints import HINT_NAMES
 
 LOG = logging.getLogger("bodyfit.grpc")
 SERVICE_NAME = pb.DESCRIPTOR.services_by_name["Bodyfit"].full_name
@@ -63,6 +65,11 @@ T = TypeVar("T")
 def message_limit(settings: ServiceSettings) -> int:
     """Largest gRPC message both ways: the upload limit plus room for the envelope (at most 2 GiB)."""
     return min(settings.limits().max_upload_bytes + (1 << 20), (1 << 31) - 1)
+
+
+def _set(request: Any, name: str) -> Any:
+    """The value of an optional field of ``request``, None when it was not set."""
+    return getattr(request, name) if request.HasField(name) else None
 
 
 def _progress(p: Progress) -> pb.Progress:
@@ -126,8 +133,9 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
         info = service.info()
 
         def work(job: Job) -> list[pb.FitScanEvent]:
+            hints = ScanHints.given(*(_set(request, name) for name in HINT_NAMES))
             scan = service.read_scan(request.data, request.format or "", request.units or "auto")
-            fit = service.fit_mesh(scan, job)
+            fit = service.fit_mesh(scan, job, hints)
             result = results.mesh_fit_result(fit, list(info.dof_names), list(info.joint_names))
             return [pb.FitScanEvent(result=mesh_fit_message(result))]
 
@@ -167,11 +175,7 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
         def work(job: Job) -> list[pb.UpgradeEvent]:
             if chunk < 1:
                 raise InvalidInputError(f"chunk must be at least 1; got {chunk}", "chunk")
-            hints = shape_hints(
-                request.sex if request.HasField("sex") else None,
-                request.height_m if request.HasField("height_m") else None,
-                request.mass_kg if request.HasField("mass_kg") else None,
-            )
+            hints = shape_hints(*(_set(request, name) for name in ("sex", "height_m", "mass_kg")))
             result = service.upgrade(service.read_upgrade(request.data, name), job, hints)
             files = service.upgrade_files(result, Path(name).stem or "upgrade")
             chunks = [upgrade_event(e) for e in results.upgrade_chunks(result, chunk)]

@@ -66,7 +66,7 @@ def request_of(op: Operation[Any]) -> Message:
     if op.name in ("synthesize", "synthesize_file"):
         return synth_request(a, op.name == "synthesize_file")
     if op.name == "fit_scan":
-        return pb.FitScanRequest(data=a["data"], format=a["format"], units=a["units"])
+        return pb.FitScanRequest(data=a["data"], format=a["format"], units=a["units"], **a["hints"])
     if op.name == "fit_sequence":
         weights = None if a["weights"] is None else to_proto(a["weights"])
         return pb.FitSequenceRequest(frames=to_proto(a["frames"]), weights=weights, chunk=a["chunk"])

@@ -80,7 +80,8 @@ def request_of(op: Operation[Any]) -> tuple[str, str, dict[str, Any]]:
     stream: dict[str, Any] = {"headers": {"accept": NDJSON}}
     if op.name == "fit_scan":
         files = {"file": (a["name"], a["data"])}
-        return "POST", "/v1/fit/scan", {"files": files, "data": {"units": a["units"]}, **stream}
+        fields = {"units": a["units"], **{k: str(v) for k, v in a["hints"].items()}}
+        return "POST", "/v1/fit/scan", {"files": files, "data": fields, **stream}
     if op.name == "fit_sequence":
         files = {"file": ("frames.npz", frames_npz(a["frames"], a["weights"]))}
         return "POST", f"/v1/fit/sequence?chunk={a['chunk']}", {"files": files, **stream}

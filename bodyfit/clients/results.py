@@ -126,8 +126,11 @@ def synthesis_event(data: bytes) -> dict[str, Any]:
 class MeshFitResult:
     """One fitted mesh or scan: ``fitted_as`` ("registered", "SMPL topology", "raw scan"); shape
     (n_shape,), coordinates (n_dof,) named by ``dof_names``, root (3,), the registration ``vertices``
-    (V, 3) in the model's topology, ``joints`` (J, 3); ``report``: distances (mm), limit violations,
-    iterations, seconds, confident and the reasons when not."""
+    (V, 3) in the model's topology, ``joints`` (J, 3); ``report``: distances (mm; for raw scans both ways,
+    see :class:`bodyfit.wire.FitReport`), limit violations, iterations, seconds, confident and the reasons
+    when not, and under ``extra["hints"]`` how each hint was used. ``vertices`` and ``joints`` lie in the
+    input's frame; ``to_model`` (4, 4) maps it to the frame the parameters pose the model in (None from a
+    server older than the field)."""
 
     fitted_as: str
     shape: np.ndarray
@@ -138,6 +141,7 @@ class MeshFitResult:
     dof_names: tuple[str, ...]
     joint_names: tuple[str, ...]
     report: dict[str, Any]
+    to_model: np.ndarray | None = None
 
     @property
     def confident(self) -> bool:
@@ -156,6 +160,7 @@ class MeshFitResult:
             doc.dof_names,
             doc.joint_names,
             doc.report.model_dump(mode="json"),
+            None if a.to_model is None else a.to_model.to_numpy(),
         )
 
 

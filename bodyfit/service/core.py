@@ -30,7 +30,7 @@ from bodyfit.models.body.model import BodyModel
 from bodyfit.models.body.onnx_export import BODY_ONNX
 from bodyfit.models.fitting.common.report import FitReport
 from bodyfit.models.fitting.registered.fitter import BodyFit, RegisteredFitter
-from bodyfit.models.fitting.registered.smpl_topology import SMPL_VERTICES, fit_smpl_meshes, refine_smpl_fit
+from bodyfit.models.fitting.registered.smpl_topology import SMPL_VERTICES, fit_smpl_mesh
 from bodyfit.models.fitting.scan.config import ScanFitConfig
 from bodyfit.models.fitting.scan.fitter import ScanFitter
 from bodyfit.models.fitting.sequence.fitter import SequenceFit, SequenceFitter, SequenceFrames
@@ -47,6 +47,7 @@ from bodyfit.service import uploads
 from bodyfit.service.batching import Outputs, SynthBatcher
 from bodyfit.service.errors import BusyError, InvalidInputError, LimitExceededError
 from bodyfit.service.formats import Bodies
+from bodyfit.service.hints import ScanHints, height_check, hint_use
 from bodyfit.service.jobs import Job
 from bodyfit.service.limits import Limits
 from bodyfit.service.synthesis import SynthRequest, synthesis_parameters
@@ -110,7 +111,14 @@ RAW_SCAN: FittedAs = "raw scan"
 class MeshFit:
     """One fitted mesh or scan: how it was fitted (:data:`REGISTERED`, :data:`SMPL_TOPOLOGY` or
     :data:`RAW_SCAN`), the parameters shape (n_shape,), coordinates (n_dof,), root (3,), the registration
-    ``vertices`` (V, 3) in our topology, ``joints`` (J, 3), and the error report."""
+    ``vertices`` (V, 3) in our topology, ``joints`` (J, 3), the error report, and ``to_model`` (4, 4).
+
+    One frame convention for every route: ``vertices`` and ``joints`` lie in the input's own frame (on the
+    uploaded mesh or scan), and ``to_model`` is the rigid map from the input's frame to the frame in which
+    the parameters pose the body: ``model.forward(shape, coordinates, root)`` gives (before the non-rigid
+    refinement) ``vertices @ R.T + t`` with ``R, t = to_model[:3, :3], to_model[:3, 3]``. It is the identity
+    when the parameters themselves hold the input's placement (registered meshes; raw scans of an upright-ish
+    body)."""
 
     fitted_as: FittedAs
     shape: np.ndarray
@@ -119,6 +127,7 @@ class MeshFit:
     vertices: np.ndarray
     joints: np.ndarray
     report: FitReport
+    to_model: np.ndarray = field(default_factory=lambda: np.eye(4))
 
     def arrays(self) -> dict[str, np.ndarray]:
         return {
@@ -127,6 +136,7 @@ class MeshFit:
             "root": self.root,
             "vertices": self.vertices,
             "joints": self.joints,
+            "to_model": self.to_model,
         }
 
 
@@ -304,10 +314,17 @@ class BodyService:
         """
         check_scan(scan, whole_body=self.route(scan) != RAW_SCAN)
 
-    def fit_mesh(self, scan: Scan, job: Job | None = None) -> MeshFit:
+    def fit_mesh(self, scan: Scan, job: Job | None = None, hints: ScanHints | None = None) -> MeshFit:
         """Fit one mesh or scan, routed by its topology: 13,348 vertices -> registered fit; 6,890 vertices
         with faces -> SMPL topology (placed through the stored map, then refined on the mesh's surface);
-        anything else -> raw scan (orientation searched, no landmarks).
+        anything else -> raw scan (orientation searched unless ``hints`` give it, no landmarks). The answer
+        is in the input's frame with the map to the parameters' frame alongside (:class:`MeshFit`).
+
+        ``hints`` (:meth:`ScanHints.given`, checked there): up and facing give a raw scan's orientation
+        (both needed; not searched then) or an SMPL-topology mesh's (in place of SMPL's +Y up, facing +Z);
+        the pose class gives a raw scan's start pose; the height is checked against the fitted body's (a
+        difference over :data:`~bodyfit.service.hints.HEIGHT_TOLERANCE_M` makes the fit not confident);
+        sex is recorded. The report's ``extra["hints"]`` says how each given hint was used.
 
         Raises:
             InvalidInputError: a scan that cannot be a body (:meth:`check_scan`), found so during the
@@ -330,7 +347,7 @@ class BodyService:
                 total = steps
                 job.report("fit", done, steps, line)
 
-            fit = _fit_routed(fitters, route, scan, progress)
+            fit = _fit_routed(fitters, route, scan, progress, hints or ScanHints())
             check_finite_result(
                 "fit",
                 {**fit.arrays(), "report distances": np.array(fit.report.distances.mean)},
@@ -472,19 +489,51 @@ def shape_hints(sex: str | None, height_m: float | None, mass_kg: float | None) 
 
 
 def _fit_routed(
-    fitters: _Fitters, route: FittedAs, scan: Scan, progress: Callable[[int, int, str], None]
+    fitters: _Fitters,
+    route: FittedAs,
+    scan: Scan,
+    progress: Callable[[int, int, str], None],
+    hints: ScanHints,
 ) -> MeshFit:
-    """Fit ``scan`` the way ``route`` says (:meth:`BodyService.route`); ``progress`` (done, steps, line)
-    gets the scan fitter's steps."""
+    """Fit ``scan`` the way ``route`` says (:meth:`BodyService.route`), with ``hints`` where the route can
+    use them, in the input's frame (:class:`MeshFit`); ``progress`` (done, steps, line) gets the scan
+    fitter's steps."""
+    orientation = hints.orientation()
+    start = hints.start(fitters.scan.model)
     if route == REGISTERED:
-        return _first(fitters.registered.fit(scan.points), REGISTERED)
+        fit = _first(fitters.registered.fit(scan.points), REGISTERED)
+        return _with_hints(fit, fitters.scan.model, hints, False, False)
     if route == SMPL_TOPOLOGY:  # placed through the map, then refined on the mesh's surface
-        placed = fit_smpl_meshes(fitters.registered, scan.points)[0]
         assert scan.faces is not None  # the route needs them
-        f = refine_smpl_fit(fitters.scan, placed, scan.points, scan.faces, progress=progress)
+        registered, faces = fitters.registered, scan.faces
+        f = fit_smpl_mesh(registered, fitters.scan, scan.points, faces, orientation, progress=progress)
+        start = None
     else:
-        f = fitters.scan.fit(scan, progress=progress)
-    return MeshFit(route, f.shape, f.coordinates, f.root, f.registration, f.joints, f.report)
+        f = fitters.scan.fit(scan, progress=progress, orientation=orientation, start=start)
+    fit = MeshFit(route, f.shape, f.coordinates, f.root, f.registration, f.joints, f.report, f.scan_to_body)
+    return _with_hints(fit, fitters.scan.model, hints, orientation is not None, start is not None)
+
+
+def _with_hints(fit: MeshFit, model: BodyModel, hints: ScanHints, oriented: bool, started: bool) -> MeshFit:
+    """``fit`` with its report saying how each given hint was used (``extra["hints"]``: value, used, how),
+    and not confident when the fitted body's height disagrees with the height hint."""
+    if not hints.given_names():
+        return fit
+    use = hint_use(hints, fit.fitted_as, oriented, started)
+    notes, used, reasons = dict(use.notes), set(use.used), list(fit.report.reasons)
+    if hints.height_m is not None:
+        partial = fit.report.extra.get("fitted_part") == "head and shoulders"
+        notes["height_m"], reason = height_check(model, fit.shape, hints.height_m, partial)
+        used |= set() if partial else {"height_m"}
+        reasons += [] if reason is None else [reason]
+    record = replace(use, notes=notes, used=frozenset(used)).record(hints)
+    report = replace(
+        fit.report,
+        confident=fit.report.confident and len(reasons) == len(fit.report.reasons),
+        reasons=tuple(reasons),
+        extra={**fit.report.extra, "hints": record},
+    )
+    return replace(fit, report=report)
 
 
 def _check_sequence_fit(fit: SequenceFit) -> None:

@@ -7,7 +7,8 @@ stays light.
 - :mod:`.model`: :class:`ModelInfo` (``GET /v1/model``);
 - :mod:`.events`: progress, chunk, result and error events of fits and upgrades, their per-operation
   discriminated unions and the JSON answers built from them;
-- :mod:`.documents`: health, readiness, a synthesis as JSON.
+- :mod:`.documents`: health, readiness, a synthesis as JSON;
+- :mod:`.hints`: a scan fit's hints (up and facing axes, pose class, sex, height) and their allowed values.
 
 The gRPC wire carries the same content in the messages of ``bodyfit/api/bodyfit.proto``; the gRPC client
 turns them into these models, so both transports are read by one set of validators.
@@ -53,15 +54,21 @@ from bodyfit.wire.events import (
     UpgradeResultEvent,
     UpgradeSummary,
 )
+from bodyfit.wire.hints import AXES, HINT_NAMES, POSE_CLASSES, SEXES, Axis, PoseClass, Sex
 from bodyfit.wire.model import Assets, Dof, MeshSizes, ModelInfo, ShapeSizes
 
 __all__ = [
+    "AXES",
     "DTYPES",
     "GRPC_STATUS_KINDS",
+    "HINT_NAMES",
+    "POSE_CLASSES",
     "SCAN_EVENTS",
     "SEQUENCE_EVENTS",
+    "SEXES",
     "UPGRADE_EVENTS",
     "Assets",
+    "Axis",
     "Base64Bytes",
     "DistanceStats",
     "Dof",
@@ -77,6 +84,7 @@ __all__ = [
     "MeshSizes",
     "ModelInfo",
     "OpenDocument",
+    "PoseClass",
     "Problem",
     "Progress",
     "ProgressEvent",
@@ -91,6 +99,7 @@ __all__ = [
     "SequenceFitEvent",
     "SequenceResultEvent",
     "SequenceStats",
+    "Sex",
     "ShapeSizes",
     "SynthesisJSON",
     "UpgradeAnswer",

@@ -111,7 +111,16 @@ class DistanceStats(WireModel):
 class FitReport(OpenDocument):
     """What a fit reports about itself: distances of the result to the input (mm), coordinate values
     outside their joint limits, optimiser iterations, wall time (s), whether to trust it and, when not,
-    the reasons; ``extra``: numbers particular to the fit (per-stage losses, scan coverage, ...)."""
+    the reasons; ``extra``: numbers particular to the fit (per-stage losses, scan coverage, the hints and how
+    each was used under ``hints``, ...).
+
+    Raw scans (and SMPL-topology meshes, refined on their surface) measure both ways: ``distances`` are the
+    scan points within ``extra["inlier_threshold_mm"]`` of the fitted surface (``extra["inlier_fraction"]``
+    of them); ``scan_to_model`` every scan point, outliers included (its ``max`` is the real maximum);
+    ``model_to_scan`` each vertex of the fitted surface to its nearest scan point, weighted by area, over
+    the part the scan can show (``extra["model_to_scan_over"]``: the whole body, the side facing a single
+    view's sensor, or the head and shoulders), with ``extra["unsupported_fraction"]`` of that area farther
+    than ``extra["unsupported_threshold_mm"]`` from every scan point. Null for fits with a correspondence."""
 
     distances: DistanceStats
     limit_violations: int
@@ -120,17 +129,26 @@ class FitReport(OpenDocument):
     confident: bool
     reasons: tuple[str, ...] = ()
     extra: dict[str, object] = Field(default_factory=dict)
+    scan_to_model: DistanceStats | None = None
+    model_to_scan: DistanceStats | None = None
 
 
 class MeshFitArrays(WireModel):
     """shape (n_shape,); coordinates (n_dof,); root (3,) metres; vertices (V, 3), the registration in
-    the model's topology; joints (J, 3); all float32."""
+    the model's topology; joints (J, 3); to_model (4, 4); all float32.
+
+    The frame convention, the same for every route (registered, SMPL topology, raw scan): ``vertices`` and
+    ``joints`` lie in the input's own frame, on the uploaded mesh or scan; ``to_model`` is the rigid map
+    from that frame to the one in which shape, coordinates and root pose the model
+    (``x_model = to_model @ [x_input, 1]``), the identity when the parameters hold the input's placement
+    themselves. Null from a server older than the field."""
 
     shape: WireArray
     coordinates: WireArray
     root: WireArray
     vertices: WireArray
     joints: WireArray
+    to_model: WireArray | None = None
 
 
 class MeshFit(WireModel):

@@ -71,7 +71,7 @@ def test_fit_starts_a_helper_process_for_three_or_more_raw_scans(
 
     seen: list[int] = []
 
-    def first_fit(self: BodyService, scan: object, job: object = None) -> None:
+    def first_fit(self: BodyService, scan: object, job: object = None, hints: object = None) -> None:
         seen.append(self.scan_processes)
         raise OSError("stopped by the test")
 
@@ -96,7 +96,7 @@ def test_fit_reads_a_depth_camera_cloud_as_the_server_does(
     does, and says how many (the fit itself is stopped here: reading is what is tested)."""
     from bodyfit.service.core import BodyService
 
-    def first_fit(self: BodyService, scan: object, job: object = None) -> None:
+    def first_fit(self: BodyService, scan: object, job: object = None, hints: object = None) -> None:
         raise OSError("stopped by the test")
 
     monkeypatch.setattr(BodyService, "fit_mesh", first_fit)
@@ -315,7 +315,7 @@ def test_no_kind_detects_it_and_runs_that_subcommands_fit(
     assert result.exit_code == 0, result.output
     ((ran, called),) = seen
     assert ran == kind and called[:2] == ([path], out)
-    defaults = {"scan": ("auto", None), "sequence": (30.0,)}
+    defaults = {"scan": (commands.ScanOptions(),), "sequence": (30.0,)}
     if kind == "markers":
         options = called[2]
         assert isinstance(options, commands.MarkerOptions)

@@ -16,7 +16,9 @@ from bodyfit.api.rest.jobs import answer
 from bodyfit.api.rest.openapi import streamed
 from bodyfit.api.rest.state import Service
 from bodyfit.service.errors import InvalidInputError
+from bodyfit.service.hints import ScanHints
 from bodyfit.service.jobs import Job
+from bodyfit.wire.hints import FACING_HELP, HEIGHT_HELP, POSE_HELP, SEX_HELP, UP_HELP
 
 router = APIRouter(prefix="/v1/fit", tags=["fitting"])
 
@@ -33,7 +35,13 @@ async def fit_scan(
     file: Annotated[UploadFile, File(description="PLY, OBJ, STL, PCD or NPZ (points / vertices, faces).")],
     units: Annotated[Literal["auto", "m", "mm"], Form()] = "auto",
     format: Annotated[str | None, Form(description="Overrides the file name's suffix.")] = None,
+    up: Annotated[str | None, Form(description=f"Hint: {UP_HELP}.")] = None,
+    facing: Annotated[str | None, Form(description=f"Hint: {FACING_HELP}.")] = None,
+    pose: Annotated[str | None, Form(description=f"Hint: {POSE_HELP}.")] = None,
+    sex: Annotated[str | None, Form(description=f"Hint: {SEX_HELP}.")] = None,
+    height_m: Annotated[float | None, Form(description=f"Hint: {HEIGHT_HELP}.")] = None,
 ) -> StreamingResponse | JSONResponse:
+    hints = ScanHints.given(up, facing, pose, sex, height_m)  # a bad hint: 422 before the upload is read
     data = await file.read()
     fmt = format or PurePath(file.filename or "").suffix.lstrip(".")
     if not fmt:
@@ -45,7 +53,7 @@ async def fit_scan(
     info = service.info()
 
     def work(job: Job) -> list[w.MeshFitEvent]:
-        fit = service.fit_mesh(scan, job)
+        fit = service.fit_mesh(scan, job, hints)
         return [results.mesh_fit_result(fit, list(info.dof_names), list(info.joint_names))]
 
     return await answer(request, work, Job(timeout_s=service.limits.max_seconds))

@@ -3,6 +3,7 @@ FILE...`` without a kind runs ``auto``, which detects the kind from the files.""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -13,6 +14,7 @@ from bodyfit.cli.common import OUT_HELP, fail, note, reported
 from bodyfit.cli.fit.kinds import DESCRIPTION, Kind, single_kind, wrong_kind
 from bodyfit.cli.fit.markers import MarkerOptions
 from bodyfit.cli.fit.scan import HELPER_SCANS
+from bodyfit.wire.hints import FACING_HELP, HEIGHT_HELP, POSE_HELP, SEX_HELP, UP_HELP, PoseClass, Sex
 
 AUTO = "auto"
 
@@ -61,33 +63,60 @@ CALIBRATION_HELP = (
     "is given)."
 )
 MARKER_SET_HELP = "Marker protocol: auto (from the marker names), gait2392 or rajagopal."
-UP_HELP = "The lab's up axis: x, y or z with an optional sign (e.g. z, -y)."
+MARKER_UP_HELP = "The lab's up axis: x, y or z with an optional sign (e.g. z, -y)."
+SCAN_UP_HELP = f"Hint: {UP_HELP}, e.g. +z."
+SCAN_FACING_HELP = f"Hint: {FACING_HELP}, e.g. +x."
+SCAN_POSE_HELP = f"Hint: {POSE_HELP}."
+SCAN_SEX_HELP = f"Hint: {SEX_HELP}."
+SCAN_HEIGHT_HELP = f"Hint: {HEIGHT_HELP}."
 FORWARD_HELP = "The lab's forward (walking) axis: x, y or z with an optional sign."
 FPS_HELP = "Frames per second (Hz) of the sequence, for the times in the .mot."
 Units = Literal["auto", "m", "mm"]
 Calibration = Literal["auto", "static", "motion"]
-OPTION_KIND: dict[str, Kind] = {
-    "--units": "scan",
-    "--processes": "scan",
-    "--static": "markers",
-    "--static-pose": "markers",
-    "--calibration": "markers",
-    "--marker-set": "markers",
-    "--up": "markers",
-    "--forward": "markers",
-    "--fps": "sequence",
+OPTION_KINDS: dict[str, tuple[Kind, ...]] = {
+    "--units": ("scan",),
+    "--processes": ("scan",),
+    "--facing": ("scan",),
+    "--pose": ("scan",),
+    "--sex": ("scan",),
+    "--height-m": ("scan",),
+    "--static": ("markers",),
+    "--static-pose": ("markers",),
+    "--calibration": ("markers",),
+    "--marker-set": ("markers",),
+    "--up": ("scan", "markers"),
+    "--forward": ("markers",),
+    "--fps": ("sequence",),
 }
 
 
-def run_scans(files: list[Path], out: Path, units: str, processes: int | None) -> None:
-    """Fit meshes and scans in this process (:func:`bodyfit.cli.fit.scan.fit_mesh_files`)."""
+@dataclass(frozen=True)
+class ScanOptions:
+    """`bodyfit fit scan`'s options: units, processes and the hints (:class:`~bodyfit.service.hints.ScanHints`
+    fields, unchecked)."""
+
+    units: str = "auto"
+    processes: int | None = None
+    up: str | None = None
+    facing: str | None = None
+    pose: str | None = None
+    sex: str | None = None
+    height_m: float | None = None
+
+
+def run_scans(files: list[Path], out: Path, options: ScanOptions) -> None:
+    """Fit meshes and scans in this process (:func:`bodyfit.cli.fit.scan.fit_mesh_files`), the hints checked
+    first (a bad one exits with status 2 and names the allowed values)."""
     from bodyfit.cli.fit.scan import fit_mesh_files
 
     with reported():
         from bodyfit.service.core import BodyService
+        from bodyfit.service.hints import ScanHints
 
+        o = options
+        hints = ScanHints.given(o.up, o.facing, o.pose, o.sex, o.height_m)
         service = BodyService.load(fitters=False)
-        fit_mesh_files(service, files, out, units, processes, typer.echo, note)
+        fit_mesh_files(service, files, out, o.units, o.processes, typer.echo, note, hints)
     typer.echo(f"wrote {len(files)} fits to {out}/ (fit.npz, fit.json, registration_*.ply, fit.mot)")
 
 
@@ -130,18 +159,25 @@ def scan(
     out: Out = Path("out/fit"),
     units: Annotated[Units, typer.Option(help=UNITS_HELP)] = "auto",
     processes: Annotated[int | None, typer.Option(min=1, max=2, help=PROCESSES_HELP)] = None,
+    up: Annotated[str | None, typer.Option(help=SCAN_UP_HELP)] = None,
+    facing: Annotated[str | None, typer.Option(help=SCAN_FACING_HELP)] = None,
+    pose: Annotated[PoseClass | None, typer.Option(help=SCAN_POSE_HELP)] = None,
+    sex: Annotated[Sex | None, typer.Option(help=SCAN_SEX_HELP)] = None,
+    height_m: Annotated[float | None, typer.Option(help=SCAN_HEIGHT_HELP)] = None,
 ) -> None:
     """Fit meshes and scans, any placement.
 
     Meshes in our 13,348-vertex topology are fitted vertex to vertex (batched); meshes in SMPL's 6,890-vertex
     topology through the stored correspondence; anything else as a raw scan (any topology or a bare point
-    cloud; orientation searched; no landmarks). Writes fit.npz (shape, coordinates in radians, root in
-    metres, registered vertices in our topology, joints), fit.json (one error report per input: distances
-    in mm, joint-limit violations, iterations, time, confidence), the registrations as .ply and the
-    coordinates as an OpenSim .mot.
+    cloud; orientation searched unless --up and --facing give it; no landmarks). The hints (--up, --facing,
+    --pose, --sex, --height-m) go with every input; each report says how each was used. Writes fit.npz
+    (shape, coordinates in radians, root in metres, registered vertices in our topology and joints, both in
+    the input's frame, and to_model, the 4 x 4 map from the input's frame to the one the parameters pose the
+    model in), fit.json (one error report per input: distances in mm both ways, joint-limit violations,
+    iterations, time, confidence, hints), the registrations as .ply and the coordinates as an OpenSim .mot.
     """
     _only(files, "scan")
-    run_scans(files, out, units, processes)
+    run_scans(files, out, ScanOptions(units, processes, up, facing, pose, sex, height_m))
 
 
 @app.command("markers")
@@ -155,7 +191,7 @@ def markers(
     static_pose: Annotated[list[str] | None, typer.Option(help=STATIC_POSE_HELP)] = None,
     calibration: Annotated[Calibration, typer.Option(help=CALIBRATION_HELP)] = "auto",
     marker_set: Annotated[str, typer.Option(help=MARKER_SET_HELP)] = "auto",
-    up: Annotated[str, typer.Option(help=UP_HELP)] = "y",
+    up: Annotated[str, typer.Option(help=MARKER_UP_HELP)] = "y",
     forward: Annotated[str, typer.Option(help=FORWARD_HELP)] = "x",
 ) -> None:
     """Fit motion-capture marker trials: the skeleton's coordinates per frame.
@@ -213,9 +249,16 @@ def auto(
     static_pose: Annotated[list[str] | None, typer.Option(help=f"Markers: {STATIC_POSE_HELP}")] = None,
     calibration: Annotated[Calibration | None, typer.Option(help=f"Markers: {CALIBRATION_HELP}")] = None,
     marker_set: Annotated[str | None, typer.Option(help=f"Markers: {MARKER_SET_HELP}")] = None,
-    up: Annotated[str | None, typer.Option(help=f"Markers: {UP_HELP} Default: y.")] = None,
+    up: Annotated[
+        str | None,
+        typer.Option(help=f"Markers: {MARKER_UP_HELP} Default: y. Scans: {SCAN_UP_HELP}"),
+    ] = None,
     forward: Annotated[str | None, typer.Option(help=f"Markers: {FORWARD_HELP} Default: x.")] = None,
     fps: Annotated[float | None, typer.Option(min=0.001, help=f"Sequences: {FPS_HELP} Default: 30.")] = None,
+    facing: Annotated[str | None, typer.Option(help=f"Scans: {SCAN_FACING_HELP}")] = None,
+    pose: Annotated[PoseClass | None, typer.Option(help=f"Scans: {SCAN_POSE_HELP}")] = None,
+    sex: Annotated[Sex | None, typer.Option(help=f"Scans: {SCAN_SEX_HELP}")] = None,
+    height_m: Annotated[float | None, typer.Option(help=f"Scans: {SCAN_HEIGHT_HELP}")] = None,
 ) -> None:
     """Detect the kind of the files, then fit them as `scan`, `markers` or `sequence` do (the default when
     no kind is given: `bodyfit fit FILE...`). Every file of one run must be of one kind."""
@@ -232,10 +275,16 @@ def auto(
         "--up": up,
         "--forward": forward,
         "--fps": fps,
+        "--facing": facing,
+        "--pose": pose,
+        "--sex": sex,
+        "--height-m": height_m,
     }
-    stray = [name for name, value in given.items() if value is not None and OPTION_KIND[name] != kind]
+    stray = [name for name, value in given.items() if value is not None and kind not in OPTION_KINDS[name]]
     if stray:
-        owners = "; ".join(f"{name} is an option of `bodyfit fit {OPTION_KIND[name]}`" for name in stray)
+        owners = "; ".join(
+            f"{name} is an option of `bodyfit fit {' or '.join(OPTION_KINDS[name])}`" for name in stray
+        )
         fail(f"{owners}, but {files[0]} is {DESCRIPTION[kind]}; leave {' '.join(stray)} out")
     if kind == "markers":
         options = MarkerOptions(
@@ -250,4 +299,4 @@ def auto(
     elif kind == "sequence":
         run_sequences(files, out, 30.0 if fps is None else fps)
     else:
-        run_scans(files, out, units or "auto", processes)
+        run_scans(files, out, ScanOptions(units or "auto", processes, up, facing, pose, sex, height_m))

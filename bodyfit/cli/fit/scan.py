@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from bodyfit.service.core import BodyService
+    from bodyfit.service.hints import ScanHints
 
 # raw scans in one `bodyfit fit` from which a second process pays for its own start-up (loading torch and
 # the model): below this, fitting in this process alone is as fast
@@ -24,6 +25,7 @@ def fit_mesh_files(
     processes: int | None,
     echo: Callable[[str], None],
     note: Callable[[str], None],
+    hints: ScanHints | None = None,
 ) -> list[dict[str, Any]]:
     """Fit each mesh or scan (read first, all of them, in ``units``: auto, m or mm, as the server reads them:
     NaN or infinite points, the missing pixels of depth cameras and organized PCD clouds, are dropped and
@@ -31,7 +33,9 @@ def fit_mesh_files(
     (shape, coordinates, root, vertices, joints per input), ``fit.json`` (one report per input),
     ``registration_<k>.ply`` and ``fit.mot`` to ``out``; returns the records. ``processes``: 1 or 2 (a
     helper process for raw scans), None: 2 from :data:`HELPER_SCANS` raw scans on. ``echo`` gets a summary
-    line per input, ``note`` the progress.
+    line per input, ``note`` the progress. ``hints`` (up, facing, pose class, sex, height) go with every
+    input (:meth:`BodyService.fit_mesh`); fit.npz's ``to_model`` (B, 4, 4) maps each input's frame, in which
+    the vertices and joints lie, to the frame its parameters pose the model in.
 
     Raises:
         BodyfitError (unreadable files, bad scans), ServiceError, OSError.
@@ -64,7 +68,7 @@ def fit_mesh_files(
     fits = []
     for path, scan in zip(paths, scans, strict=True):
         note(f"{path.name}: fitting as a {service.route(scan)}")  # its first progress line gives the points
-        fits.append(service.fit_mesh(scan, Job(on_progress=show)))
+        fits.append(service.fit_mesh(scan, Job(on_progress=show), hints))
     out.mkdir(parents=True, exist_ok=True)
     arrays: dict[str, np.ndarray] = {
         key: np.stack([f.arrays()[key] for f in fits]) for key in fits[0].arrays()

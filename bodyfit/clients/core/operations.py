@@ -31,6 +31,7 @@ from bodyfit.clients.results import (
     reader,
 )
 from bodyfit.clients.uploads import ScanInput, scan_upload
+from bodyfit.wire.hints import axis_name, pose_class
 
 R = TypeVar("R")
 Event = Document
@@ -157,12 +158,52 @@ def fit_scan(
     format: str | None = None,
     units: str = "auto",
     progress: ProgressCallback | None = None,
+    up: str | None = None,
+    facing: str | None = None,
+    pose: str | None = None,
+    sex: str | None = None,
+    height_m: float | None = None,
 ) -> Operation[MeshFitResult]:
     """Fit a mesh or point cloud: a file (path, or bytes with ``format``) or (N, 3) points; ``units``:
-    auto, m or mm; ``progress`` gets each progress event."""
+    auto, m or mm; ``progress`` gets each progress event.
+
+    Hints, each optional (the report's ``extra["hints"]`` says how each was used): ``up``, the scan's up
+    axis (+x, -x, +y, -y, +z or -z; a bare x is +x) and ``facing``, the axis the person faces (with up: the
+    orientation is not searched); ``pose``, the start pose class (standing, sitting, a-pose, t-pose);
+    ``sex`` (male, female, neutral; recorded); ``height_m``, the standing height in metres (the fitted
+    body's is checked against it).
+
+    Raises:
+        ValueError: an axis or pose class that names none of the allowed values (before anything is sent).
+    """
     name, data = scan_upload(scan, format)
-    args = {"name": name, "data": data, "format": Path(name).suffix.lstrip("."), "units": units}
+    args = {
+        "name": name,
+        "data": data,
+        "format": Path(name).suffix.lstrip("."),
+        "units": units,
+        "hints": scan_hints(up, facing, pose, sex, height_m),
+    }
     return Operation("fit_scan", _scan_events, _mesh_fit, args, stream=True, progress=progress)
+
+
+def scan_hints(
+    up: str | None, facing: str | None, pose: str | None, sex: str | None, height_m: float | None
+) -> dict[str, str | float]:
+    """The hints given, by name (:data:`bodyfit.wire.HINT_NAMES`), axes and pose class in their canonical
+    spelling ("z" -> "+z", "A-pose" -> "a-pose"); sex and height are checked by the server.
+
+    Raises:
+        ValueError: an axis or pose class that names none of the allowed values.
+    """
+    values: dict[str, str | float | None] = {
+        "up": None if up is None else axis_name(up, "up"),
+        "facing": None if facing is None else axis_name(facing, "facing"),
+        "pose": None if pose is None else pose_class(pose),
+        "sex": sex,
+        "height_m": None if height_m is None else float(height_m),
+    }
+    return {k: v for k, v in values.items() if v is not None}
 
 
 def fit_sequence(

@@ -8,13 +8,14 @@ the SMPL surface (face + barycentric coordinates). Where the two bodies disagree
 apart (our eyes and mouth interior, which SMPL lacks) a vertex gets weight 0 and is left out of fits.
 
 At fit time an SMPL-topology mesh is turned into our frame (SMPL is +Y up and faces +Z; we face +X with +Z
-to the body's right), interpolated at our vertices and fitted by :class:`RegisteredFitter` with those
-weights.
+to the body's right; a mesh in another orientation gives its own rotation), interpolated at our vertices and
+fitted by :class:`RegisteredFitter` with those weights. :func:`fit_smpl_mesh` answers in the mesh's own
+frame, with the map to the parameters' frame alongside, as every mesh fit does.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -137,21 +138,55 @@ def refine_smpl_fit(
     faces: np.ndarray,
     index: int = 0,
     progress: Progress | None = None,
+    to_body: np.ndarray | None = None,
 ) -> ScanFit:
     """Body ``index`` of a :func:`fit_smpl_meshes` fit refined on its mesh's surface (vertices (6890, 3) in
-    SMPL's frame, faces (F, 3)) by :meth:`ScanFitter.refine`: point-to-plane phases from the fitted body,
-    then the non-rigid registration; parameters and registration in our frame, as the fit's. The map's
-    correspondences hold the body where the map is wrong (hands, feet); the surface does not: on the two
-    CC BY bodies the mesh's vertices lie 2.6 / 2.9 mm from the refined registration against 10.6 / 9.5 mm
-    from the registered fit, for about 1 s more per mesh."""
-    body = np.asarray(mesh, np.float64) @ SMPL_TO_BODY.T
+    SMPL's frame, or turned into ours by ``to_body`` as for :func:`fit_smpl_meshes`; faces (F, 3)) by
+    :meth:`ScanFitter.refine`: point-to-plane phases from the fitted body, then the non-rigid registration;
+    parameters and registration in our frame, as the fit's. The map's correspondences hold the body where
+    the map is wrong (hands, feet); the surface does not: on the two CC BY bodies the mesh's vertices lie
+    2.6 / 2.9 mm from the refined registration against 10.6 / 9.5 mm from the registered fit, for about
+    1 s more per mesh."""
+    body = np.asarray(mesh, np.float64) @ (SMPL_TO_BODY if to_body is None else to_body).T
     surface, _ = sample_surface(body, faces, SCAN_SAMPLES, seed=index)
     points = np.concatenate([body, surface])
     return scanner.refine(points, fit.shape[index], fit.coordinates[index], fit.root[index], progress)
 
 
+def fit_smpl_mesh(
+    registered: RegisteredFitter,
+    scanner: ScanFitter,
+    mesh: np.ndarray,
+    faces: np.ndarray,
+    to_body: np.ndarray | None = None,
+    progress: Progress | None = None,
+) -> ScanFit:
+    """One mesh in SMPL's topology (vertices (6890, 3) metres, faces (F, 3)) placed through the map
+    (:func:`fit_smpl_meshes`) and refined on its surface (:func:`refine_smpl_fit`), answered in the mesh's
+    own frame: ``vertices``, ``registration`` and ``joints`` lie on the mesh as it was given, and
+    ``scan_to_body`` (4, 4) maps the mesh's frame to the one the parameters pose the body in
+    (``body = scan_to_body @ mesh``). ``to_body``: (3, 3) the rotation from the mesh's axes to ours (+X
+    forward, +Y up, +Z right); default SMPL's convention (+Y up, facing +Z, :data:`SMPL_TO_BODY`)."""
+    R = SMPL_TO_BODY if to_body is None else np.asarray(to_body, np.float64)
+    placed = fit_smpl_meshes(registered, mesh, to_body=R)[0]
+    fit = refine_smpl_fit(scanner, placed, mesh, faces, progress=progress, to_body=R)
+    turn = np.eye(4)
+    turn[:3, :3] = R
+    # the refinement's frame is R @ mesh; a point x there is R.T @ x, as rows x @ R, in the mesh's
+    return replace(
+        fit,
+        vertices=fit.vertices @ R,
+        registration=fit.registration @ R,
+        joints=fit.joints @ R,
+        scan_to_body=fit.scan_to_body @ turn,
+    )
+
+
 def fit_smpl_meshes(
-    fitter: RegisteredFitter, meshes: np.ndarray, topology: TopologyMap | None = None
+    fitter: RegisteredFitter,
+    meshes: np.ndarray,
+    topology: TopologyMap | None = None,
+    to_body: np.ndarray | None = None,
 ) -> tuple[BodyFit, np.ndarray]:
     """Fit meshes in SMPL topology.
 
@@ -159,6 +194,8 @@ def fit_smpl_meshes(
         fitter: a registered-mesh fitter of our model.
         meshes: (B, 6890, 3) or (6890, 3) vertices in SMPL's frame (+Y up, facing +Z), metres.
         topology: the map (default: the stored asset).
+        to_body: (3, 3) the rotation from the meshes' axes to ours (+X forward, +Y up, +Z right) for meshes
+            in another orientation; default :data:`SMPL_TO_BODY`.
     Returns:
         the fit (parameters and registration in our frame) and each SMPL vertex's distance (B, 6890) to the
         fitted surface, metres.
@@ -172,7 +209,7 @@ def fit_smpl_meshes(
 
     check_finite("SMPL mesh vertices", torch.as_tensor(x))
     tmap = topology or smpl_map()
-    body = x @ SMPL_TO_BODY.T
+    body = x @ (SMPL_TO_BODY if to_body is None else np.asarray(to_body, np.float64)).T
     targets = tmap.transfer(body)
     fit = fitter.fit(targets, weights=np.repeat(tmap.weight[None], len(x), axis=0))
     faces = fitter.model.faces
