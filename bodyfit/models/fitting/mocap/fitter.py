@@ -329,11 +329,15 @@ def _subject_from_static(setup: _Setup, vm: VirtualMarkers, in_trial: set[str]) 
     assert setup.window is not None
     used = list(vm.names)
     static_frames = observed_positions(setup.window, used)
-    cal, markers = _calibrate_static(
+    cal, markers, hidden = _calibrate_static(
         setup.skel, setup.scale_model, vm, static_frames, setup.standing_plan, setup.set_name
     )
     standing = cal.q[0]
     notes: list[str] = []
+    if hidden:
+        notes.append(
+            f"held near neutral in the static pose (its markers cannot determine them): {', '.join(hidden)}"
+        )
     missing = [
         n for n in used if n in in_trial and not np.isfinite(_frame_mean(static_frames)[used.index(n)]).all()
     ]
@@ -463,9 +467,11 @@ def _calibrate_static(
     frames: np.ndarray,
     plan: DofPlan,
     set_name: str,
-) -> tuple[Calibration, VirtualMarkers]:
+) -> tuple[Calibration, VirtualMarkers, dict[str, str]]:
     """Scales and standing pose from the anatomical markers of a static trial (frames (K, M, 3), averaged),
-    then every marker it shows placed where it was seen (OpenSim's ScaleTool + MarkerPlacer)."""
+    then every marker it shows placed where it was seen (OpenSim's ScaleTool + MarkerPlacer). The
+    coordinates the anatomical markers cannot determine in that pose (:mod:`.observability`) are held near
+    neutral; they are returned (name -> reason) with the calibration and the placed markers."""
     mean = _frame_mean(frames)
     seen = np.isfinite(mean).all(-1)
     anat = markers.anatomical & seen
@@ -475,9 +481,18 @@ def _calibrate_static(
             f"{MIN_VISIBLE} are needed to scale the subject (or calibrate from the motion: static=None)"
         )
     fit_markers_ = replace(markers, weights=np.where(anat, markers.weights, 0.0))
-    cal = calibrate(skel, scale_model, fit_markers_, mean[None], np.zeros(1), plan, np.zeros(len(seen), bool))
+    nothing = np.zeros(len(seen), bool)
+    cal = calibrate(skel, scale_model, fit_markers_, mean[None], np.zeros(1), plan, nothing)
+    # A standing pose leaves some coordinates undetermined (forearm rotation with straight elbows): solve
+    # it again with those held at neutral, as a lab's scale setup holds them.
+    hidden = unobservable(skel, fit_markers_, cal.scales, cal.q, cal.root, plan)
+    if hidden:
+        start = cal.q.copy()
+        start[:, [skel.dof_index(n) for n in hidden]] = 0.0
+        held = holding_neutral(skel, plan, list(hidden))
+        cal = calibrate(skel, scale_model, fit_markers_, mean[None], np.zeros(1), held, nothing, start=start)
     placed = place_markers(skel, markers, mean, cal.q[0], cal.root[0], cal.scales, seen)
-    return cal, placed
+    return cal, placed, hidden
 
 
 def _calibration_mode(
