@@ -107,15 +107,16 @@ class ScanHints:
         return np.stack([forward, up, np.cross(forward, up)])
 
     def start(self, model: BodyModel) -> np.ndarray | None:
-        """(n_dof,) the start coordinates of the pose class (:data:`POSE_DEGREES` over the bind pose, inside
-        the limits), or None without a pose class or for "standing" (the fitters' default start)."""
+        """(n_dof,) the start coordinates of the pose class (:data:`POSE_DEGREES` over the bind pose, within
+        the limits; the fitters move a start further inside them), or None without a pose class or for
+        "standing" (the fitters' default start)."""
         if self.pose is None or not POSE_DEGREES[self.pose]:
             return None
         skel = model.skeleton
         q = np.asarray(model.bind_coordinates, np.float64).copy()
         for name, degrees in POSE_DEGREES[self.pose].items():
             q[skel.dof_index(name)] = np.radians(degrees)
-        return skel.inside(q, 0.1)
+        return skel.inside(q, 0.0)
 
 
 def standing_height(model: BodyModel, shape: np.ndarray) -> float:

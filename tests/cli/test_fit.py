@@ -42,6 +42,8 @@ def test_fit_registered_meshes(tmp_path: Path) -> None:
     data = np.load(out / "fit.npz")
     knee = model.dof_names.index("knee_angle_r")
     assert abs(data["coordinates"][0, knee] - 0.9) < 0.1
+    np.testing.assert_array_equal(data["to_model"], np.tile(np.eye(4), (2, 1, 1)))  # placed by their vertices
+    assert np.linalg.norm(data["vertices"] - verts, axis=2).mean() < 0.003  # in the files' own frame
     assert (out / "registration_001.ply").exists() and (out / "fit.mot").exists()
 
 
@@ -105,6 +107,71 @@ def test_fit_reads_a_depth_camera_cloud_as_the_server_does(
     assert "drop_nonfinite" not in result.output, result.output
     assert "dropped 64,451 of 307,200 points that were NaN or infinite" in result.output
     assert result.exit_code == 2 and "stopped by the test" in result.output
+
+
+def _stub_fit(monkeypatch: pytest.MonkeyPatch) -> list[object]:
+    """Stops the service's first fit, keeping the hints it was given."""
+    from bodyfit.service.core import BodyService
+
+    given: list[object] = []
+
+    def first_fit(self: BodyService, scan: object, job: object = None, hints: object = None) -> None:
+        given.append(hints)
+        raise OSError("stopped by the test")
+
+    monkeypatch.setattr(BodyService, "fit_mesh", first_fit)
+    return given
+
+
+@pytest.mark.parametrize("kind", [["scan"], []])
+def test_fit_scan_passes_its_hints_to_every_fit(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, kind: list[str]
+) -> None:
+    """`bodyfit fit scan --up -z --facing +x --pose sitting --sex female --height-m 1.68` (and the same
+    without the kind): the hints, in their canonical spelling, go with the fit."""
+    from bodyfit.service.hints import ScanHints
+
+    given = _stub_fit(monkeypatch)
+    path = tmp_path / "scan.npz"
+    np.savez(path, points=np.random.default_rng(0).normal(size=(600, 3)) * 0.3)
+    hints = ["--up", "-z", "--facing", "+x", "--pose", "sitting", "--sex", "female", "--height-m", "1.68"]
+    result = runner.invoke(app, ["fit", *kind, str(path), "--out", str(tmp_path / "o"), *hints])
+    assert result.exit_code == 2 and "stopped by the test" in result.output, result.output
+    assert given == [ScanHints("-z", "+x", "sitting", "female", 1.68)]
+
+
+@pytest.mark.parametrize(
+    ("option", "words"),
+    [
+        (["--up", "q"], "up must be one of +x, -x, +y, -y, +z, -z"),
+        (["--up", "+y", "--facing", "-y"], "facing must be perpendicular to up"),
+        (["--height-m", "175"], "height_m must be an adult's, between 1.2 and 2.3"),
+        (["--pose", "kneeling"], "'standing', 'sitting', 'a-pose', 't-pose'"),
+        (["--sex", "x"], "'male', 'female', 'neutral'"),
+    ],
+)
+def test_fit_scan_refuses_a_bad_hint_before_any_fit(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, option: list[str], words: str
+) -> None:
+    given = _stub_fit(monkeypatch)
+    path = tmp_path / "scan.npz"
+    np.savez(path, points=np.random.default_rng(0).normal(size=(600, 3)) * 0.3)
+    result = runner.invoke(app, ["fit", "scan", str(path), "--out", str(tmp_path / "o"), *option])
+    assert result.exit_code == 2 and words in " ".join(result.output.split()), result.output
+    assert given == [] and "Traceback" not in result.output
+
+
+def test_fit_scan_help_states_each_hints_values() -> None:
+    result = runner.invoke(app, ["fit", "scan", "--help"], terminal_width=200)
+    text = " ".join(result.output.split())
+    assert result.exit_code == 0
+    for words in ("+x, -x, +y, -y, +z or -z", "standing", "t-pose", "standing height in metres", "neutral"):
+        assert words in text, words
+
+
+def test_a_scan_hint_is_refused_for_a_marker_trial(tmp_path: Path) -> None:
+    result = runner.invoke(app, ["fit", str(TRIAL), "--facing", "+x", "--out", str(tmp_path / "o")])
+    assert result.exit_code == 2 and "--facing is an option of `bodyfit fit scan`" in result.output
 
 
 def test_fit_a_sphere_is_a_low_confidence_scan(tmp_path: Path) -> None:

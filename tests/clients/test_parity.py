@@ -42,6 +42,7 @@ F32 = {
         ("seq_j", (3, 1, 3)),
         ("err", (3,)),
         ("scales", (2, 3)),
+        ("to_model", (4, 4)),
     )
 }
 FACES = np.array([[0, 1, 2], [1, 2, 3]], np.int32)
@@ -63,7 +64,12 @@ REPORT = {
     "seconds": 0.25,
     "confident": True,
     "reasons": [],
-    "extra": {"stage_loss_mm2": {"all": 2.25}},
+    "extra": {
+        "stage_loss_mm2": {"all": 2.25},
+        "hints": {"up": {"value": "+z", "used": True, "how": "used as the scan's orientation"}},
+    },
+    "scan_to_model": {"mean": 2.0, "median": 1.2, "p95": 3.5, "max": 480.0},
+    "model_to_scan": {"mean": 3.0, "median": 2.0, "p95": 9.0, "max": 260.0},
 }
 STATS = {
     "frames": 3,
@@ -162,6 +168,7 @@ def rest_answers() -> dict[str, Callable[[httpx.Request], httpx.Response]]:
                     "root": b64(F32["root"]),
                     "vertices": b64(F32["v1"]),
                     "joints": b64(F32["j1"]),
+                    "to_model": b64(F32["to_model"]),
                 },
             },
         ),
@@ -239,6 +246,7 @@ def grpc_answers() -> dict[str, Callable[[Any], Any]]:
                     root=a["root"],
                     vertices=a["v1"],
                     joints=a["j1"],
+                    to_model=a["to_model"],
                     report_json=json.dumps(REPORT),
                     **names,
                 )
@@ -352,7 +360,7 @@ CALLS: list[tuple[str, tuple[Any, ...], dict[str, Any]]] = [
     ("model_info", (), {}),
     ("synthesize", (), {"coordinates": {"knee_angle_r": [0.1, 0.2]}}),
     ("synthesize_file", ("ply",), {"coordinates": np.zeros((1, 1))}),
-    ("fit_scan", (np.zeros((6, 3)),), {}),
+    ("fit_scan", (np.zeros((6, 3)),), {"up": "z", "facing": "+x", "pose": "Sitting", "height_m": 1.75}),
     ("fit_sequence", (F32["seq_v"],), {"chunk": 2}),
     ("upgrade", (b"PK\x03\x04",), {"height_m": 1.7}),
 ]
@@ -452,6 +460,8 @@ def test_rest_sync_and_async_give_identical_results() -> None:
     assert info.dof_names == ("knee_angle_r",) and info.n_shape == 5
     assert synth.vertices.dtype == np.float32 and np.array_equal(synth.faces, FACES)
     assert scan.confident and sync[3][1] == [PROGRESS]
+    assert np.array_equal(scan.to_model, F32["to_model"]) and scan.report["scan_to_model"]["max"] == 480.0
+    assert scan.report["extra"]["hints"]["up"]["used"] is True
     assert np.array_equal(seq.coordinates, F32["seq_q"]) and seq.limit_violations == 2
     assert up.files == FILES and up.bad_frames.tolist() == [False, True, False]
 
@@ -462,6 +472,9 @@ def test_grpc_sync_and_async_give_identical_results_and_requests() -> None:
     assert sync_stub.requests == async_stub.requests and len(sync_stub.requests) == len(CALLS)
     upgrade = sync_stub.requests[-1]
     assert upgrade.HasField("height_m") and not upgrade.HasField("sex") and upgrade.filename == "sequence.npz"
+    scan = sync_stub.requests[3]  # the hints in their canonical spelling; those not given are unset
+    assert (scan.up, scan.facing, scan.pose, scan.height_m) == ("+z", "+x", "sitting", 1.75)
+    assert not scan.HasField("sex")
 
 
 def test_rest_and_grpc_decode_to_the_same_results() -> None:
@@ -563,6 +576,53 @@ def test_a_format_the_server_cannot_write_is_refused_before_sending() -> None:
         pytest.raises(ValueError, match="format must be one of npz, ply, obj, glb, json"),
     ):
         c.synthesize_file("stl")
+    assert sent == []
+
+
+def test_scan_hints_travel_as_the_same_fields_over_rest_and_grpc() -> None:
+    """REST sends the hints as form fields named as gRPC's FitScanRequest fields, with the same values;
+    hints not given are not sent."""
+    fields: list[dict[str, str]] = []
+
+    def fit(request: httpx.Request) -> httpx.Response:
+        body = request.read().decode("latin-1")
+        parts = [p for p in body.split("Content-Disposition: form-data; ") if p.startswith("name=")]
+        form = {p.split('"')[1]: p.split("\r\n\r\n", 1)[1].split("\r\n", 1)[0] for p in parts}
+        fields.append({k: v for k, v in form.items() if k != "file"})
+        return rest_answers()["/v1/fit/scan"](request)
+
+    handlers = {**rest_answers(), "/v1/fit/scan": fit}
+    rest_pair(handlers)
+    *_, stub, _ = grpc_pair(grpc_answers())
+    sent = stub.requests[3]
+    expected = {"units": "auto", "up": "+z", "facing": "+x", "pose": "sitting", "height_m": "1.75"}
+    assert fields == [expected, expected]  # sync and async
+    assert {k: str(getattr(sent, k)) for k in expected} == expected and not sent.HasField("sex")
+
+
+@pytest.mark.parametrize(
+    ("hints", "words"),
+    [
+        ({"up": "q"}, "up must be one of +x, -x, +y, -y, +z, -z"),
+        ({"up": "+y", "facing": "sideways"}, "facing must be one of +x, -x, +y, -y, +z, -z"),
+        ({"pose": "kneeling"}, "pose must be one of standing, sitting, a-pose, t-pose"),
+    ],
+)
+def test_a_hint_that_names_no_allowed_value_is_refused_before_sending(
+    hints: dict[str, str], words: str
+) -> None:
+    sent: list[httpx.Request] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        sent.append(request)
+        return httpx.Response(200)
+
+    transport = httpx.MockTransport(handler)
+    with (
+        Client("http://t", http_client=httpx.Client(transport=transport)) as c,
+        pytest.raises(ValueError, match=words.replace("+", "\\+")),
+    ):
+        c.fit_scan(np.zeros((6, 3)), **hints)
     assert sent == []
 
 
