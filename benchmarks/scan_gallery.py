@@ -6,8 +6,8 @@ facing the camera's +X).
 Writes ``docs/scan_fits.png`` (a row per scan: the input points, the CC BY body's own mesh, our
 registration; the Kinect row: the points and the fit as the camera saw them, and the fit from ahead; it is
 fitted as a head and shoulders), labelled: each row's title band says what its columns show, the row's
-label names the scan and its mean scan-to-model distance, and a caption says what the colours mean. Prints
-each fit's report. Takes about a minute on 2 cores (three fits, nine renders).
+label names the scan and its mean scan-to-model distance, and a caption says what the colours and the
+distance mean. Prints each fit's report. Takes about a minute on 2 cores (three fits, nine renders).
 
 Usage::
 
@@ -42,8 +42,7 @@ KINECT_COLUMNS = [
 ]
 CAPTION = (
     "Dark grey: the input points. Blue: the CC BY body's own mesh, the ground truth. Orange: our "
-    "registration. Scan to model: the mean distance from the scan's points (those within {inlier:.0f} mm) "
-    "to the registration's surface."
+    "registration. Scan to model: the mean distance from every scan point to the registration's surface."
 )
 
 
@@ -76,7 +75,10 @@ def panel(
 
 
 def scan_to_model(fit: ScanFit) -> str:
-    return f"scan to model\n{fit.report.distances.mean:.2f} mm"
+    """A row label's distance: the mean of the report's scan to model (every scan point, outliers too)."""
+    if fit.report.scan_to_model is None:
+        raise RuntimeError("a raw-scan fit's report should measure every point's distance to the model")
+    return f"scan to model\n{fit.report.scan_to_model.mean:.2f} mm"
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -111,9 +113,8 @@ def main(argv: list[str] | None = None) -> None:
         f"and shoulders\n\n{scan_to_model(fit)}"
     )
     print(f"kinect (cropped to {len(person)} points): {fit.report.to_dict()}")
-    caption = CAPTION.format(inlier=fit.report.extra["inlier_threshold_mm"])
     titles = [CCBY_COLUMNS] * len(SOURCES) + [KINECT_COLUMNS]
-    figure = label_grid(tile(images, 3), titles, row_titles, caption, font_size=FONT_PX)
+    figure = label_grid(tile(images, 3), titles, row_titles, CAPTION, font_size=FONT_PX)
     save_png(figure, args.out)
     print(f"wrote {args.out}")
 
