@@ -109,8 +109,9 @@ def test_grpc_fits_a_turned_smpl_mesh_in_its_own_frame_from_its_hints(target: st
     axes = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # SMPL's +Y -> +Z, +Z -> +X
     moved = verts @ axes.T + np.array([0.2, -0.5, 1.0])
     data = trimesh.Trimesh(moved, faces, process=False).export(file_type="ply")
+    assert isinstance(data, bytes)
     with GrpcClient(target, retries=0) as client:
-        fit = client.fit_scan(bytes(data), format="ply", up="+z", facing="+x", pose="t-pose")
+        fit = client.fit_scan(data, format="ply", up="+z", facing="+x", pose="t-pose")
     assert fit.fitted_as == "SMPL topology" and fit.confident, fit.report["reasons"]
     assert point_to_surface(fit.vertices.astype(np.float64), moved, faces).mean() < 0.005
     assert fit.to_model is not None

@@ -609,7 +609,7 @@ def test_scan_hints_travel_as_the_same_fields_over_rest_and_grpc() -> None:
     ],
 )
 def test_a_hint_that_names_no_allowed_value_is_refused_before_sending(
-    hints: dict[str, str], words: str
+    hints: dict[str, Any], words: str
 ) -> None:
     sent: list[httpx.Request] = []
 

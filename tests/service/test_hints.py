@@ -73,7 +73,8 @@ def _mesh_of(service: BodyService, verts: np.ndarray, faces: np.ndarray) -> Scan
     import trimesh
 
     data = trimesh.Trimesh(verts, faces, process=False).export(file_type="ply")
-    return service.read_scan(bytes(data), "ply", "m")
+    assert isinstance(data, bytes)
+    return service.read_scan(data, "ply", "m")
 
 
 def test_a_raw_scan_uses_the_orientation_pose_and_height_hints(body_service: BodyService) -> None:
