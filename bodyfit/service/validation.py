@@ -13,6 +13,9 @@ import numpy as np
 
 from bodyfit.io.scans import Scan
 from bodyfit.models.errors import BodyfitError
+from bodyfit.models.fitting.scan.config import ScanFitConfig
+from bodyfit.models.fitting.scan.phases import prepare_scan
+from bodyfit.models.fitting.scan.scene import NoPersonError
 from bodyfit.service.errors import InvalidInputError
 
 SHAPE_LIMIT_SD = 10.0
@@ -35,6 +38,7 @@ _FLAT = 1e-3  # a frame whose smallest spread is below this fraction of its larg
 SCAN_MIN_EXTENT_M = 0.1
 """The smallest scan the raw-scan fit can use (a head and shoulders), metres: the fit thins scans to a 1 cm
 grid, so anything smaller leaves too few points (a scan in metres read as millimetres spans 2 mm)."""
+
 
 def check_plausible(shape: np.ndarray | None, root: np.ndarray | None) -> None:
     """Refuse shape coefficients beyond +-:data:`SHAPE_LIMIT_SD` and roots beyond +-:data:`ROOT_LIMIT_M`
@@ -261,10 +265,13 @@ def invalid_input(field_name: str) -> Iterator[None]:
 def check_scan(scan: Scan, whole_body: bool) -> None:
     """Check, before any fitting, that ``scan`` can be the body it is fitted as: with ``whole_body`` (a mesh
     in our topology or SMPL's) a whole body (:func:`check_frames`), else at least
-    :data:`SCAN_MIN_EXTENT_M` across (a raw scan).
+    :data:`SCAN_MIN_EXTENT_M` across with a person in it (a raw scan: cleaned and split from its scene as
+    the fit does it, :func:`bodyfit.models.fitting.scan.phases.prepare_scan` with the default
+    :class:`~bodyfit.models.fitting.scan.config.ScanFitConfig`; a room, a box or a chair alone is refused).
 
     Raises:
-        InvalidInputError: what is wrong (degenerate, not human-sized, the wrong units) and the fix.
+        InvalidInputError: what is wrong (degenerate, not human-sized, the wrong units, no person found) and
+            the fix.
     """
     read_as = " read in millimetres (units=mm)" if scan.source_units == "mm" else ""
     if whole_body:
@@ -286,3 +293,7 @@ def check_scan(scan: Scan, whole_body: bool) -> None:
             "in metres, units=mm only when it is in millimetres",
             field="units" if read_as else "file",
         )
+    try:
+        prepare_scan(scan, ScanFitConfig())
+    except NoPersonError as exc:
+        raise InvalidInputError(str(exc), field="file") from None

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 from bodyfit.models.fitting.common.nonrigid import NonRigidConfig
 from bodyfit.models.fitting.registered.stages import Stage, check_at_least
+from bodyfit.models.fitting.scan.scene import SceneConfig
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -199,7 +200,9 @@ class ScanFitConfig:
     extent along its principal axes (:func:`bodyfit.io.scans.largest_extent`) is below this (m) is fitted as a
     head and shoulders by ``partial_phases`` (:data:`UPPER_BODY_PHASES`), never confidently; 0 turns that
     off; refine_from: the phase from which :meth:`.fitter.ScanFitter.refine` runs (a body already in
-    place: the point-to-plane phases)."""
+    place: the point-to-plane phases); scene: how the person is separated from floors, walls, furniture and
+    fragments before a fit (:func:`.scene.separate_person`; the report's ``extra["scene"]`` says what was
+    removed, and a scan with no person in it is refused); None fits every cleaned point."""
 
     phases: tuple[ScanPhase, ...] = DEFAULT_PHASES
     branches: tuple[ScanBranch, ...] = DEFAULT_BRANCHES
@@ -217,6 +220,7 @@ class ScanFitConfig:
     partial_phases: tuple[ScanPhase, ...] = UPPER_BODY_PHASES
     partial_extent: float = PARTIAL_EXTENT_M
     refine_from: str = "fine"
+    scene: SceneConfig | None = field(default_factory=SceneConfig)
 
     def __post_init__(self) -> None:
         if self.processes not in (1, 2):

@@ -3,7 +3,9 @@
 The user guide, with the accuracy and speed measured on the benchmark scans, is docs/fitting.md ("Raw scans").
 
 1. Clean: thin to a voxel grid and drop isolated points (statistical outlier removal,
-   :func:`.phases.clean_points`).
+   :func:`.phases.clean_points`); then separate the person from floors, walls, furniture and fragments
+   (:func:`.scene.separate_person`: large planes, Euclidean clusters, a person-likeness test), and refuse a
+   scan with no person in it.
 2. Orientation: the scan's principal axes give 24 candidate body frames (each signed axis as "up", four
    headings about it). All are fitted at once, coarsely (the trunk's pose and the hips' and knees' flexion
    on a vertex subset: with the legs held straight a seated or crouching body is matched by bending the
@@ -213,7 +215,7 @@ class ScanFitter:
             start: (n_dof,) coordinates to start from (e.g. a T-pose); default: the bind pose.
         """
         began = time.perf_counter()
-        points, cleaned, order = prepare_scan(scan, self.config)
+        points, cleaned, order, scene = prepare_scan(scan, self.config)
         cfg = self.config
         extent = principal_extent(cleaned)
         partial = extent < cfg.partial_extent
@@ -226,11 +228,15 @@ class ScanFitter:
             run = PhaseRun(cleaned, order, tree, progress, self.progress_steps(partial), pool)
             run.begin(f"fitting a {PART_NAMES[part]}")
             if not partial:
-                return self._fit_branches(hyp, points, run, began)
-            iterations, losses = self._run_phases(
-                hyp, cfg.partial_phases, cfg.branches[0], run, "", run.pool.map, shard=True
-            )
-            return self._result(hyp, points, run, iterations, losses, began, extent)
+                fit = self._fit_branches(hyp, points, run, began)
+            else:
+                iterations, losses = self._run_phases(
+                    hyp, cfg.partial_phases, cfg.branches[0], run, "", run.pool.map, shard=True
+                )
+                fit = self._result(hyp, points, run, iterations, losses, began, extent)
+        if scene is None:
+            return fit
+        return replace(fit, report=replace(fit.report, extra={**fit.report.extra, "scene": scene}))
 
     def refine(
         self,
@@ -251,7 +257,7 @@ class ScanFitter:
         """
         began = time.perf_counter()
         c, q, r, phases = refine_start(self.config, self.model, shape, coordinates, root)
-        points, cleaned, order = prepare_scan(scan, self.config)
+        points, cleaned, order, _ = prepare_scan(scan, self.config, scene=False)  # a body, already placed
         state = self.fitter.start_state(q[None], r[None], c[None])
         hyp = Hypotheses(np.eye(3)[None], np.zeros(3), np.zeros((1, 0, 3)), state, False)
         with ThreadPoolExecutor(self.config.workers) as pool:

@@ -1,4 +1,4 @@
-"""What a scan fit's phases start from and share: the cleaned scan (:func:`clean_points`,
+"""What a scan fit's phases start from and share: the cleaned scan, the person alone (:func:`clean_points`,
 :func:`prepare_scan`, :func:`principal_extent`), a refinement's start (:func:`refine_start`), the run's
 progress and threads (:class:`PhaseRun`), where the branches start and end among the phases
 (:func:`branch_bounds`) and the gathering of work split between threads or the helper process
@@ -10,6 +10,7 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from threading import Lock
+from typing import Any
 
 import numpy as np
 
@@ -18,6 +19,7 @@ from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting.common.nearest import PointTree
 from bodyfit.models.fitting.scan.config import ScanBranch, ScanFitConfig, ScanPhase
 from bodyfit.models.fitting.scan.limb_search import Hypotheses, Mapper
+from bodyfit.models.fitting.scan.scene import raw_points_kept, separate_person
 
 # A scan fit's progress: called with the steps done, the steps in all and a line saying what was done.
 Progress = Callable[[int, int, str], None]
@@ -57,11 +59,17 @@ def clean_points(points: np.ndarray, voxel: float, neighbours: int, cutoff: floa
     return thin[spread <= median + cutoff * 1.4826 * mad + 1e-12]
 
 
-def prepare_scan(scan: Scan | np.ndarray, cfg: ScanFitConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A scan's raw points (N, 3), its cleaned points (M, 3) and their random order (M,), by ``cfg``.
+def prepare_scan(
+    scan: Scan | np.ndarray, cfg: ScanFitConfig, scene: bool = True
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any] | None]:
+    """A scan's raw points (N, 3), its cleaned points (M, 3), their random order (M,) and what was removed
+    as scene clutter, by ``cfg``. With ``scene`` and ``cfg.scene``, the person is separated from planes,
+    objects and fragments (:func:`.scene.separate_person`): the cleaned points and the raw points are the
+    person's only, and the summary says what was removed (else None).
 
     Raises:
         ScanError: not a finite (N, 3) array, or too few points left after cleaning.
+        NoPersonError: ``scene`` and nothing in the scan looks like a person.
     """
     points = scan.points if isinstance(scan, Scan) else np.asarray(scan, np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or not np.isfinite(points).all():
@@ -72,7 +80,13 @@ def prepare_scan(scan: Scan | np.ndarray, cfg: ScanFitConfig) -> tuple[np.ndarra
             f"only {len(cleaned)} points are left after thinning to a {cfg.voxel * 100:.0f} cm grid and "
             f"dropping isolated points; a body needs at least {MIN_POINTS}: send a denser scan"
         )
-    return points, cleaned, np.random.default_rng(cfg.seed).permutation(len(cleaned))
+    summary = None
+    if scene and cfg.scene is not None:
+        split = separate_person(cleaned, cfg.scene)
+        points = points[raw_points_kept(points, cleaned, split.keep)]
+        cleaned = cleaned[split.keep]
+        summary = split.summary()
+    return points, cleaned, np.random.default_rng(cfg.seed).permutation(len(cleaned)), summary
 
 
 def principal_extent(cleaned: np.ndarray) -> float:
