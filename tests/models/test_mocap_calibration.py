@@ -1,5 +1,6 @@
 """Mocap subject calibration: static against motion calibration compared and reported, static trials from
-another protocol or subject refused, coordinates the markers cannot determine reported and held."""
+another protocol or subject refused, coordinates the markers cannot determine reported and held, and
+coordinates kept at a joint limit reported."""
 
 from __future__ import annotations
 
@@ -10,9 +11,11 @@ import pytest
 
 from bodyfit.io.mocap import MarkerTrial, read_trc
 from bodyfit.models.body.model import BodyModel
+from bodyfit.models.fitting.mocap.calibration import DofPlan
 from bodyfit.models.fitting.mocap.choice import STATIC_TOLERANCE, choose_calibration
 from bodyfit.models.fitting.mocap.fitter import fit_markers
-from bodyfit.models.fitting.mocap.marker_sets import MarkerSetError
+from bodyfit.models.fitting.mocap.marker_sets import GAIT2392, MarkerSetError
+from bodyfit.models.fitting.mocap.observability import at_limits
 
 GAIT = Path(__file__).resolve().parents[1] / "data" / "opensim_gait"
 
@@ -24,8 +27,8 @@ def body() -> BodyModel:
 
 @pytest.fixture(scope="module")
 def walk() -> MarkerTrial:
-    """0.8 s of the gait2392 walk (48 frames)."""
-    return read_trc(GAIT / "gait2392_subject01_walk1.trc").between(0.6, 1.4)
+    """0.5 s of the gait2392 walk (31 frames)."""
+    return read_trc(GAIT / "gait2392_subject01_walk1.trc").between(0.6, 1.1)
 
 
 @pytest.fixture(scope="module")
@@ -34,7 +37,7 @@ def static() -> MarkerTrial:
 
 
 def test_auto_compares_both_calibrations_and_reports_the_choice(body, walk, static) -> None:
-    fit = fit_markers(walk, static, model=body, calibration_frames=12)
+    fit = fit_markers(walk, static, model=body, calibration_frames=8)
     choice = fit.report.extra["calibration_choice"]
     errors = choice["marker_error_mm"]
     assert set(errors) == {"static", "motion"} and all(5.0 < e < 20.0 for e in errors.values())
@@ -45,7 +48,7 @@ def test_auto_compares_both_calibrations_and_reports_the_choice(body, walk, stat
     assert "static kept" in choice["reason"] and f"{errors['motion']:.1f} mm" in choice["reason"]
     assert choice["static_check"]["pair_distance_difference"] < 0.02
     # An explicit choice is kept and carries the same comparison.
-    asked = fit_markers(walk, static, model=body, calibration="motion", calibration_frames=12,
+    asked = fit_markers(walk, static, model=body, calibration="motion", calibration_frames=8,
                         static_pose={"ankle_angle_r": 0.0, "ankle_angle_l": 0.0})  # fmt: skip
     assert asked.report.extra["calibration_choice"]["chosen"] == "motion"
     assert set(asked.report.extra["calibration_choice"]["marker_error_mm"]) == {"static", "motion"}
@@ -79,7 +82,7 @@ def test_unobservable_coordinates_are_reported_and_held_near_neutral(body, walk)
     """Without the right wrist's markers nothing sees the right elbow and forearm; without head markers,
     nothing sees the neck: they are reported with the reason and held at 0, not solved to a limit."""
     off = {"R.Wrist.Med": 0.0, "R.Wrist.Lat": 0.0, "Top.Head": 0.0, "R.Temple": 0.0, "L.Temple": 0.0}
-    fit = fit_markers(walk, model=body, weights=off, calibration_frames=12)
+    fit = fit_markers(walk, model=body, weights=off, calibration_frames=8)
     hidden = fit.report.extra["unobservable"]
     skel = body.skeleton
     for name in ("elbow_flex_r", "pro_sup_r", "neck_extension", "neck_rotation"):
@@ -88,3 +91,17 @@ def test_unobservable_coordinates_are_reported_and_held_near_neutral(body, walk)
     # The left forearm keeps its markers and stays observable.
     assert "pro_sup_l" not in hidden and "elbow_flex_l" not in hidden
     assert fit.report.limit_violations == 0
+
+
+def test_coordinates_kept_at_a_limit_are_reported(body) -> None:
+    skel = body.skeleton
+    plan = DofPlan.build(skel, GAIT2392)
+    q = np.zeros((10, skel.n_dof))
+    elbow, pro_sup = skel.dof_index("elbow_flex_r"), skel.dof_index("pro_sup_l")
+    q[:, elbow] = np.radians(40.0)
+    q[:6, elbow] = skel.ranges[elbow, 1]  # 6 of 10 frames at full flexion
+    q[:, pro_sup] = skel.ranges[pro_sup, 1]
+    q[:, skel.dof_index("hip_flexion_r")] = np.radians(10.0)
+    pinned = at_limits(skel, q, plan, {"pro_sup_l": "held"})
+    assert pinned["elbow_flex_r"] == pytest.approx(0.6)
+    assert "pro_sup_l" not in pinned and "hip_flexion_r" not in pinned

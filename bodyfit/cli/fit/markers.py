@@ -112,7 +112,8 @@ def fit_marker_trials(
 
 
 def _calibration_lines(extra: dict[str, Any]) -> list[str]:
-    """The calibration choice (with a static trial) and the unobservable coordinates, one line each."""
+    """The calibration choice (with a static trial), the unobservable coordinates and those at a joint limit
+    in most frames, one line each."""
     lines = []
     choice = extra.get("calibration_choice") or {}
     if len(choice.get("marker_error_mm", {})) > 1:
@@ -120,4 +121,7 @@ def _calibration_lines(extra: dict[str, Any]) -> list[str]:
     hidden = extra.get("unobservable") or {}
     if hidden:
         lines.append(f"held near neutral, the markers cannot determine them: {', '.join(hidden)}")
+    pinned = extra.get("at_limit") or {}
+    if pinned:
+        lines.append(f"at a joint limit in most frames (check the markers): {', '.join(pinned)}")
     return lines

@@ -50,7 +50,7 @@ from bodyfit.models.fitting.mocap.marker_sets import (
     normalise_name,
 )
 from bodyfit.models.fitting.mocap.marker_solve import IKSolution, solve_ik
-from bodyfit.models.fitting.mocap.observability import holding_neutral, unobservable
+from bodyfit.models.fitting.mocap.observability import at_limits, holding_neutral, unobservable
 from bodyfit.models.fitting.mocap.static_check import check_static
 from bodyfit.models.fitting.mocap.subject import Calibration, calibrate
 from bodyfit.models.skeleton.model import Skeleton
@@ -204,7 +204,13 @@ def fit_markers(
         sum(c.ik_seconds for c in fitted.values()), sol.errors, best.ik_names, unused,
     )  # fmt: skip
     extra["notes"] = [*extra["notes"], *choice_notes]
-    extra.update(calibration_choice=choice, unobservable=best.unobservable)
+    pinned = at_limits(skel, sol.q, setup.plan, best.unobservable)
+    extra.update(calibration_choice=choice, unobservable=best.unobservable, at_limit=pinned)
+    if pinned:
+        extra["notes"].append(
+            f"at a joint limit in most frames: {', '.join(pinned)}; the markers pull them beyond their range "
+            "(check that the markers are named and placed as the set defines them)"
+        )
     return MarkerFit(
         sol.q, sol.root, trial.times.copy(), subject.cal.scales, subject.markers, sol.errors,
         subject.standing, defn.name, list(skel.dof_names),

@@ -114,3 +114,23 @@ def holding_neutral(skel: Skeleton, plan: DofPlan, names: list[str]) -> DofPlan:
         i = skel.dof_index(name)
         soft[i] = max(soft[i], HOLD_WEIGHT)
     return DofPlan(plan.free, plan.locked, soft)
+
+
+AT_LIMIT = np.radians(0.5)  # a coordinate this close to a limit counts as at it
+AT_LIMIT_SHARE = 0.5  # ... reported when it is so in more than this share of the frames
+
+
+def at_limits(skel: Skeleton, q: np.ndarray, plan: DofPlan, held: dict[str, str]) -> dict[str, float]:
+    """Free coordinates of ``plan`` (not ``held``) within :data:`AT_LIMIT` of a joint limit in more than
+    :data:`AT_LIMIT_SHARE` of the frames of ``q`` (T, n_dof): name -> that share of frames. A coordinate
+    the markers observe yet keep at a limit is pulled beyond it: a marker named or placed otherwise than
+    the set defines it, or a coordinate whose zero differs from the lab's model."""
+    out: dict[str, float] = {}
+    for i in plan.free:
+        name = skel.dof_names[i]
+        if name in held or skel.spec.coordinate(name).motion != "rotational":
+            continue
+        share = float((np.abs(q[:, i, None] - skel.ranges[i][None]).min(axis=1) < AT_LIMIT).mean())
+        if share > AT_LIMIT_SHARE:
+            out[name] = share
+    return out
