@@ -66,7 +66,7 @@ def test_a_disagreeing_static_trial_falls_back_with_the_reason() -> None:
 
 
 def test_a_static_trial_of_another_protocol_is_refused(body, walk, static) -> None:
-    renamed = [n if i < 5 else f"{n}_lab2" for i, n in enumerate(static.names)]
+    renamed = tuple(n if i < 5 else f"{n}_lab2" for i, n in enumerate(static.names))
     other = MarkerTrial(renamed, static.positions, static.rate, static.times)
     with pytest.raises(MarkerSetError, match=r"shows 5 of the motion's 41 gait2392 markers.*protocol"):
         fit_markers(walk, other, model=body)
