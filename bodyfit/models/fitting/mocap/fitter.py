@@ -4,11 +4,14 @@
 
 1. pick the marker protocol (:mod:`.marker_sets`: OpenSim gait2392 or Rajagopal2015, or by name overlap)
    and put its virtual markers on our template (:func:`.calibration.virtual_markers`);
-2. calibrate the subject (:mod:`.subject`): from the static trial (scales and standing pose from the
-   anatomical markers, then every marker placed where the static trial saw it, as OpenSim's ScaleTool and
-   MarkerPlacer do) or, without one, from K frames of the motion itself (scales, technical marker
-   locations and those frames' poses together);
-3. inverse kinematics of all frames at once (:mod:`.marker_solve`);
+2. calibrate the subject (:mod:`.subject`): from the static trial (after :mod:`.static_check` has made
+   sure it shows the motion's markers on the same subject: scales and standing pose from the anatomical
+   markers, every marker placed where the static trial saw it, as OpenSim's ScaleTool and MarkerPlacer do,
+   then the technical and upper-body markers refined on frames of the motion) and from K frames of the
+   motion itself (scales, technical marker locations and those frames' poses together); with a static
+   trial both are fitted, compared on the motion and one kept (:mod:`.choice`);
+3. inverse kinematics of all frames at once (:mod:`.marker_solve`), the coordinates the markers cannot
+   determine held near neutral (:mod:`.observability`);
 4. an error report (:class:`~bodyfit.models.fitting.common.report.FitReport`): marker distances,
    joint-limit violations, iterations, time, and confidence with reasons.
 
