@@ -92,7 +92,10 @@ def fit_mesh_files(
     for p, f in pairs:
         r = f.report
         flag = "ok" if r.confident else "LOW CONFIDENCE: " + "; ".join(r.reasons)
+        # a raw scan's distances are its inliers'; the farthest of all its points shows a gross error
+        peak = "" if r.scan_to_model is None else f", farthest point {r.scan_to_model.max:.0f} mm"
         echo(
-            f"{p.name} ({f.fitted_as}): mean {r.distances.mean:.2f} mm, p95 {r.distances.p95:.2f} mm, {flag}"
+            f"{p.name} ({f.fitted_as}): mean {r.distances.mean:.2f} mm, p95 {r.distances.p95:.2f} mm{peak}, "
+            f"{flag}"
         )
     return records
