@@ -174,18 +174,18 @@ def test_a_scan_hint_is_refused_for_a_marker_trial(tmp_path: Path) -> None:
     assert result.exit_code == 2 and "--facing is an option of `bodyfit fit scan`" in result.output
 
 
-def test_fit_a_sphere_is_a_low_confidence_scan(tmp_path: Path) -> None:
-    """A mesh of another topology is fitted as a raw scan; a sphere is not a body and says so."""
+def test_fit_a_sphere_is_refused_as_no_person(tmp_path: Path) -> None:
+    """A mesh of another topology goes to the raw-scan fit; a sphere holds no person and is refused before
+    any fit, saying what it found, and nothing is written."""
     import trimesh
 
     path = tmp_path / "sphere.ply"
     trimesh.creation.icosphere(subdivisions=4, radius=0.8).export(path)
     out = tmp_path / "o"
     result = runner.invoke(app, ["fit", str(path), "--out", str(out)])
-    assert result.exit_code == 0, result.output
-    assert "raw scan" in result.output and "LOW CONFIDENCE" in result.output
-    report = json.loads((out / "fit.json").read_text())[0]
-    assert report["fitted_as"] == "raw scan" and report["confident"] is False and report["reasons"]
+    assert result.exit_code == 2, result.output
+    assert "fitting as a raw scan" in result.output and "no person found in the scan" in result.output
+    assert "sphere" in result.output and not (out / "fit.json").exists()
 
 
 def test_fit_a_real_head_and_shoulders_scan(tmp_path: Path) -> None:
