@@ -38,6 +38,7 @@ from bodyfit.models.fitting.scan.fitter import (
     clean_points,
     orientation_candidates,
 )
+from bodyfit.models.fitting.scan.scene import NoPersonError
 
 KINECT = Path(__file__).resolve().parents[1] / "data" / "scans" / "pcl_template_alignment_person.pcd"
 
@@ -350,17 +351,20 @@ def test_scan_fit_rejects_bad_input(fitter: ScanFitter) -> None:
 
 
 @pytest.mark.parametrize("extents", [(0.3, 1.7, 0.5), (0.2, 0.35, 0.25)], ids=["body-sized", "bust-sized"])
-def test_a_box_is_not_a_confident_body(
+def test_a_box_is_no_person_and_never_a_confident_body(
     model: BodyModel, fitter: ScanFitter, extents: tuple[float, float, float]
 ) -> None:
-    """A box of a body's size, or of a head and shoulders' (fitted as one), is never a confident body."""
+    """A box of a body's size, or of a head and shoulders', holds no person: refused before any fit. With the
+    scene separation off it is fitted (as a head and shoulders when bust-sized), never confidently."""
     box = trimesh.creation.box(extents=extents)
     points, _ = sample_surface(box.vertices, box.faces, 30_000, seed=0)
-    fit = fitter.fit(points)
+    with pytest.raises(NoPersonError, match=r"no person found in the scan: .*box"):
+        fitter.fit(points)
+    fit = ScanFitter(model, ScanFitConfig(scene=None), fitter=fitter.fitter).fit(points)
     assert not fit.report.confident
     assert any("orientation was searched" in r for r in fit.report.reasons)
     if extents[1] > 1.0:
-        assert any("within" in r or "exceeds" in r for r in fit.report.reasons)  # the distances say it too
+        assert any("within" in r or "exceeds" in r for r in fit.report.reasons)
     else:
         assert fit.report.extra["fitted_part"] == "head and shoulders"
         assert any("less than a body" in r for r in fit.report.reasons)
