@@ -12,7 +12,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from bodyfit.models.assets import assets_dir, write_manifest
+from bodyfit.models.assets import assets_dir, read_manifest, write_manifest
+from bodyfit.models.body.bone_geometry import fit_bone_geometry
 from bodyfit.models.body.build import BuildConfig, build_body
 from bodyfit.models.body.model import BODY_ASSET, BodyModel
 from bodyfit.models.body.onnx_export import BODY_ONNX, export_body_onnx
@@ -88,6 +89,41 @@ def build_proxy_asset(folder: Path | None = None, model: BodyModel | None = None
     np.savez_compressed(folder / PROXY_ASSET, allow_pickle=False, **_float32(arrays))
     entry = {"metrics": metrics, "build_seconds": round(time.perf_counter() - t0, 2)}
     return write_manifest(folder, {PROXY_ASSET: entry}, {})
+
+
+def bind_pose_bodies(model: BodyModel, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mean body and ``n - 1`` shapes drawn from N(0, 1), in the bind pose: skins (n, V, 3), body frames
+    (n, n_body, 4, 4) and each body's segment scales (n, n_body, 3); float64."""
+    shape = np.random.default_rng(seed).normal(size=(n, model.n_shape))
+    shape[0] = 0.0
+    q = np.repeat(model.bind_coordinates[None], n, axis=0)
+    with torch.no_grad():
+        v, _, frames, scales = model.decoder(torch.float64)(
+            torch.as_tensor(shape), torch.as_tensor(q), torch.zeros(n, 3, dtype=torch.float64)
+        )
+    seg_of_body = np.asarray(model.skeleton.spec.body_segment_index)
+    return v.numpy(), frames.numpy(), scales.numpy()[:, seg_of_body]
+
+
+def build_bone_geometry_asset(
+    folder: Path | None = None, model: BodyModel | None = None, n: int = 16
+) -> Path:
+    """Fit the bone meshes of the skull, hands and feet inside the skin of ``model`` (the body asset in
+    ``folder``) in its bind pose (:mod:`~bodyfit.models.body.bone_geometry`), over the mean body and
+    ``n - 1`` sampled shapes; store the maps in ``body.npz`` and record it in the manifest."""
+    folder = folder or assets_dir()
+    model = model or BodyModel.load(folder)
+    t0 = time.perf_counter()
+    skins, frames, scales = bind_pose_bodies(model, n)
+    geometry = fit_bone_geometry(
+        model.skeleton.bone_mesh(), model.skeleton.body_names, skins, model.faces, frames, scales
+    )
+    data = {**model.data, "bone_geometry": geometry.astype(np.float32)}
+    np.savez_compressed(folder / BODY_ASSET, allow_pickle=False, **data)
+    entry = read_manifest(folder)["files"].get(BODY_ASSET, {})
+    entry = {k: v for k, v in entry.items() if k not in ("sha256", "bytes")}
+    entry["bone_geometry_seconds"] = round(time.perf_counter() - t0, 2)
+    return write_manifest(folder, {BODY_ASSET: entry}, {})
 
 
 def _write_skeleton(out: Path, docs: Path | None) -> SkeletonSpec:

@@ -8,8 +8,10 @@ import torch
 import trimesh
 
 from benchmarks.bones import NAMED_POSES, Tally, pose_coordinates, region_of_vertices, surface_distance
+from bodyfit.models.body.bone_geometry import apply_bone_geometry, fit_bone_geometry
 from bodyfit.models.body.geometry import face_clusters, fast_winding_number, winding_number
 from bodyfit.models.body.model import BodyModel
+from bodyfit.models.skeleton.bones import BoneMesh
 
 
 @pytest.fixture(scope="module")
@@ -107,3 +109,21 @@ def test_bones_moved_out_of_the_skin_are_counted_outside(body: BodyModel) -> Non
     figures = _outside(body, ["neutral"], shift=0.15)
     assert figures["bones_outside_frac"] > 0.6
     assert figures["regions"]["ribs"]["max_mm"] > 50.0
+
+
+def test_bone_geometry_fit_brings_a_protruding_bone_inside() -> None:
+    """A 'skull' poking 2 cm out of a 10 cm skin is moved and scaled inside it, keeping most of its size."""
+    skin = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    bone = trimesh.creation.icosphere(subdivisions=2, radius=0.04)
+    vertices = np.asarray(bone.vertices) + np.array([0.08, 0.0, 0.0])
+    zeros = np.zeros(len(vertices), np.int64)
+    mesh = BoneMesh(vertices, np.asarray(bone.faces), zeros, zeros)
+    skins = np.asarray(skin.vertices)[None]
+    frames, scales = np.eye(4)[None, None], np.ones((1, 1, 3))
+    before = fast_winding_number(skins[0], np.asarray(skin.faces), vertices) < 0.5
+    geometry = fit_bone_geometry(mesh, ["head"], skins, np.asarray(skin.faces), frames, scales)
+    moved = apply_bone_geometry(mesh, geometry)
+    after = fast_winding_number(skins[0], np.asarray(skin.faces), moved) < 0.5
+    assert before.mean() > 0.2
+    assert after.mean() == 0.0
+    assert np.linalg.svd(geometry[0, :, :3])[1].min() > 0.7

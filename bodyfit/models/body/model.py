@@ -26,9 +26,11 @@ import torch
 from torch import nn
 
 from bodyfit.models.assets import verified_asset
+from bodyfit.models.body.bone_geometry import apply_bone_geometry
 from bodyfit.models.body.lbs import blend_block, blend_blocks, blend_rows
 from bodyfit.models.errors import AssetError, ShapeError
 from bodyfit.models.rotations import cm_matmul, cm_matvec
+from bodyfit.models.skeleton.bones import pose_bones
 from bodyfit.models.skeleton.model import Skeleton, check_finite
 from bodyfit.models.skeleton.spec import SkeletonSpec
 
@@ -356,6 +358,7 @@ class BodyModel:
         self.joint_names = [name for name, _, _ in ANATOMICAL_JOINTS]
         self.landmark_names = [str(n) for n in data["landmark_names"]]
         self._decoders: dict[torch.dtype, BodyDecoder] = {}
+        self._bone_vertices: np.ndarray | None = None
 
     @classmethod
     def load(cls, folder: Path | None = None) -> BodyModel:
@@ -444,5 +447,31 @@ class BodyModel:
             check_finite("rest offsets", np.asarray(offsets, np.float64))
             decoder = decoder.with_offsets(offsets)
         vertices, joints, frames, scales = decoder(c, q, r)
-        bones = self.skeleton.pose_bones(frames, scales) if skeleton_mesh else None
+        bones = self.pose_bones(frames, scales) if skeleton_mesh else None
         return BodyOutput(vertices, joints, frames, scales, bones)
+
+    def bone_vertices(self) -> np.ndarray:
+        """The bone mesh's vertices (V_bone, 3) in their body frames, after the asset's per-body affine maps
+        that fit the skull, hands and feet inside the skin (:mod:`bone_geometry`); the skeleton's own mesh
+        when the asset has none."""
+        if self._bone_vertices is None:
+            bones = self.skeleton.bone_mesh()
+            geometry = self.data.get("bone_geometry")
+            self._bone_vertices = (
+                np.asarray(bones.vertices, np.float64)
+                if geometry is None
+                else apply_bone_geometry(bones, np.asarray(geometry, np.float64))
+            )
+        return self._bone_vertices
+
+    def pose_bones(self, frames: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+        """Bone mesh vertices (B, V_bone, 3) of this body model for frames (B, n_body, 4, 4) and segment
+        scales (B, n_seg, 3) from :meth:`forward`; triangles ``skeleton.bone_mesh().faces``."""
+        bones = self.skeleton.bone_mesh()
+        return pose_bones(
+            torch.as_tensor(self.bone_vertices()),
+            torch.as_tensor(bones.vertex_body),
+            torch.as_tensor(bones.vertex_segment),
+            frames,
+            scales,
+        )
