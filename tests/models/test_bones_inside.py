@@ -90,11 +90,12 @@ def _outside(body: BodyModel, poses: list[str], shift: float = 0.0) -> dict:
     return tally.figures()
 
 
-# Measured on the shipped assets (mean body, every 8th bone vertex): 0.33-0.36 of the bone mesh outside in
-# these poses, most of it skull, hands and toes; trunk and long bones of the limbs within about 5%.
-SHIPPED_OUTSIDE_MAX = 0.40
+# The shipped assets carry the per-bone fit inside the skin (mean body, every 8th bone vertex, these poses:
+# 0.15 outside, most of it skull and hands; without that fit 0.33-0.36), so a bound of 0.2 fails if the fit
+# is lost; trunk and long bones of the limbs within about 2%.
+SHIPPED_OUTSIDE_MAX = 0.20
 INNER_REGIONS = ("ribs", "spine", "pelvis", "legs", "arms")
-INNER_REGION_MAX = 0.08
+INNER_REGION_MAX = 0.05
 
 
 def test_shipped_bones_mostly_inside_the_skin(body: BodyModel) -> None:
