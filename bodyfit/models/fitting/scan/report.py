@@ -52,7 +52,8 @@ class ScanFit:
     ``scan_to_body`` is not the identity (then in the body frame ``body = scan_to_body @ scan``).
     vertices (V, 3): the parametric body in the scan's frame (metres); registration (V, 3): the non-rigid
     registration in our topology (equal to ``vertices`` without refinement); joints (J, 3) in the scan's
-    frame. point_distances (N,): every scan point's distance to the registration surface (m).
+    frame. point_distances (N,): the distance to the registration surface (m) of every scan point the scene
+    separation kept as the person's (all of them when it is off or removed nothing).
     """
 
     shape: np.ndarray
