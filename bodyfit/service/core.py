@@ -508,18 +508,23 @@ def _fit_routed(
         registered, faces = fitters.registered, scan.faces
         f = fit_smpl_mesh(registered, fitters.scan, scan.points, faces, orientation, progress=progress)
         start = None
+        up = None
     else:
-        f = fitters.scan.fit(scan, progress=progress, orientation=orientation, start=start)
+        up = hints.up_only()  # up without facing: the search keeps it
+        f = fitters.scan.fit(scan, progress=progress, orientation=orientation, start=start, up=up)
     fit = MeshFit(route, f.shape, f.coordinates, f.root, f.registration, f.joints, f.report, f.scan_to_body)
-    return _with_hints(fit, fitters.scan.model, hints, orientation is not None, start is not None)
+    used = (orientation is not None, start is not None, up is not None)
+    return _with_hints(fit, fitters.scan.model, hints, *used)
 
 
-def _with_hints(fit: MeshFit, model: BodyModel, hints: ScanHints, oriented: bool, started: bool) -> MeshFit:
+def _with_hints(
+    fit: MeshFit, model: BodyModel, hints: ScanHints, oriented: bool, started: bool, up_used: bool = False
+) -> MeshFit:
     """``fit`` with its report saying how each given hint was used (``extra["hints"]``: value, used, how),
     and not confident when the fitted body's height disagrees with the height hint."""
     if not hints.given_names():
         return fit
-    use = hint_use(hints, fit.fitted_as, oriented, started)
+    use = hint_use(hints, fit.fitted_as, oriented, started, up_used)
     notes, used, reasons = dict(use.notes), set(use.used), list(fit.report.reasons)
     if hints.height_m is not None:
         partial = fit.report.extra.get("fitted_part") == "head and shoulders"

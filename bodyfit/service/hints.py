@@ -106,6 +106,11 @@ class ScanHints:
         forward, up = unit_axis(self.facing), unit_axis(self.up)
         return np.stack([forward, up, np.cross(forward, up)])
 
+    def up_only(self) -> np.ndarray | None:
+        """(3,) the scan's up direction when up is given without facing (``ScanFitter.fit(up=)``: the
+        orientation search keeps it); else None."""
+        return unit_axis(self.up) if self.up is not None and self.facing is None else None
+
     def start(self, model: BodyModel) -> np.ndarray | None:
         """(n_dof,) the start coordinates of the pose class (:data:`POSE_DEGREES` over the bind pose, within
         the limits; the fitters move a start further inside them), or None without a pose class or for
@@ -147,7 +152,9 @@ class HintUse:
         }
 
 
-def hint_use(hints: ScanHints, route: str, orientation_used: bool, start_used: bool) -> HintUse:
+def hint_use(
+    hints: ScanHints, route: str, orientation_used: bool, start_used: bool, up_used: bool = False
+) -> HintUse:
     """How a fit of ``route`` ("registered", "SMPL topology", "raw scan") used ``hints``: the orientation
     and start pose as the caller passed them on; sex is recorded only (no fitter has a sex-specific shape
     prior); height is checked after the fit (:func:`height_check`)."""
@@ -166,6 +173,9 @@ def hint_use(hints: ScanHints, route: str, orientation_used: bool, start_used: b
         else:
             note = "recorded: the orientation is used when up and facing are both given"
         notes["up"] = notes["facing"] = note
+        if up_used:
+            notes["up"] = "used: the orientation search tried headings about this up axis only"
+            used.add("up")
     if hints.pose is not None:
         if start_used or (hints.pose == "standing" and route == "raw scan"):
             notes["pose"] = f"the fit started from the {hints.pose} pose class"

@@ -370,6 +370,23 @@ def test_a_box_is_no_person_and_never_a_confident_body(
         assert any("less than a body" in r for r in fit.report.reasons)
 
 
+@pytest.mark.parametrize("up", [(0.0, 0.0, 1.0), (0.0, -1.0, 0.0), (0.6, 0.0, 0.8)])
+def test_orientation_candidates_about_a_known_up_axis(up: tuple[float, float, float]) -> None:
+    """With the up axis known: 8 rotations, each with that up axis and a horizontal heading, 45 degrees
+    apart, so any true heading is within 22.5 degrees of one of them."""
+    points = np.random.default_rng(0).normal(size=(500, 3)) * [0.2, 0.8, 0.1]
+    u = np.asarray(up)
+    R = orientation_candidates(points, u)
+    assert R.shape == (8, 3, 3)
+    np.testing.assert_allclose(R @ R.transpose(0, 2, 1), np.broadcast_to(np.eye(3), (8, 3, 3)), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(R), 1.0)
+    np.testing.assert_allclose(R[:, 1], np.broadcast_to(u, (8, 3)), atol=1e-12)
+    np.testing.assert_allclose(R[:, 0] @ u, 0.0, atol=1e-12)
+    for angle in np.linspace(0.0, 2 * np.pi, 37):
+        heading = np.cos(angle) * R[0, 0] + np.sin(angle) * R[0, 2]
+        assert np.degrees(np.arccos(np.clip(R[:, 0] @ heading, -1, 1))).min() <= 22.5 + 1e-9
+
+
 def test_a_head_and_shoulders_is_fitted_as_one(model: BodyModel, fitter: ScanFitter) -> None:
     """A scan of a body's top 45 cm (turned, moved, orientation searched) is smaller than any body: it is
     fitted as a head and shoulders, never confidently, with the rest of the body in the start pose, and the

@@ -113,6 +113,22 @@ def test_a_raw_scan_uses_the_orientation_pose_and_height_hints(body_service: Bod
     assert any("height hint says 2.20 m" in r for r in again.report.reasons)
 
 
+def test_up_alone_keeps_the_search_about_that_axis(body_service: BodyService) -> None:
+    """A standing body scanned with +Z up and an unknown heading: with up alone the search tries headings
+    about +Z only, and the fit lies on the scan; the report says up was used and the heading searched."""
+    model = body_service.model
+    body = body_service.synthesize(SynthRequest()).vertices[0].astype(np.float64)
+    points, _ = sample_surface(body, model.faces, 20_000, seed=3)
+    a = 0.7  # a heading none of the candidates has exactly
+    R = np.array([[np.cos(a), 0.0, -np.sin(a)], [np.sin(a), 0.0, np.cos(a)], [0.0, 1.0, 0.0]])  # up -> +z
+    assert np.allclose(R @ np.array([0.0, 1.0, 0.0]), [0.0, 0.0, 1.0])
+    fit = body_service.fit_mesh(_scan_of(body_service, points @ R.T), hints=ScanHints.given("+z"))
+    assert point_to_surface(fit.vertices, body @ R.T, model.faces).mean() < 0.005
+    up = fit.report.extra["hints"]["up"]
+    assert up["used"] and "headings about this up axis" in up["how"]
+    assert any("orientation was searched" in r for r in fit.report.reasons)
+
+
 def test_an_smpl_topology_mesh_answers_in_its_own_frame(body_service: BodyService) -> None:
     """The CC BY body as it comes (SMPL's +Y up, facing +Z): the registration lies on it, not 90 degrees
     away in our frame, and to_model is SMPL's turn into ours; the same body turned to +Z up and facing +X is

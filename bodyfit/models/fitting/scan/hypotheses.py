@@ -44,11 +44,17 @@ STRAIGHTENED = 1  # of the hypotheses (best first), those that get a straight-sp
 # hypotheses (or twins) make the pose phase longer without making the fits better.
 
 
-def orientation_candidates(points: np.ndarray) -> np.ndarray:
+def orientation_candidates(points: np.ndarray, up: np.ndarray | None = None) -> np.ndarray:
     """(24, 3, 3) rotations from scan axes to body axes (+X forward, +Y up, +Z right): every signed
     principal axis as up, and four headings (the other principal axes, both signs) about it. The principal
     axes are those of principal component analysis (H. Hotelling, "Analysis of a complex of statistical
-    variables into principal components", Journal of Educational Psychology 24(6), 1933), from the SVD."""
+    variables into principal components", Journal of Educational Psychology 24(6), 1933), from the SVD.
+
+    With the scan's ``up`` (3,) known, (8, 3, 3): that up axis only, and eight headings about it, the
+    principal axes of the points projected on the horizontal plane and their diagonals, both signs (a
+    body's heading lies near one of them, and the fit's phases turn it the rest of the way)."""
+    if up is not None:
+        return _headings_about(points, np.asarray(up, np.float64) / np.linalg.norm(up))
     _, _, axes = np.linalg.svd(points - points.mean(0), full_matrices=False)
     out = []
     for i in range(3):
@@ -57,6 +63,19 @@ def orientation_candidates(points: np.ndarray) -> np.ndarray:
             for forward in (others[0], -others[0], others[1], -others[1]):
                 out.append(np.stack([forward, up, np.cross(forward, up)]))
     return np.array(out)
+
+
+def _headings_about(points: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """(8, 3, 3) body frames with the unit ``up`` (3,) and eight horizontal headings
+    (:func:`orientation_candidates`)."""
+    flat = points - points.mean(0)
+    flat = flat - np.outer(flat @ up, up)
+    _, _, axes = np.linalg.svd(flat, full_matrices=False)
+    a = axes[0] - (axes[0] @ up) * up
+    a /= np.linalg.norm(a)
+    b = np.cross(up, a)
+    headings = [a, (a + b) / np.sqrt(2.0), b, (b - a) / np.sqrt(2.0)]
+    return np.array([np.stack([s * f, up, np.cross(s * f, up)]) for f in headings for s in (1.0, -1.0)])
 
 
 def detect_view(hyp: Hypotheses, cleaned: np.ndarray) -> None:
@@ -106,12 +125,18 @@ class HypothesisSteps:
             self.scapula_twin(hyp)
 
     def candidates(
-        self, points: np.ndarray, orientation: np.ndarray | None, start: np.ndarray | None, part: str = "all"
+        self,
+        points: np.ndarray,
+        orientation: np.ndarray | None,
+        start: np.ndarray | None,
+        part: str = "all",
+        up: np.ndarray | None = None,
     ) -> Hypotheses:
-        """The start hypotheses: each orientation (given, or :func:`orientation_candidates`) with the start
-        pose, and the surface of the vertex set ``part`` ("all" or "upper") centred on the points'
-        centroid."""
-        rotation = orientation_candidates(points) if orientation is None else np.asarray(orientation)[None]
+        """The start hypotheses: each orientation (given, or :func:`orientation_candidates`, about ``up``
+        when that alone is known) with the start pose, and the surface of the vertex set ``part`` ("all" or
+        "upper") centred on the points' centroid."""
+        given = None if orientation is None else np.asarray(orientation)[None]
+        rotation = orientation_candidates(points, up) if given is None else given
         H = len(rotation)
         model = self.model
         q_start = model.bind_coordinates if start is None else np.asarray(start, np.float64)
