@@ -65,34 +65,38 @@ class SequenceChunker:
     events of ``chunk`` frames, handing each to ``emit`` as soon as its frames are all in: call it with each
     block in time order, then :meth:`flush` once the fit has returned, for the last, shorter chunk."""
 
+    PARTS = ("coordinates", "root", "vertices", "joints", "error_mm")
+
     def __init__(self, chunk: int, emit: Callable[[w.SequenceChunkEvent], None]) -> None:
         self.chunk = chunk
         self.emit = emit
+        self._held: SequenceFrames | None = None  # the frames received and not yet emitted
         self.start = 0  # the first frame not yet emitted
-        self._held: list[SequenceFrames] = []
 
     def __call__(self, block: SequenceFrames) -> None:
-        if block.start != self.start + sum(b.stop - b.start for b in self._held):
+        stop = self.start if self._held is None else self._held.stop
+        if block.start != stop:
             raise ValueError(f"frames {block.start}-{block.stop - 1} came out of order")
-        self._held.append(block)
-        while sum(b.stop - b.start for b in self._held) >= self.chunk:
-            self._send(self.chunk)
+        if self._held is not None:  # one join per block; the chunks below are views of it
+            joined = {n: np.concatenate([getattr(self._held, n), getattr(block, n)]) for n in self.PARTS}
+            block = SequenceFrames(start=self.start, stop=block.stop, **joined)
+        lo, n = 0, block.stop - block.start  # block.start == self.start here
+        while n - lo >= self.chunk:
+            self._send(block, lo, lo + self.chunk)
+            lo += self.chunk
+        rest = {name: getattr(block, name)[lo:] for name in self.PARTS}
+        self._held = SequenceFrames(start=self.start, stop=block.stop, **rest) if lo < n else None
 
     def flush(self) -> None:
         """Emit the frames still held (fewer than ``chunk``)."""
-        held = sum(b.stop - b.start for b in self._held)
-        if held:
-            self._send(held)
+        if self._held is not None:
+            self._send(self._held, 0, self._held.stop - self._held.start)
+            self._held = None
 
-    def _send(self, k: int) -> None:
-        """Emit the first k held frames as one chunk event; keep the rest."""
-        parts = ("coordinates", "root", "vertices", "joints", "error_mm")
-        joined = {name: np.concatenate([getattr(b, name) for b in self._held]) for name in parts}
-        self.emit(sequence_chunk(self.start, *(joined[name][:k] for name in parts)))
-        rest = {name: a[k:] for name, a in joined.items()}
-        stop = self.start + len(joined["coordinates"])
-        self.start += k
-        self._held = [SequenceFrames(start=self.start, stop=stop, **rest)] if stop > self.start else []
+    def _send(self, frames: SequenceFrames, lo: int, hi: int) -> None:
+        """Emit rows lo:hi of ``frames`` as the chunk event that starts at :attr:`start`."""
+        self.emit(sequence_chunk(self.start, *(getattr(frames, n)[lo:hi] for n in self.PARTS)))
+        self.start += hi - lo
 
 
 def sequence_summary(fit: SequenceFit, joint_names: list[str]) -> w.SequenceResultEvent:
