@@ -11,7 +11,15 @@ from fastapi import FastAPI
 
 from bodyfit.api import problems
 from bodyfit.api.metrics import Metrics
-from bodyfit.api.rest import openapi, routes_fit, routes_model, routes_ops, routes_synth, routes_upgrade
+from bodyfit.api.rest import (
+    openapi,
+    routes_fit,
+    routes_model,
+    routes_ops,
+    routes_synth,
+    routes_upgrade,
+    routes_viewer,
+)
 from bodyfit.api.rest.limits import BodyLimit
 from bodyfit.api.rest.measured import Measured
 from bodyfit.api.rest.state import AppState
@@ -63,6 +71,7 @@ def create_app(
         routes_ops.router,
     ):
         app.include_router(router)
+    routes_viewer.install(app)  # the browser viewer at / and /viewer
 
     app.add_middleware(BodyLimit, max_bytes=settings.limits().max_upload_bytes)
     app.add_middleware(Measured, metrics=state.metrics)  # outermost: sees refused uploads too
