@@ -18,10 +18,11 @@ from scipy import sparse
 from bodyfit.io.smpl import SmplSequence, SmplSequenceError, read_smpl_sequence, smpl_sequence
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting.common.surface import point_to_surface
-from bodyfit.models.fitting.registered.fitter import RegisteredFitter
 from bodyfit.models.fitting.registered.smpl_topology import SMPL_TO_BODY
 from bodyfit.models.fitting.retarget.fitter import wrap_pelvis
 from bodyfit.models.fitting.sequence.fitter import SequenceFitter
+from bodyfit.models.upgrade.axes import orient, turn_to_y_up, turned
+from bodyfit.models.upgrade.inputs import check_axis_angle, layout_error, read_sequence
 from bodyfit.models.upgrade.proxy import ShapeHintError, ShapeHints, SmplProxy, load_proxy
 from bodyfit.models.upgrade.smpl_model import SmplModel, SmplModelError, load_smpl_model, rodrigues
 from bodyfit.models.upgrade.upgrade import (
@@ -55,7 +56,7 @@ def upgraded(smpl: SmplModel, model: BodyModel) -> tuple[UpgradeResult, SmplSequ
     data["poses"] = data["poses"].copy()
     data["poses"][BROKEN, 5] = np.nan  # one broken frame
     seq = smpl_sequence(data, "cmu_131_smpl.npz")
-    fitter = SequenceFitter(RegisteredFitter(model), replace(UPGRADE_SEQUENCE, chunk=32))
+    fitter = SequenceFitter(upgrade_fitter(model).fitter, replace(UPGRADE_SEQUENCE, chunk=32))
     return upgrade_with_model(seq, smpl, fitter), seq
 
 
@@ -292,11 +293,13 @@ def test_path_b_from_rotations_alone(model: BodyModel, proxy: SmplProxy) -> None
     truth = np.load(SEQUENCE_FILE)["truth_coordinates"]
     error = np.degrees(wrap_pelvis(result.coordinates, model.skeleton) - truth)
     # The clip's rotations are relative to the CC BY body's own rest pose, the proxy's to SOMA's T-pose: the
-    # two differ by about constant angles (measured: hip flexion -5 / -8, knee -7 / -9 degrees), while the
-    # motion itself is followed within 1-2.5 degrees (standard deviation of the error).
+    # two differ by about constant angles (measured with the shape under the population prior, 0.6 SD: hip
+    # flexion -1 / -5, knee -10 / -12, elbow -7 degrees), while the motion itself is followed within 1-3
+    # degrees (standard deviation of the error).
+    assert np.abs(result.shape).max() <= 4.0  # a free shape reached 30 SD to follow the proxy's proportions
     for name in ("hip_flexion_r", "hip_flexion_l", "knee_angle_r", "knee_angle_l", "elbow_flex_r"):
         k = model.skeleton.dof_index(name)
-        assert np.abs(error[:, k]).mean() < 12.0 and error[:, k].std() < 4.0, name
+        assert np.abs(error[:, k]).mean() < 14.0 and error[:, k].std() < 4.0, name
 
 
 def test_path_b_shape_hints(model: BodyModel, proxy: SmplProxy) -> None:
@@ -341,3 +344,114 @@ def test_implausible_smpl_values_are_flagged_or_refused() -> None:
     with pytest.raises(SmplSequenceError, match=r"betas must lie within \[-10, 10\]"):
         smpl_sequence({"poses": poses, "betas": np.full(10, 1e6), "mocap_framerate": 30.0})
     assert smpl_sequence({"poses": poses, "betas": np.full(10, 4.0), "mocap_framerate": 30.0}).betas[0] == 4.0
+
+
+def _clip(seq: SmplSequence, n: int) -> SmplSequence:
+    return replace(seq, poses=seq.poses[:n], trans=seq.trans[:n], bad_frames=seq.bad_frames[:n])
+
+
+@pytest.mark.parametrize("axis", ["+z", "-z", "+x", "-x", "-y", "+y"])
+def test_the_up_axis_is_found_from_the_motion(smpl: SmplModel, axis: str) -> None:
+    """The clip (Y-up) turned so that ``axis`` is up: the detection finds it, with strong evidence and a
+    floor, and turns the sequence back to the clip itself."""
+    seq = read_smpl_sequence(SEQUENCE_FILE)
+    tipped = turned(seq, smpl, turn_to_y_up(axis).T)
+    back, found = orient(tipped, smpl)
+    assert found.axis == axis and not found.weak and found.floor and not found.given
+    assert np.abs(back.poses - seq.poses).max() < 1e-9 and np.abs(back.trans - seq.trans).max() < 1e-9
+    assert found.notes()[0].startswith(f"the input's up axis: {axis} (detected")
+
+
+def test_a_sequence_without_a_floor_is_flagged(smpl: SmplModel) -> None:
+    """A body drifting along every axis at once (a metre per frame) stands on no floor in any convention."""
+    seq = read_smpl_sequence(SEQUENCE_FILE)
+    drift = seq.trans + np.arange(seq.n_frames)[:, None] * np.array([1.0, 1.0, 1.0])
+    _, found = orient(replace(seq, trans=drift), smpl)
+    assert not found.floor and any("never stand on a plausible floor" in n for n in found.notes())
+    _, standing = orient(seq, smpl)
+    assert standing.floor
+
+
+def test_z_up_input_gives_the_y_up_coordinates(smpl: SmplModel, model: BodyModel) -> None:
+    """AMASS's Z-up world (the clip turned +90 degrees about x) needs no flag: the same coordinates as the
+    Y-up clip; naming the axis gives them too, and naming the wrong one tips the body over."""
+    seq = _clip(read_smpl_sequence(SEQUENCE_FILE), 12)
+    z_up = turned(seq, smpl, rodrigues(np.array([np.pi / 2, 0.0, 0.0])))
+    fitter = upgrade_fitter(model)
+    y = upgrade_with_model(seq, smpl, fitter)
+    z = upgrade_with_model(z_up, smpl, fitter)
+    assert z.extra["up_axis"] == "+z" and y.extra["up_axis"] == "+y"
+    assert any("up axis: +z (detected" in n for n in z.notes)
+    assert np.degrees(np.abs(z.coordinates - y.coordinates)).max() < 0.5
+    assert np.abs(z.root - y.root).max() < 1e-3
+    named = upgrade_from_rotations(z_up, fitter, up="z")
+    assert named.extra["up_axis"] == "+z" and named.extra["up_given"]
+    tilt = model.skeleton.dof_index("pelvis_tilt")
+    assert abs(np.degrees(named.coordinates[:, tilt]).mean()) < 15.0
+    wrong = upgrade_from_rotations(z_up, fitter, up="+y")
+    assert abs(np.degrees(wrong.coordinates[:, tilt]).mean()) > 45.0  # lying down: what detection prevents
+    with pytest.raises(ValueError, match="up must be auto or one of"):
+        upgrade_with_model(seq, smpl, fitter, up="north")
+
+
+@pytest.mark.parametrize(
+    ("shape", "layout"),
+    [
+        ((6, 216), "rotation matrices"),
+        ((6, 24, 3, 3), "rotation matrices"),
+        ((6, 52, 9), "rotation matrices"),
+        ((6, 96), "quaternions"),
+        ((6, 22, 4), "quaternions"),
+        ((6, 144), "6D rotations"),
+    ],
+)
+def test_other_rotation_layouts_are_refused_naming_axis_angle(
+    tmp_path: Path, shape: tuple[int, ...], layout: str
+) -> None:
+    path = tmp_path / "walk.npz"
+    np.savez(path, poses=np.zeros(shape), trans=np.zeros((6, 3)), mocap_framerate=30.0)
+    with pytest.raises(SmplSequenceError, match=layout) as info:
+        read_sequence(path)
+    assert "expected axis-angle in radians" in str(info.value) and "(T, 72) SMPL" in str(info.value)
+    assert layout_error(path.read_bytes(), "upload.npz") is not None
+    np.savez(path, poses=np.zeros((6, 72)), trans=np.zeros((6, 3)), mocap_framerate=30.0)
+    assert read_sequence(path).n_frames == 6 and layout_error(path.read_bytes(), "upload.npz") is None
+
+
+def test_poses_in_degrees_are_refused() -> None:
+    seq = read_smpl_sequence(SEQUENCE_FILE)
+    check_axis_angle(seq)  # radians pass
+    with pytest.raises(SmplSequenceError, match="look like degrees"):
+        check_axis_angle(replace(seq, poses=np.degrees(seq.poses)))
+    with pytest.raises(SmplSequenceError, match="look like degrees"):
+        upgrade_from_rotations(replace(seq, poses=np.degrees(seq.poses)), BodyModel.load())
+
+
+def test_interpolated_frames_hold_the_joints_of_their_coordinates(
+    upgraded: tuple[UpgradeResult, SmplSequence], model: BodyModel
+) -> None:
+    """One answer per frame: the NaN frame's joints are those its saved coordinates and root put there (FK),
+    like every fitted frame's, not interpolated separately."""
+    result, _ = upgraded
+    q = torch.as_tensor(wrap_pelvis(result.coordinates, model.skeleton), dtype=torch.float64)
+    c = torch.as_tensor(np.broadcast_to(result.shape, (len(q), model.n_shape)).copy(), dtype=torch.float64)
+    with torch.no_grad():
+        fk = model.decoder(torch.float64)(c, q, torch.as_tensor(result.root, dtype=torch.float64))[1].numpy()
+    error = np.linalg.norm(result.joints - fk, axis=-1).max(axis=1)
+    assert error[BROKEN] < 1e-6, error[BROKEN]
+    assert error.max() < 1e-3, error.max()  # the fitted frames' (float32) too
+
+
+def test_nan_frames_do_not_move_the_shape(
+    upgraded: tuple[UpgradeResult, SmplSequence], smpl: SmplModel, model: BodyModel
+) -> None:
+    """The subject's shape, fitted under the population prior, stays within 4 SD, and frames the input marks
+    bad (which change the frames the shape is fitted on) move it by less than 0.1 SD (measured 0.06)."""
+    result, seq = upgraded
+    assert result.extra["shape_max_sd"] == pytest.approx(np.abs(result.shape).max(), abs=1e-3)
+    assert np.abs(result.shape).max() <= 4.0, np.abs(result.shape).max()
+    more = seq.bad_frames.copy()
+    more[[3, 44]] = True
+    fitter = SequenceFitter(upgrade_fitter(model).fitter, replace(UPGRADE_SEQUENCE, chunk=32))
+    other = upgrade_with_model(replace(seq, bad_frames=more), smpl, fitter)
+    assert np.abs(other.shape - result.shape).max() < 0.1, np.abs(other.shape - result.shape).max()
