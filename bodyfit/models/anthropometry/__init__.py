@@ -1,0 +1,1 @@
+"""Anthropometry: measure bodies of the model, and build bodies from measurements (docs/anthropometry.md)."""
