@@ -1,6 +1,6 @@
 // Fit: a dropped scan goes to POST /v1/fit/scan (NDJSON progress); the scan's points, the fitted body
 // coloured by its distance to the scan, the bones inside it, and the fit's report are shown.
-import { BufferAttribute, Matrix4 } from "three";
+import { BufferAttribute, BufferGeometry, Matrix4 } from "three";
 import { OBJLoader } from "./vendor/OBJLoader.js";
 import { PCDLoader } from "./vendor/PCDLoader.js";
 import { PLYLoader } from "./vendor/PLYLoader.js";
@@ -25,14 +25,28 @@ function positionsOf(object) {
   return all;
 }
 
+/**
+ * parse() of a three.js loader without its bounding sphere: the viewer keeps the finite points and frames
+ * them itself, and a scan's "no return" NaN points (organised Kinect clouds) would make three log an error.
+ */
+function parsed(parse) {
+  const original = BufferGeometry.prototype.computeBoundingSphere;
+  BufferGeometry.prototype.computeBoundingSphere = function unused() {};
+  try {
+    return parse();
+  } finally {
+    BufferGeometry.prototype.computeBoundingSphere = original;
+  }
+}
+
 /** The scan's points (N*3, finite, at most MAX_POINTS by an even stride) from the file's bytes. */
 export function scanPoints(name, buffer) {
   const ext = name.split(".").pop().toLowerCase();
   let raw;
-  if (ext === "ply") raw = new PLYLoader().parse(buffer).getAttribute("position").array;
-  else if (ext === "stl") raw = new STLLoader().parse(buffer).getAttribute("position").array;
-  else if (ext === "pcd") raw = new PCDLoader().parse(buffer).geometry.getAttribute("position").array;
-  else if (ext === "obj") raw = positionsOf(new OBJLoader().parse(new TextDecoder().decode(buffer)));
+  if (ext === "ply") raw = parsed(() => new PLYLoader().parse(buffer)).getAttribute("position").array;
+  else if (ext === "stl") raw = parsed(() => new STLLoader().parse(buffer)).getAttribute("position").array;
+  else if (ext === "pcd") raw = parsed(() => new PCDLoader().parse(buffer)).geometry.getAttribute("position").array;
+  else if (ext === "obj") raw = positionsOf(parsed(() => new OBJLoader().parse(new TextDecoder().decode(buffer))));
   else if (ext === "npz") {
     const arrays = parseNpz(buffer);
     raw = Float32Array.from((arrays.points || arrays.vertices).data);
@@ -82,6 +96,18 @@ export class FitMode {
     $("legend").hidden = true;
   }
 
+  /** The scan's points in the view while it is fitted (a file the browser cannot read: none). */
+  async draw(file) {
+    try {
+      this.scan = scanPoints(file.name, await file.arrayBuffer());
+    } catch (_) {
+      this.scan = null; // the fit goes on: the service reads more variants than three.js's loaders
+    }
+    if (this.scan && !this.scan.length) this.scan = null;
+    this.view.setPoints(this.scan);
+    this.view.frame();
+  }
+
   form(file) {
     const form = new FormData();
     form.append("file", file, file.name);
@@ -99,20 +125,24 @@ export class FitMode {
     const message = $("fit-message");
     this.result = null;
     window.bodyfitViewer.fit = null;
+    $("fit-report").innerHTML = `<tr><td>fitting ${file.name.replace(/</g, "&lt;")}…</td></tr>`;
+    $("fit-reasons").innerHTML = "";
     try {
-      const buffer = await file.arrayBuffer();
-      this.scan = scanPoints(file.name, buffer);
-      this.view.setPoints(this.scan);
-      this.view.frame();
+      this.scan = null;
+      this.view.setPoints(null);
       message.textContent = `uploading ${(file.size / 1e6).toFixed(1)} MB…`;
+      let drawn = false;
       const onEvent = (event) => {
         if (event.event !== "progress") return;
+        // the service checks a scan before it streams: the first event says the file is one
+        if (!drawn) drawn = this.draw(file);
         bar.max = Math.max(event.total, 1);
         bar.value = event.done;
         message.textContent = `${event.stage} ${event.done}/${event.total}: ${event.message}`;
       };
       this.result = await stream("/v1/fit/scan", this.form(file), onEvent);
       hideError();
+      await (drawn || this.draw(file));
       await this.bones();
       this.show();
       message.textContent = `fitted as ${this.result.fitted_as} in ${this.result.report.seconds.toFixed(1)} s`;

@@ -13,11 +13,13 @@ export function formatValue(value, unit) {
   return unit === "m" ? `${value.toFixed(3)} m` : value.toFixed(2);
 }
 
-function slider(parent, { id, label, min, max, step, value, unit }, onInput, onChange) {
+// step "any": a stepped range counts its steps from min, so a limit such as -1.5708 would move the neutral
+// pose's 0 to the nearest step (-0.0008); "any" keeps 0 (and every limit) exact
+function slider(parent, { id, label, min, max, value, unit }, onInput, onChange) {
   const row = document.createElement("div");
   row.className = "slider";
   row.innerHTML = `<label for="${id}" title="${label}">${label}</label>
-    <input type="range" id="${id}" min="${min}" max="${max}" step="${step}" value="${value}">
+    <input type="range" id="${id}" min="${min}" max="${max}" step="any" value="${value}">
     <output></output>
     <div class="limits"><span>${formatValue(min, unit)}</span><span>${formatValue(max, unit)}</span></div>`;
   const input = row.querySelector("input");
@@ -52,7 +54,7 @@ export class SynthMode {
       const bone = i < info.shape.n_bone;
       const label = bone ? `bone ${i + 1}` : `identity ${i - info.shape.n_bone + 1}`;
       this.shapeInputs.push(slider(shapeBox, {
-        id: `shape-${i}`, label, min: -SHAPE_RANGE, max: SHAPE_RANGE, step: 0.01, value: 0, unit: "",
+        id: `shape-${i}`, label, min: -SHAPE_RANGE, max: SHAPE_RANGE, value: 0, unit: "",
       }, () => this.request(false), () => this.request(true)));
     }
     const groups = new Map();
@@ -69,10 +71,9 @@ export class SynthMode {
       details.innerHTML = `<summary>${joint} <small>(${dofs.length})</small></summary>`;
       box.append(details);
       for (const dof of dofs) {
-        const step = dof.unit === "rad" ? 0.005 : 0.001;
         const value = Math.min(Math.max(0, dof.min), dof.max);
         const input = slider(details, {
-          id: `dof-${dof.name}`, label: dof.name, min: dof.min, max: dof.max, step, value, unit: dof.unit,
+          id: `dof-${dof.name}`, label: dof.name, min: dof.min, max: dof.max, value, unit: dof.unit,
         }, () => this.request(false), () => this.request(true));
         this.dofInputs[dof.index] = input; // the request's order: the model's, not the groups'
       }
