@@ -29,6 +29,13 @@ def upgrade(
     ] = None,
     height: Annotated[float | None, typer.Option(help="Path (b) shape hint: stature in metres.")] = None,
     mass: Annotated[float | None, typer.Option(help="Path (b) shape hint: body mass in kilograms.")] = None,
+    up: Annotated[
+        str,
+        typer.Option(
+            help="The input's up axis: +x, -x, +y, -y, +z or -z (a bare axis is +), or auto: detected from "
+            "the motion (AMASS's Z-up needs nothing). The output is Y-up, as OpenSim's."
+        ),
+    ] = "auto",
 ) -> None:
     """Upgrade an SMPL-format sequence to biomechanical coordinates: path (a) with an SMPL-family model file,
     else path (b) from the joint rotations alone (shape: from --sex/--height/--mass, else the population
@@ -37,12 +44,14 @@ def upgrade(
     Writes <name>.npz (coordinates in radians with their names, root in metres, joints, bone scales,
     per-frame error in mm, bad-frame flags), <name>.json (summary: v2v error in mm, frames/s, limit
     violations, largest frame-to-frame jump) and OpenSim files: <name>.osim (our skeleton scaled to the
-    subject) and <name>.mot (degrees, as OpenSim reads it).
+    subject) and <name>.mot (degrees, as OpenSim reads it). The summary's notes say which up axis was
+    assumed, and warn when the motion does not settle it.
     """
     from tqdm import tqdm
 
-    from bodyfit.io.smpl import read_smpl_sequence
     from bodyfit.models.body.model import BodyModel
+    from bodyfit.models.upgrade.axes import up_axis_name
+    from bodyfit.models.upgrade.inputs import read_sequence
     from bodyfit.models.upgrade.proxy import ShapeHints
     from bodyfit.models.upgrade.smpl_model import ENV_VAR, load_smpl_model
     from bodyfit.models.upgrade.upgrade import (
@@ -53,8 +62,9 @@ def upgrade(
     )
 
     with reported():
+        up_axis = up_axis_name(up)
         hints = ShapeHints.given(sex, height, mass)
-        seq = read_smpl_sequence(sequence)
+        seq = read_sequence(sequence)
         given = smpl_model or os.environ.get(ENV_VAR)
         smpl = load_smpl_model(given) if given else None
         model = BodyModel.load()
@@ -65,9 +75,10 @@ def upgrade(
 
             if smpl is None:
                 note("no SMPL-family model file: path (b), from the joint rotations alone")
-                result = upgrade_from_rotations(seq, upgrade_fitter(model), hints=hints, progress=progress)
+                fitter = upgrade_fitter(model)
+                result = upgrade_from_rotations(seq, fitter, hints=hints, progress=progress, up=up_axis)
             else:
-                result = upgrade_with_model(seq, smpl, upgrade_fitter(model), progress=progress)
+                result = upgrade_with_model(seq, smpl, upgrade_fitter(model), progress=progress, up=up_axis)
     paths = write_upgrade(result, model, out, sequence.stem)
     summary = result.summary()
     v2v = "" if summary["v2v_mean_mm"] is None else f"v2v {summary['v2v_mean_mm']:.1f} mm, "
@@ -75,4 +86,7 @@ def upgrade(
         f"{sequence.name}: {summary['frames']} frames, path ({result.path}), {v2v}{summary['fps']:.0f} "
         f"frames/s, {summary['limit_violations']} limit violations"
     )
+    for line in result.notes:
+        if line.startswith(("the input's up axis", "warning")):
+            note(line)
     typer.echo("wrote " + ", ".join(str(p) for p in paths.values()))

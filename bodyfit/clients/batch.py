@@ -74,8 +74,9 @@ def write_outputs(base: Path, files: Files) -> None:
         os.replace(tmp, target)
 
 
-def server_upgrader(url: str, timeout: float = 600.0) -> Upgrader:
-    """Upgrades through a bodyfit server's REST API."""
+def server_upgrader(url: str, timeout: float = 600.0, up: str | None = None) -> Upgrader:
+    """Upgrades through a bodyfit server's REST API; ``up``: every sequence's up axis (None: detected per
+    sequence, see :func:`bodyfit.clients.core.operations.upgrade`)."""
     import httpx
 
     from bodyfit.clients.rest_client import Client
@@ -83,7 +84,7 @@ def server_upgrader(url: str, timeout: float = 600.0) -> Upgrader:
     client = Client(url, timeout=httpx.Timeout(30.0, read=timeout))
 
     def upgrade(path: Path) -> Files:
-        return client.upgrade(path).files
+        return client.upgrade(path, up=up).files
 
     return upgrade
 
@@ -107,6 +108,7 @@ def batch_upgrade(
     backend: str | Upgrader = "local",
     smpl_model: str | os.PathLike[str] | None = None,
     progress: bool = True,
+    up: str | None = None,
 ) -> BatchReport:
     """Upgrade every sequence under ``dataset_dir`` into ``out_dir`` (see the module docstring).
 
@@ -117,6 +119,12 @@ def batch_upgrade(
         smpl_model: the SMPL-family model file of the deprecated in-process back-ends (default
             $BODYFIT_SMPL_MODEL); a server uses its own.
         progress: show a tqdm bar.
+        up: the sequences' up axis (+x, -x, +y, -y, +z or -z) for a server URL back-end; None: each
+            sequence's is detected from its motion (AMASS's Z-up needs nothing).
+
+    Raises:
+        ValueError: ``up`` with a back-end that cannot take it (give the server URL, or an
+            :class:`Upgrader` that applies it).
     """
     began = time.perf_counter()
     root, out = Path(dataset_dir), Path(out_dir)
@@ -130,7 +138,9 @@ def batch_upgrade(
             report.skipped.append(rel)
         else:
             todo.append(path)
-    upgrader = _resolve(backend, concurrency, smpl_model) if isinstance(backend, str) else backend
+    if up is not None and not (isinstance(backend, str) and backend.startswith(("http://", "https://"))):
+        raise ValueError("batch_upgrade(up=...) needs a server URL back-end; an Upgrader applies its own")
+    upgrader = _resolve(backend, concurrency, smpl_model, up) if isinstance(backend, str) else backend
     bar: Any = tqdm(total=len(todo), unit="seq", disable=not progress)
     for path, outcome in _thread_upgrades(todo, upgrader, concurrency):
         rel = str(path.relative_to(root))
@@ -146,11 +156,13 @@ def batch_upgrade(
     return report
 
 
-def _resolve(backend: str, concurrency: int, smpl_model: str | os.PathLike[str] | None) -> Upgrader:
+def _resolve(
+    backend: str, concurrency: int, smpl_model: str | os.PathLike[str] | None, up: str | None = None
+) -> Upgrader:
     """A server URL's :func:`server_upgrader`; the deprecated in-process names through
     :func:`bodyfit.cli.backends.upgrader`, with a :class:`DeprecationWarning`."""
     if backend.startswith(("http://", "https://")):
-        return server_upgrader(backend)
+        return server_upgrader(backend, up=up)
     warnings.warn(
         f"batch_upgrade(backend={backend!r}) from bodyfit.clients.batch is deprecated and will be removed in "
         "the next release: pass backend=bodyfit.cli.backends.upgrader(name, concurrency, smpl_model)",

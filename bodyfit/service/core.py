@@ -34,6 +34,8 @@ from bodyfit.models.fitting.registered.smpl_topology import SMPL_VERTICES, fit_s
 from bodyfit.models.fitting.scan.config import ScanFitConfig
 from bodyfit.models.fitting.scan.fitter import ScanFitter
 from bodyfit.models.fitting.sequence.fitter import SequenceFit, SequenceFitter, SequenceFrames
+from bodyfit.models.upgrade.axes import up_axis_name
+from bodyfit.models.upgrade.inputs import check_axis_angle, layout_error
 from bodyfit.models.upgrade.proxy import ShapeHintError, ShapeHints, SmplProxy, load_proxy
 from bodyfit.models.upgrade.smpl_model import SmplModel, load_smpl_model
 from bodyfit.models.upgrade.upgrade import (
@@ -417,15 +419,35 @@ class BodyService:
 
     # -- SMPL upgrade ----------------------------------------------------------------------------------
     def read_upgrade(self, data: bytes, filename: str) -> SmplSequence:
-        """Read an uploaded AMASS-style .npz (:func:`bodyfit.service.uploads.read_upgrade`)."""
-        return uploads.read_upgrade(data, filename, self.limits)
+        """Read an uploaded AMASS-style .npz (:func:`bodyfit.service.uploads.read_upgrade`); poses in
+        another rotation layout (rotation matrices, quaternions, 6D) or in degrees are refused naming the
+        expected one (:mod:`bodyfit.models.upgrade.inputs`).
+
+        Raises:
+            LimitExceededError: too large or too many frames; InvalidInputError: unreadable or malformed.
+        """
+        try:
+            sequence = uploads.read_upgrade(data, filename, self.limits)
+        except InvalidInputError:
+            found = layout_error(data, filename or "upload.npz")
+            if found is not None:
+                raise InvalidInputError(str(found), field="file") from None
+            raise
+        with invalid_input("file"):
+            check_axis_angle(sequence)
+        return sequence
 
     def upgrade(
-        self, sequence: SmplSequence, job: Job | None = None, hints: ShapeHints | None = None
+        self,
+        sequence: SmplSequence,
+        job: Job | None = None,
+        hints: ShapeHints | None = None,
+        up: str | None = None,
     ) -> UpgradeResult:
         """Upgrade an SMPL-format sequence: path (a) with the server's SMPL-family model file, else path (b)
         from the joint rotations, its shape from ``hints`` (see :func:`shape_hints`) or the population
-        mean (the result's notes say which ran).
+        mean (the result's notes say which ran). ``up``: the input's up axis (see :func:`upgrade_up`);
+        None: detected from the motion.
 
         Raises:
             InvalidInputError: a sequence found unusable during the work, or whose result is not finite.
@@ -443,9 +465,13 @@ class BodyService:
             with invalid_input("file"):
                 fitters = self.fitters
                 if self._smpl is None:
-                    result = upgrade_from_rotations(sequence, fitters.upgrade, fitters.proxy, hints, progress)
+                    result = upgrade_from_rotations(
+                        sequence, fitters.upgrade, fitters.proxy, hints, progress, up=up
+                    )
                 else:
-                    result = upgrade_with_model(sequence, self._smpl, fitters.upgrade, progress=progress)
+                    result = upgrade_with_model(
+                        sequence, self._smpl, fitters.upgrade, progress=progress, up=up
+                    )
             _check_upgrade(result)
             if hints is not None and result.path == "a":
                 note = "shape hints were not used: path (a) shapes the body from the sequence's betas"
@@ -486,6 +512,19 @@ def shape_hints(sex: str | None, height_m: float | None, mass_kg: float | None) 
         return ShapeHints.given(sex, height_m, mass_kg)
     except ShapeHintError as exc:
         raise InvalidInputError(str(exc), field=exc.field) from exc
+
+
+def upgrade_up(text: str | None) -> str | None:
+    """An upgrade's ``up`` field: one of +x, -x, +y, -y, +z, -z (a bare axis is +); None, "" or "auto":
+    detect it from the motion.
+
+    Raises:
+        InvalidInputError: naming the field and the allowed values.
+    """
+    try:
+        return up_axis_name(text)
+    except ValueError as exc:
+        raise InvalidInputError(str(exc), field="up") from None
 
 
 def _fit_routed(

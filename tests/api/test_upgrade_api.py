@@ -75,3 +75,43 @@ def test_path_b_shape_hints_over_rest(body_service: BodyService) -> None:
 def test_path_a_says_hints_were_not_used(client: Client) -> None:
     out = client.upgrade(SEQUENCE, height_m=1.7)
     assert out.summary["path"] == "a" and any("hints were not used" in n for n in out.summary["notes"])
+
+
+def _z_up_clip(frames: int) -> bytes:
+    """The first frames of the test clip in AMASS's Z-up world (turned +90 degrees about x), as an .npz."""
+    from bodyfit.io.smpl import read_smpl_sequence
+    from bodyfit.models.upgrade.axes import turned
+    from bodyfit.models.upgrade.smpl_model import load_smpl_model, rodrigues
+
+    seq = read_smpl_sequence(SEQUENCE)
+    smpl = load_smpl_model(SEQUENCE.parent / "smpl_like_model.npz")
+    z_up = turned(seq, smpl, rodrigues(np.array([np.pi / 2, 0.0, 0.0])))
+    buf = io.BytesIO()
+    poses = z_up.poses[:frames].reshape(frames, 72)
+    np.savez(buf, poses=poses, trans=z_up.trans[:frames], betas=seq.betas, mocap_framerate=seq.fps)
+    return buf.getvalue()
+
+
+def test_the_up_axis_over_rest_and_the_sdk(client: Client, body_service: BodyService) -> None:
+    """A Z-up upload needs no field (the summary says what was detected); ``up`` names it, with the same
+    coordinates; a value naming no axis is refused naming the field, by the SDK before sending."""
+    data = _z_up_clip(10)
+    found = client.upgrade(data)
+    assert found.summary["up_axis"] == "+z" and found.summary["up_given"] is False
+    assert any(n.startswith("the input's up axis: +z (detected") for n in found.summary["notes"])
+    named = client.upgrade(data, up="z")
+    assert named.summary["up_axis"] == "+z" and named.summary["up_given"] is True
+    assert np.degrees(np.abs(named.coordinates - found.coordinates)).max() < 0.5
+    with pytest.raises(ValueError, match="up must be one of"):
+        client.upgrade(data, up="north")
+    with TestClient(create_app(service=body_service)) as raw:
+        answer = raw.post("/v1/upgrade", files={"file": ("a.npz", data)}, data={"up": "north"})
+    assert answer.status_code == 422 and answer.json()["field"] == "up" and "+z" in answer.json()["detail"]
+
+
+def test_rotation_matrix_uploads_are_refused_naming_axis_angle(client: Client) -> None:
+    buf = io.BytesIO()
+    np.savez(buf, poses=np.tile(np.eye(3).reshape(1, 1, 9), (4, 24, 1)).reshape(4, 216), mocap_framerate=30)
+    with pytest.raises(InvalidRequestError, match="rotation matrices") as info:
+        client.upgrade(buf.getvalue())
+    assert "expected axis-angle in radians" in str(info.value) and info.value.field == "file"

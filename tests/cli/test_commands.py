@@ -177,3 +177,26 @@ def test_the_command_line_starts_without_torch_or_the_service() -> None:
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip() == "[]"
+
+
+def test_upgrade_takes_the_input_up_axis(tmp_path: Path) -> None:
+    """`--up` names the input's up axis (the summary says it was given); `auto`, the default, detects
+    AMASS's Z-up; a value naming no axis is refused with the allowed ones."""
+    from bodyfit.io.smpl import read_smpl_sequence
+    from bodyfit.models.upgrade.axes import turned
+    from bodyfit.models.upgrade.smpl_model import load_smpl_model, rodrigues
+
+    data = DATA / "smpl_format"
+    seq = read_smpl_sequence(data / "cmu_131_smpl.npz")
+    z_up = turned(seq, load_smpl_model(data / "smpl_like_model.npz"), rodrigues(np.array([np.pi / 2, 0, 0])))
+    clip = tmp_path / "zup.npz"
+    np.savez(clip, poses=z_up.poses[:8].reshape(8, 72), trans=z_up.trans[:8], mocap_framerate=30.0)
+    args = ["upgrade", str(clip), "--smpl-model", str(data / "smpl_like_model.npz")]
+    for up, given in (("auto", False), ("+z", True)):
+        result = runner.invoke(app, [*args, "--out", str(tmp_path / up), "--up", up])
+        assert result.exit_code == 0, result.output
+        summary = json.loads((tmp_path / up / "zup.json").read_text())
+        assert summary["up_axis"] == "+z" and summary["up_given"] is given
+        assert "the input's up axis: +z" in result.output
+    bad = runner.invoke(app, [*args, "--out", str(tmp_path / "bad"), "--up", "north"])
+    assert bad.exit_code != 0 and "up must be auto or one of" in bad.output

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -84,3 +85,32 @@ def test_ray_backend(tmp_path: Path) -> None:
     assert report.done == ["s/walk.npz"] and not report.failed
     saved = np.load(tmp_path / "out" / "s" / "walk.npz")
     assert saved["coordinates"].shape == (60, 46)
+
+
+def test_the_up_axis_goes_to_the_server(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """batch_upgrade(up=) sends the axis with every sequence to a server back-end; with a callable
+    back-end, which applies its own, it is refused."""
+    import bodyfit.clients.rest_client
+    from bodyfit.clients.batch import server_upgrader
+
+    sent: list[str | None] = []
+
+    class Answer:
+        files: ClassVar[dict[str, bytes]] = {"json": b"{}"}
+
+    class FakeClient:
+        def __init__(self, url: str, **_: object) -> None:
+            self.url = url
+
+        def upgrade(self, path: Path, up: str | None = None) -> Answer:
+            sent.append(up)
+            return Answer()
+
+    monkeypatch.setattr(bodyfit.clients.rest_client, "Client", FakeClient)
+    root = dataset(tmp_path / "amass")
+    report = batch_upgrade(root, tmp_path / "out", backend="http://server:8000", progress=False, up="+z")
+    assert sent == ["+z", "+z"] and report.done
+    assert server_upgrader("http://server:8000")(root / "subject_a" / "walk.npz") == Answer.files
+    assert sent[-1] is None  # no axis: the server detects it
+    with pytest.raises(ValueError, match="needs a server URL"):
+        batch_upgrade(root, tmp_path / "out2", backend=lambda p: {}, progress=False, up="+z")

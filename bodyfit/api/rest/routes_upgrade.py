@@ -14,7 +14,7 @@ from bodyfit.api import results
 from bodyfit.api.rest.jobs import answer
 from bodyfit.api.rest.openapi import streamed
 from bodyfit.api.rest.state import Service
-from bodyfit.service.core import shape_hints
+from bodyfit.service.core import shape_hints, upgrade_up
 from bodyfit.service.jobs import Job
 
 router = APIRouter(prefix="/v1", tags=["upgrade"])
@@ -39,14 +39,22 @@ async def upgrade(
     ] = None,
     height_m: Annotated[float | None, Form(description="Path (b) shape hint: stature in metres.")] = None,
     mass_kg: Annotated[float | None, Form(description="Path (b) shape hint: body mass in kilograms.")] = None,
+    up: Annotated[
+        str | None,
+        Form(
+            description="The input's up axis: +x, -x, +y, -y, +z or -z (a bare axis is +); unset or auto: "
+            "detected from the motion (AMASS's Z-up needs nothing). The output is Y-up."
+        ),
+    ] = None,
 ) -> StreamingResponse | JSONResponse:
     hints = shape_hints(sex, height_m, mass_kg)
+    up_axis = upgrade_up(up)
     data = await file.read()
     name = file.filename or "upload.npz"
     sequence = await run_in_threadpool(service.read_upgrade, data, name)
 
     def work(job: Job) -> list[w.UpgradeChunkEvent | w.UpgradeResultEvent]:
-        result = service.upgrade(sequence, job, hints)
+        result = service.upgrade(sequence, job, hints, up_axis)
         files = service.upgrade_files(result, PurePath(name).stem or "upgrade")
         return [*results.upgrade_chunks(result, chunk), results.upgrade_summary(result, files)]
 

@@ -228,12 +228,20 @@ def upgrade(
     sex: str | None = None,
     height_m: float | None = None,
     mass_kg: float | None = None,
+    up: str | None = None,
 ) -> Operation[UpgradeOutput]:
     """Upgrade an AMASS-style .npz (path or bytes) to biomechanical coordinates and OpenSim files.
     ``sex``, ``height_m`` and ``mass_kg`` shape the body when the server has no SMPL-family model file
-    (path b)."""
+    (path b). ``up``: the input's up axis (+x, -x, +y, -y, +z or -z; a bare axis is +); None or "auto":
+    the server detects it from the motion (AMASS's Z-up needs nothing); the result is Y-up.
+
+    Raises:
+        ValueError: ``up`` naming no axis (before anything is sent).
+    """
     name, data = upgrade_upload(sequence)
-    hints = {k: v for k, v in (("sex", sex), ("height_m", height_m), ("mass_kg", mass_kg)) if v is not None}
+    axis = None if up is None or up.strip().lower() in ("", "auto") else axis_name(up)
+    given = (("sex", sex), ("height_m", height_m), ("mass_kg", mass_kg), ("up", axis))
+    hints = {k: v for k, v in given if v is not None}
     args = {"name": name, "data": data, "chunk": chunk, "hints": hints}
     return Operation(
         "upgrade", _upgrade_events, UpgradeOutput.from_events, args, stream=True, progress=progress
