@@ -57,9 +57,9 @@ def test_tape_around_a_cylinder_is_its_circumference() -> None:
     vt = torch.as_tensor(v)[None]
     normal = torch.tensor([[0.0, 1.0, 0.0]], dtype=torch.float64)
     origin = torch.tensor([[0.0, 0.2, 0.0]], dtype=torch.float64)
-    points, valid = crossings(vt[:, e[:, 0]], vt[:, e[:, 1]], origin, normal)
+    points, valid = crossings(vt[:, e[:, 0]], vt[:, e[:, 1]], origin, normal, torch.zeros(1, 1))
     u, w = plane_basis(normal)
-    length = float(polygon_perimeter(support_polygon(points - origin[:, None], valid, u, w))[0])
+    length = float(polygon_perimeter(support_polygon(points, valid, u, w))[0])
     polygon = 90 * 2 * 0.1 * math.sin(math.pi / 90)  # the inscribed 90-gon the mesh is made of
     assert length == pytest.approx(polygon, rel=1e-4)
     assert float(closed_volume(vt, torch.as_tensor(f))[0]) == pytest.approx(
@@ -77,9 +77,9 @@ def test_tape_bridges_a_concavity() -> None:
     vt = torch.as_tensor(v)[None]
     normal = torch.tensor([[0.0, 1.0, 0.0]], dtype=torch.float64)
     origin = torch.tensor([[0.0, 0.1, 0.0]], dtype=torch.float64)
-    points, valid = crossings(vt[:, e[:, 0]], vt[:, e[:, 1]], origin, normal)
+    points, valid = crossings(vt[:, e[:, 0]], vt[:, e[:, 1]], origin, normal, torch.zeros(1, 1))
     u, w = plane_basis(normal)
-    length = float(polygon_perimeter(support_polygon(points - origin[:, None], valid, u, w))[0])
+    length = float(polygon_perimeter(support_polygon(points, valid, u, w))[0])
     assert length == pytest.approx(2 * math.pi * r + 2 * gap, rel=2e-3)
 
 

@@ -57,11 +57,19 @@ _HEIGHTS = (
     _m("waistheightomphalion", "height", "height of the omphalion (navel) landmark"),
     _m("iliocristaleheight", "height", "mean height of the iliac crest landmarks"),
     _m("buttockheight", "height", "height of the buttock point: the most posterior point of the buttocks"),
-    _m("trochanterionheight", "height", "height of the right greater trochanter landmark"),
+    _m(
+        "trochanterionheight",
+        "height",
+        "height of the right hip joint centre, level with the top of the greater trochanter",
+    ),
     _m("crotchheight", "height", "height of the crotch: the lowest midline point between the legs (inseam)"),
-    _m("kneeheightmidpatella", "height", "height of the right mid-patella landmark"),
+    _m(
+        "kneeheightmidpatella",
+        "height",
+        "height of the right knee joint centre (mid-epicondyles), level with mid-patella",
+    ),
     _m("lateralfemoralepicondyleheight", "height", "height of the right lateral femoral epicondyle"),
-    _m("lateralmalleolusheight", "height", "height of the right lateral malleolus"),
+    _m("lateralmalleolusheight", "height", "height of the right ankle joint centre (mid-malleoli)"),
     _m("tragiontopofhead", "height", "stature less the mean height of the tragion landmarks"),
     _m(
         "sittingheight",

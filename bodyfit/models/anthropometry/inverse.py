@@ -23,7 +23,12 @@ import torch
 
 from bodyfit.models.anthropometry.definitions import MEASUREMENTS
 from bodyfit.models.anthropometry.measure import body_in_pose, measure_torch
-from bodyfit.models.anthropometry.ranges import ImplausibleMeasurementError, check_measurements
+from bodyfit.models.anthropometry.ranges import (
+    ANSUR_MEANS,
+    SEXES,
+    ImplausibleMeasurementError,
+    check_measurements,
+)
 from bodyfit.models.anthropometry.regions import topology
 from bodyfit.models.body.model import BodyModel
 
@@ -93,6 +98,7 @@ def fit_measurements(
     prior_mean: np.ndarray | None = None,
     prior_precision: np.ndarray | None = None,
     steps: int = _STEPS,
+    tolerance: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Shapes for many bodies at once (see the module docstring).
 
@@ -102,6 +108,7 @@ def fit_measurements(
         prior_mean: (n_shape,) or (B, n_shape), default zeros; prior_precision: (n_shape, n_shape),
             default the identity.
         steps: Gauss-Newton steps.
+        tolerance: (M,) each measurement's tolerance, default :data:`TOLERANCE` by kind.
     Returns:
         shapes (B, n_shape) and every measurement of them (B, M).
     """
@@ -110,7 +117,8 @@ def fit_measurements(
     mu = np.broadcast_to(np.zeros(K) if prior_mean is None else np.asarray(prior_mean, np.float64), (B, K))
     P = np.eye(K) if prior_precision is None else np.asarray(prior_precision, np.float64)
     given = np.isfinite(T)
-    w = np.where(given, 1.0 / _TOL, 0.0)  # (B, M) residual weights
+    tol = _TOL if tolerance is None else np.asarray(tolerance, np.float64)
+    w = np.where(given, 1.0 / tol, 0.0)  # (B, M) residual weights
     goal = np.where(given, T, 0.0)
     f0, J0 = mean_jacobian(model)
     J = np.broadcast_to(J0, (B, *J0.shape)).copy()
@@ -129,6 +137,24 @@ def fit_measurements(
     return c, f
 
 
+_SEX_MEANS: dict[tuple[int, str], np.ndarray] = {}
+# The mean body is matched to within a few tolerances only: some definitions differ from ANSUR II's by more
+# than one (docs/anthropometry.md), and meeting them all would push the prior's mean to the edge of the
+# shape space.
+_MEAN_SLACK = 4.0
+
+
+def sex_prior_mean(model: BodyModel, sex: str) -> np.ndarray:
+    """(n_shape,) the shape of the mean ANSUR II man or woman (:data:`ANSUR_MEANS`) under the standard
+    normal prior: the prior mean of bodies built for that sex. Cached per model."""
+    key = (id(model), sex)
+    if key not in _SEX_MEANS:
+        column = SEXES.index(sex)
+        target = np.array([[ANSUR_MEANS[n][column] if n in ANSUR_MEANS else np.nan for n in NAMES]])
+        _SEX_MEANS[key] = fit_measurements(model, target, tolerance=_MEAN_SLACK * _TOL)[0][0]
+    return _SEX_MEANS[key]
+
+
 def shape_from_measurements(
     model: BodyModel,
     measurements: dict[str, float],
@@ -142,9 +168,10 @@ def shape_from_measurements(
         model: the body model.
         measurements: name (or alias: "mass", "height", "waist", ...) -> value in metres, kilograms for the
             mass; any subset of :data:`MEASUREMENTS`.
-        sex: "male", "female" or None: the plausible ranges the values are checked against.
-        prior_mean, prior_precision: a Gaussian prior over the coefficients (default the model's standard
-            normal).
+        sex: "male", "female" or None: the plausible ranges the values are checked against, and the prior's
+            mean (:func:`sex_prior_mean`; the model's mean body for None).
+        prior_mean, prior_precision: a Gaussian prior over the coefficients (default: mean as above,
+            precision the identity, the model's own spread).
     Returns:
         :class:`BodyFromMeasurements`; ``flagged`` when the set could not all be met.
     Raises:
@@ -158,6 +185,8 @@ def shape_from_measurements(
     target = np.full((1, len(NAMES)), np.nan)
     for name, value in wanted.items():
         target[0, NAMES.index(name)] = value
+    if prior_mean is None and sex is not None:
+        prior_mean = sex_prior_mean(model, sex)
     shape, achieved = fit_measurements(model, target, prior_mean, prior_precision)
     values = dict(zip(NAMES, achieved[0].tolist()))
     residuals = {n: values[n] - wanted[n] for n in wanted}

@@ -101,6 +101,55 @@ STATURE_FRACTIONS: dict[str, tuple[float, float]] = {
 }
 
 
+# The mean ANSUR II man and woman: name -> (male, female), metres and kilograms. Bodies built for a given
+# sex start from, and are drawn towards, the body that has these measurements.
+ANSUR_MEANS: dict[str, tuple[float, float]] = {
+    "stature": (1.756, 1.628),
+    "acromialheight": (1.441, 1.335),
+    "cervicaleheight": (1.517, 1.396),
+    "suprasternaleheight": (1.439, 1.33),
+    "chestheight": (1.291, 1.172),
+    "waistheightomphalion": (1.056, 0.9801),
+    "iliocristaleheight": (1.062, 0.9957),
+    "buttockheight": (0.8879, 0.8337),
+    "trochanterionheight": (0.9009, 0.8454),
+    "crotchheight": (0.8459, 0.7823),
+    "kneeheightmidpatella": (0.4884, 0.449),
+    "lateralfemoralepicondyleheight": (0.4917, 0.4659),
+    "lateralmalleolusheight": (0.0729, 0.06275),
+    "tragiontopofhead": (0.1311, 0.1265),
+    "sittingheight": (0.9183, 0.8566),
+    "acromionradialelength": (0.3352, 0.3112),
+    "radialestylionlength": (0.2679, 0.2413),
+    "sleeveoutseam": (0.5931, 0.5436),
+    "handlength": (0.1933, 0.1811),
+    "footlength": (0.2712, 0.2463),
+    "balloffootlength": (0.2009, 0.1821),
+    "footbreadthhorizontal": (0.1019, 0.09271),
+    "biacromialbreadth": (0.4157, 0.3653),
+    "bicristalbreadth": (0.2754, 0.2733),
+    "bimalleolarbreadth": (0.07478, 0.06705),
+    "hipbreadth": (0.3457, 0.3538),
+    "buttockdepth": (0.2458, 0.2329),
+    "chestbreadth": (0.2894, 0.2693),
+    "chestdepth": (0.2538, 0.2474),
+    "waistbreadth": (0.3264, 0.2999),
+    "waistdepth": (0.2378, 0.213),
+    "headbreadth": (0.1543, 0.1478),
+    "headlength": (0.1995, 0.1898),
+    "chestcircumference": (1.059, 0.9469),
+    "waistcircumference": (0.9406, 0.8609),
+    "buttockcircumference": (1.02, 1.021),
+    "neckcircumference": (0.3976, 0.3298),
+    "thighcircumference": (0.6251, 0.6161),
+    "calfcircumference": (0.3923, 0.3733),
+    "anklecircumference": (0.2293, 0.2157),
+    "wristcircumference": (0.1759, 0.1548),
+    "headcircumference": (0.5744, 0.5611),
+    "weightkg": (85.52, 67.76),
+}
+
+
 def plausible_range(name: str, sex: str | None = None) -> tuple[float, float]:
     """(low, high) of measurement ``name`` (or an alias) for ``sex`` ("male", "female", or None: either)."""
     male, female = RANGES[canonical(name)]

@@ -46,21 +46,34 @@ def plane_basis(normal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def crossings(
-    a: torch.Tensor, b: torch.Tensor, origin: torch.Tensor, normal: torch.Tensor
+    a: torch.Tensor, b: torch.Tensor, origin: torch.Tensor, normal: torch.Tensor, offsets: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Where edges a-b cross planes.
+    """Where edges a-b cross L parallel planes per body, packed: only crossing edges are interpolated.
 
     Args:
-        a, b: (B, E, 3) edge end points; origin, normal: (B, 3) a point on each plane and its unit normal.
+        a, b: (B, E, 3) edge end points; origin, normal: (B, 3) a point and the unit normal of each body's
+            planes; offsets: (B, L) the planes' distances from the origin along the normal.
     Returns:
-        points (B, E, 3) on the plane (meaningless where not crossing) and crossing (B, E) bool.
+        points (B * L, C, 3) relative to each plane's own origin (origin + offset * normal), C the largest
+        number of crossings on one plane, and valid (B * L, C) bool marking the real ones.
     """
-    da = ((a - origin[:, None]) * normal[:, None]).sum(-1)
-    db = ((b - origin[:, None]) * normal[:, None]).sum(-1)
-    cross = (da > 0) != (db > 0)
-    denom = torch.where(cross, da - db, torch.ones_like(da))
-    t = torch.where(cross, da / denom, torch.zeros_like(da))
-    return a + t[..., None] * (b - a), cross
+    B, L = offsets.shape
+    da = ((a - origin[:, None]) * normal[:, None]).sum(-1)[:, None] - offsets[..., None]  # (B, L, E)
+    db = ((b - origin[:, None]) * normal[:, None]).sum(-1)[:, None] - offsets[..., None]
+    cross = ((da > 0) != (db > 0)).reshape(B * L, -1)
+    rows, cols = cross.nonzero(as_tuple=True)
+    slot = (cross.cumsum(1) - 1)[rows, cols]
+    C = max(int(slot.max()) + 1 if len(slot) else 1, 1)
+    edge = torch.zeros(B * L, C, dtype=torch.long)
+    valid = torch.zeros(B * L, C, dtype=torch.bool)
+    edge[rows, slot] = cols
+    valid[rows, slot] = True
+    body = torch.arange(B).repeat_interleave(L)[:, None]
+    pa, pb = a[body, edge], b[body, edge]  # (B * L, C, 3)
+    sa, sb = da.reshape(B * L, -1).gather(1, edge), db.reshape(B * L, -1).gather(1, edge)
+    t = sa / torch.where(valid, sa - sb, torch.ones_like(sa))
+    plane = (origin[:, None] + offsets[..., None] * normal[:, None]).reshape(B * L, 1, 3)
+    return pa + t[..., None] * (pb - pa) - plane, valid
 
 
 def support_polygon(
@@ -69,11 +82,11 @@ def support_polygon(
     """The hull's support points in angular order.
 
     Args:
-        points: (B, E, 3); valid: (B, E) which points count; u, w: (B, 3) the plane's axes.
+        points: (B, E, 3) relative to the plane's origin; valid: (B, E) which points count; u, w: (B, 3)
+            the plane's axes.
     Returns:
         (B, k, 2) support points in plane coordinates; NaN for a body with no valid point.
     """
-    points, valid = compact(points, valid)
     xy = torch.stack([(points * u[:, None]).sum(-1), (points * w[:, None]).sum(-1)], -1)  # (B, E', 2)
     angles = torch.arange(k, dtype=points.dtype, device=points.device) * (2 * math.pi / k)
     dirs = torch.stack([torch.cos(angles), torch.sin(angles)])  # (2, k)
@@ -83,14 +96,6 @@ def support_polygon(
     out = torch.gather(xy, 1, best[..., None].expand(-1, -1, 2))
     empty = ~valid.any(1)
     return torch.where(empty[:, None, None], torch.full_like(out, math.nan), out)
-
-
-def compact(points: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The valid points first: points (B, E, 3) and valid (B, E) cut to the largest count of valid points
-    in a row, E' (a plane crosses a few hundred of a region's thousands of edges)."""
-    count = int(valid.sum(1).max()) if valid.numel() else 0
-    order = torch.argsort(valid.to(torch.int8), dim=1, descending=True, stable=True)[:, : max(count, 1)]
-    return torch.gather(points, 1, order[..., None].expand(-1, -1, 3)), torch.gather(valid, 1, order)
 
 
 def polygon_perimeter(poly: torch.Tensor) -> torch.Tensor:

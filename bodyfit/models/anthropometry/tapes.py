@@ -47,33 +47,39 @@ class Cutter:
     paths: dict[str, torch.Tensor] | None = field(default=None)
 
     def polygon(
-        self, edges: str, origin: torch.Tensor, normal: torch.Tensor, radius: float | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The hull's support polygon (N, k, 2) in plane coordinates, and the plane's axes u, w (N, 3), of
-        sections of the ``edges`` set by planes through ``origin`` (N, 3) with unit ``normal`` (N, 3); N is
-        the batch or a multiple of it (several planes per body). Only crossings within ``radius`` of the
-        origin count when it is given."""
+        self,
+        edges: str,
+        origin: torch.Tensor,
+        normal: torch.Tensor,
+        offsets: torch.Tensor | None = None,
+        radius: float | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Sections of the ``edges`` set by planes with unit ``normal`` (B, 3) through ``origin`` (B, 3)
+        moved by ``offsets`` (B, L) along the normal (default one plane through the origin). Only crossings
+        within ``radius`` (scaled) of each plane's origin count when it is given.
+
+        Returns:
+            the hulls' support polygons (B * L, k, 2) in plane coordinates, the planes' origins (B * L, 3)
+            and axes u, w (B * L, 3).
+        """
+        offsets = torch.zeros(len(origin), 1, dtype=origin.dtype) if offsets is None else offsets
+        B, L = offsets.shape
         e = torch.as_tensor(self.topo.edges[edges])
-        a, b, scale = self.v[:, e[:, 0]], self.v[:, e[:, 1]], self.scale
-        if len(origin) != len(a):
-            rep = len(origin) // len(a)
-            a, b, scale = (
-                a.repeat_interleave(rep, 0),
-                b.repeat_interleave(rep, 0),
-                scale.repeat_interleave(rep),
-            )
-        points, valid = crossings(a, b, origin, normal)
+        points, valid = crossings(self.v[:, e[:, 0]], self.v[:, e[:, 1]], origin, normal, offsets)
         if radius is not None:
-            valid = valid & ((points - origin[:, None]).norm(dim=-1) < radius * scale[:, None])
-        u, w = plane_basis(normal)
-        return support_polygon(points - origin[:, None], valid, u, w), u, w
+            limit = (radius * self.scale).repeat_interleave(L)[:, None]
+            valid = valid & (points.norm(dim=-1) < limit)
+        n = normal.repeat_interleave(L, 0)
+        u, w = plane_basis(n)
+        o = (origin[:, None] + offsets[..., None] * normal[:, None]).reshape(B * L, 3)
+        return support_polygon(points, valid, u, w), o, u, w
 
     def tape(
         self, name: str, edges: str, origin: torch.Tensor, normal: torch.Tensor, radius: float | None = None
     ) -> torch.Tensor:
         """The tape length (B,) of one plane per body (see :meth:`polygon`)."""
-        poly, u, w = self.polygon(edges, origin, normal, radius)
-        self._record(name, poly, origin, u, w)
+        poly, o, u, w = self.polygon(edges, origin, normal, radius=radius)
+        self._record(name, poly, o, u, w)
         return polygon_perimeter(poly)
 
     def extreme_tape(
@@ -89,9 +95,7 @@ class Cutter:
         """The largest (or smallest) tape (B,) over planes at ``offsets`` (B, L) metres along ``normal``
         (B, 3) from ``origin`` (B, 3)."""
         B, L = offsets.shape
-        o = (origin[:, None] + offsets[..., None] * normal[:, None]).reshape(B * L, 3)
-        n = normal[:, None].expand(B, L, 3).reshape(B * L, 3)
-        poly, u, w = self.polygon(edges, o, n, radius)
+        poly, o, u, w = self.polygon(edges, origin, normal, offsets, radius)
         length = polygon_perimeter(poly).reshape(B, L)
         pick = length.argmax(1) if largest else length.argmin(1)
         rows = torch.arange(B) * L + pick
@@ -137,8 +141,8 @@ def torso_tapes(cut: Cutter, p: dict[str, torch.Tensor]) -> dict[str, torch.Tens
         ("buttock", "hips", p["buttock"]),
     ):
         key = name if name.endswith("crest") else f"{name}circumference"
-        poly, u, w = cut.polygon(edges, origin, up)
-        cut._record(key, poly, origin, u, w)
+        poly, o, u, w = cut.polygon(edges, origin, up)
+        cut._record(key, poly, o, u, w)
         out[key] = polygon_perimeter(poly)
         out[f"{name}_breadth"] = polygon_extent(poly, z_axis)
         out[f"{name}_depth"] = polygon_extent(poly, x_axis)
