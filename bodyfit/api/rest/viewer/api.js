@@ -20,11 +20,16 @@ async function problemOf(response) {
   return { status: response.status, title: response.statusText, detail: text.slice(0, 300) || "no detail" };
 }
 
-/** fetch() that throws ApiError for every answer that is not 2xx. */
-export async function call(path, init = {}) {
-  const response = await fetch(path, init);
+/** A fetch() answer, or ApiError for every answer that is not 2xx. */
+export async function answered(pending) {
+  const response = await pending;
   if (!response.ok) throw new ApiError(await problemOf(response));
   return response;
+}
+
+/** fetch() that throws ApiError for every answer that is not 2xx. */
+export async function call(path, init = {}) {
+  return answered(fetch(path, init));
 }
 
 export async function getJSON(path) {

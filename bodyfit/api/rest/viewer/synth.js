@@ -1,6 +1,6 @@
 // Synthesize: sliders for the shape coefficients and every coordinate (grouped by joint, limits shown); the
 // body follows live through POST /v1/synthesize (npz, the service's fastest format).
-import { parseNpz, postJSON } from "./api.js";
+import { answered, parseNpz, postJSON } from "./api.js";
 import { hideError, jointOf, showError } from "./app.js";
 
 const $ = (id) => document.getElementById(id);
@@ -87,10 +87,23 @@ export class SynthMode {
     };
   }
 
-  /** The first body: the skin alone (drawn sooner), then the bones when shown. */
-  async start() {
-    await this.request(false);
+  /**
+   * The first body: the skin alone (drawn sooner), then the bones when shown. `first`: the page's early
+   * request for the mean body in the neutral pose (a fetch promise), used where the sliders start there.
+   */
+  async start(first) {
+    const neutral = this.model.dofs.every((d) => d.min <= 0 && d.max >= 0);
+    if (first && neutral) {
+      const began = performance.now();
+      this.last = parseNpz(await (await answered(first)).arrayBuffer());
+      this.timings.push({ ms: performance.now() - began, bones: false });
+      window.bodyfitViewer.marks.body = performance.now();
+      this.show(this.last);
+    } else {
+      await this.request(false);
+    }
     this.view.frame();
+    window.bodyfitViewer.marks.drawn = performance.now();
     if (this.view.layers.bones) this.request(true);
   }
 

@@ -42,11 +42,11 @@ export class View {
     const sun = new THREE.DirectionalLight(0xffffff, 1.6);
     sun.position.set(2, 4, 3);
     this.scene.add(sun);
-    this.skin = meshOf(new THREE.MeshStandardMaterial({
-      color: SKIN, roughness: 0.75, transparent: true, opacity: 0.45, depthWrite: false, side: THREE.DoubleSide,
+    this.skin = meshOf(new THREE.MeshLambertMaterial({
+      color: SKIN, transparent: true, opacity: 0.45, depthWrite: false, side: THREE.DoubleSide,
     }));
     this.skin.renderOrder = 2;
-    this.bones = meshOf(new THREE.MeshStandardMaterial({ color: BONE, roughness: 0.6 }));
+    this.bones = meshOf(new THREE.MeshLambertMaterial({ color: BONE }));
     this.points = new THREE.Points(new THREE.BufferGeometry(),
       new THREE.PointsMaterial({ color: 0x56606e, size: 2, sizeAttenuation: false, transparent: true, opacity: 0.7 }));
     this.points.visible = false;
