@@ -34,6 +34,9 @@ from bodyfit.models.skeleton.model import check_finite
 # benchmarks/anthropometry.py.
 DENSITY = 1000.0
 
+# Width (metres, for a body of REFERENCE_STATURE) over which the bust and buttock points are averaged.
+SOFT_EXTREME = 0.002
+
 # Coordinates that keep their bind-pose value in the measuring posture: the arms stay in the template's
 # rest A-pose, away from the torso, where the skin is undeformed; everything else is zero (standing
 # erect, legs straight, head level).
@@ -153,13 +156,20 @@ def _points(topo: Topology, v: torch.Tensor, joints: torch.Tensor) -> dict[str, 
     p["floor"] = v[:, cand["feet"], 1].min(1).values
     p["top"] = v[:, cand["head"], 1].max(1).values
     p["crotch"] = v[:, cand["crotch"], 1].min(1).values
+    # Soft extremes: a rounded surface's extreme is a patch, not a vertex; weighting the candidates within
+    # a few millimetres of it keeps the point (and the planes hung on it) smooth in the shape.
+    width = SOFT_EXTREME * (p["top"] - p["floor"]) / REFERENCE_STATURE
     for side in ("r", "l"):
-        idx = torch.as_tensor(cand[f"bust_{side}"])
-        best = v[:, idx, 0].argmax(1)
-        p[f"bust_{side}"] = v[torch.arange(len(v)), idx[best]]
-    idx = torch.as_tensor(cand["buttock"])
-    p["buttock"] = v[torch.arange(len(v)), idx[v[:, idx, 0].argmin(1)]]
+        p[f"bust_{side}"] = _soft_extreme(v[:, cand[f"bust_{side}"]], 0, 1.0, width)
+    p["buttock"] = _soft_extreme(v[:, cand["buttock"]], 0, -1.0, width)
     return p
+
+
+def _soft_extreme(points: torch.Tensor, axis: int, sign: float, width: torch.Tensor) -> torch.Tensor:
+    """The softmax-weighted mean (B, 3) of points (B, n, 3) by ``sign`` times their ``axis`` coordinate
+    over ``width`` (B,) metres: the extreme point, averaged over the candidates within a few widths of it."""
+    weights = torch.softmax(sign * points[..., axis] / width[:, None], dim=1)
+    return (weights[..., None] * points).sum(1)
 
 
 def _heights(p: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

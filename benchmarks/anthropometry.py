@@ -1,0 +1,297 @@
+"""Anthropometry: bodies built from real people's measurements, and today's population against NHANES.
+
+What is measured
+----------------
+* Data: ANSUR II (US Army 2012: 4,082 men, 1,986 women) and NHANES 2017-2020 adults from
+  ../shared/data/anthropometry when present, else the 200-per-sex and 500-per-sex extracts in
+  tests/data/anthropometry. Subjects are split 80/20 per sex with seed 39; scores are on the test split.
+* ``repro_*``: a body built (``fit_measurements``, the sex's prior mean) from all of a test subject's
+  measurements that have an ANSUR II column; mean absolute error of its measurements against the subject's,
+  over heights, lengths and breadths (``repro_mae_length_mm``), circumferences (``repro_mae_circ_mm``)
+  and the weight (``repro_mae_mass_kg``).
+* ``predict_mae_mm``: a body built from sex, stature, weight, chest, waist and buttock circumference;
+  mean absolute error over the subject's other measurements (mm). ``baseline_mae_mm``: a least-squares
+  linear regression from the same inputs (and sex) fitted on the training split, in the same run;
+  ``predict_ratio`` the first over the second.
+* ``mass_from_volume_mae_kg`` and ``implied_density``: a body built from every measurement but the
+  weight; its volume against the subject's weight (the density that would make the median error zero).
+* ``measure_ms_b1``: one body synthesized and measured (median of 20 runs, one thread).
+* ``ks_{stature,mass,bmi,waist,hip}_{male,female}``: two-sample Kolmogorov-Smirnov statistic between the
+  measurements of standard-normal shape draws of the model (seed 0) and NHANES adults of each sex; waist
+  is NHANES's (at the iliac crest), hip the buttock circumference.
+
+Usage::
+
+    python benchmarks/anthropometry.py [--quick] [--json]
+    python benchmarks/anthropometry.py figure docs/anthropometry_tapes.png
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from bodyfit.models.anthropometry.definitions import MEASUREMENTS
+from bodyfit.models.anthropometry.inverse import NAMES, evaluate, fit_measurements, sex_prior_mean
+from bodyfit.models.anthropometry.measure import measure
+from bodyfit.models.anthropometry.surveys import read_ansur, read_nhanes
+from bodyfit.models.body.model import BodyModel
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared" / "data" / "anthropometry"
+EXTRACTS = REPO / "tests" / "data" / "anthropometry"
+SEED = 39
+SEXES = ("male", "female")
+INPUTS = ("stature", "weightkg", "chestcircumference", "waistcircumference", "buttockcircumference")
+KS_KEYS = {
+    "stature": "stature",
+    "mass": "weightkg",
+    "waist": "waistcircumferenceiliaccrest",
+    "hip": "buttockcircumference",
+}
+
+
+def load_surveys() -> tuple[dict[str, dict[str, np.ndarray]], dict[str, dict[str, np.ndarray]], str]:
+    """ANSUR II and NHANES tables per sex, and where they came from."""
+    if (SHARED / "ANSURII_MALE_Public.csv").exists():
+        ansur = {s: read_ansur(SHARED / f"ANSURII_{s.upper()}_Public.csv") for s in SEXES}
+        nhanes = {s: read_nhanes(SHARED / f"nhanes_adult_{s}_bmx_2020.csv") for s in SEXES}
+        return ansur, nhanes, "shared"
+    ansur = {s: read_ansur(EXTRACTS / f"ansur2_{s}_200.csv") for s in SEXES}
+    nhanes = {s: read_nhanes(EXTRACTS / f"nhanes_adult_{s}_bmx_2020_500.csv") for s in SEXES}
+    return ansur, nhanes, "tests/data"
+
+
+def split(n: int, seed: int = SEED) -> tuple[np.ndarray, np.ndarray]:
+    """80/20 train / test indices of n subjects."""
+    order = np.random.default_rng(seed).permutation(n)
+    cut = round(0.8 * n)
+    return np.sort(order[:cut]), np.sort(order[cut:])
+
+
+def table(data: dict[str, np.ndarray], rows: np.ndarray) -> np.ndarray:
+    """(n, M) values in :data:`NAMES` order for ``rows``; NaN where the survey lacks the measurement."""
+    return np.stack([data[n][rows] if n in data else np.full(len(rows), np.nan) for n in NAMES], 1)
+
+
+def _mae_by_kind(pred: np.ndarray, truth: np.ndarray) -> dict[str, float]:
+    err = np.abs(pred - truth)
+    kinds = np.array([MEASUREMENTS[n].kind for n in NAMES])
+    lengths = np.isin(kinds, ("height", "length", "breadth"))
+    return {
+        "repro_mae_length_mm": float(np.nanmean(err[:, lengths]) * 1000),
+        "repro_mae_circ_mm": float(np.nanmean(err[:, kinds == "circumference"]) * 1000),
+        "repro_mae_mass_kg": float(np.nanmean(err[:, kinds == "mass"])),
+    }
+
+
+def linear_baseline(
+    train: np.ndarray, test: np.ndarray, sex_train: np.ndarray, sex_test: np.ndarray
+) -> np.ndarray:
+    """Least-squares predictions (n_test, M) of every measurement from sex and :data:`INPUTS`."""
+    cols = [NAMES.index(n) for n in INPUTS]
+
+    def design(x: np.ndarray, male: np.ndarray) -> np.ndarray:
+        return np.column_stack([np.ones(len(x)), male, x[:, cols]])
+
+    X = design(train, sex_train)
+    out = np.full((len(test), len(NAMES)), np.nan)
+    for m in range(len(NAMES)):
+        ok = np.isfinite(train[:, m])
+        if ok.sum() > X.shape[1]:
+            coef = np.linalg.lstsq(X[ok], train[ok, m], rcond=None)[0]
+            out[:, m] = design(test, sex_test) @ coef
+    return out
+
+
+def _fit(model: BodyModel, targets: np.ndarray, sexes: np.ndarray) -> np.ndarray:
+    """Measurements (n, M) of the bodies built from ``targets`` (n, M; NaN = not given)."""
+    out = np.empty_like(targets)
+    for s in SEXES:
+        rows = np.flatnonzero(sexes == s)
+        if len(rows):
+            out[rows] = fit_measurements(model, targets[rows], sex_prior_mean(model, s))[1]
+    return out
+
+
+def scores(model: BodyModel, ansur: dict[str, dict[str, np.ndarray]], per_sex: int | None) -> dict[str, Any]:
+    """Reproduction, prediction and mass-from-volume scores on the test split (``per_sex`` test subjects
+    per sex at most)."""
+    parts = {"train": [], "test": [], "sex_train": [], "sex_test": []}  # type: dict[str, list[np.ndarray]]
+    for s in SEXES:
+        train, test = split(len(ansur[s]["stature"]))
+        test = test[:per_sex] if per_sex else test
+        parts["train"].append(table(ansur[s], train))
+        parts["test"].append(table(ansur[s], test))
+        parts["sex_train"].append(np.full(len(train), s))
+        parts["sex_test"].append(np.full(len(test), s))
+    train, test = np.concatenate(parts["train"]), np.concatenate(parts["test"])
+    sex_train, sex_test = np.concatenate(parts["sex_train"]), np.concatenate(parts["sex_test"])
+    out: dict[str, Any] = {"test_subjects": len(test)}
+    out.update(_mae_by_kind(_fit(model, test, sex_test), test))
+    given = np.isin(NAMES, INPUTS)
+    others = ~given & np.isfinite(test).all(0)
+    predicted = _fit(model, np.where(given, test, np.nan), sex_test)
+    baseline = linear_baseline(train, test, sex_train == "male", sex_test == "male")
+    out["predict_mae_mm"] = float(np.mean(np.abs(predicted - test)[:, others]) * 1000)
+    out["baseline_mae_mm"] = float(np.mean(np.abs(baseline - test)[:, others]) * 1000)
+    out["predict_ratio"] = out["predict_mae_mm"] / out["baseline_mae_mm"]
+    mass = NAMES.index("weightkg")
+    no_weight = test.copy()
+    no_weight[:, mass] = np.nan
+    from_volume = _fit(model, no_weight, sex_test)[:, mass]
+    out["mass_from_volume_mae_kg"] = float(np.mean(np.abs(from_volume - test[:, mass])))
+    from bodyfit.models.anthropometry.measure import DENSITY
+
+    out["implied_density"] = float(DENSITY * np.median(test[:, mass] / from_volume))
+    return out
+
+
+def ks_scores(model: BodyModel, nhanes: dict[str, dict[str, np.ndarray]], n: int) -> dict[str, float]:
+    """KS statistics of standard-normal draws of the model against NHANES adults of each sex."""
+    from scipy.stats import ks_2samp
+
+    draws = np.random.default_rng(0).standard_normal((n, model.n_shape))
+    ours = evaluate(model, draws)
+    mine = {k: ours[:, NAMES.index(name)] for k, name in KS_KEYS.items()}
+    mine["bmi"] = mine["mass"] / mine["stature"] ** 2
+    out = {}
+    for s in SEXES:
+        real = {k: nhanes[s][name] for k, name in KS_KEYS.items()}
+        real["bmi"] = real["mass"] / real["stature"] ** 2
+        for key in ("stature", "mass", "bmi", "waist", "hip"):
+            x = real[key][np.isfinite(real[key])]
+            out[f"ks_{key}_{s}"] = round(float(ks_2samp(mine[key], x).statistic), 3)
+    return out
+
+
+def measure_ms(model: BodyModel) -> float:
+    """Median milliseconds of :func:`measure` on one body."""
+    shape = np.random.default_rng(1).standard_normal((1, model.n_shape))
+    measure(model, shape)
+    times = []
+    for _ in range(20):
+        start = time.perf_counter()
+        measure(model, shape)
+        times.append(time.perf_counter() - start)
+    return float(np.median(times) * 1000)
+
+
+def run(quick: bool) -> dict[str, Any]:
+    torch.set_num_threads(1)
+    model = BodyModel.load()
+    ansur, nhanes, source = load_surveys()
+    out: dict[str, Any] = {"data": source}
+    out.update(scores(model, ansur, 40 if quick else None))
+    out["measure_ms_b1"] = measure_ms(model)
+    out.update(ks_scores(model, nhanes, 200 if quick else 1000))
+    return {k: round(v, 3) if isinstance(v, float) else v for k, v in out.items()}
+
+
+# Figure colours: the skin, the tapes, the landmarks and the straight lengths.
+_SKIN, _TAPE, _MARK, _LINE = (0.86, 0.72, 0.62), (0.12, 0.32, 0.85), (0.85, 0.1, 0.1), (0.1, 0.6, 0.2)
+# Straight lengths drawn in the figure: (from, to) named points of the measured body.
+_LINES = (
+    ("acromion_r", "lateral_humeral_epicondyle_r"),
+    ("joint_elbow_r", "joint_wrist_r"),
+    ("acromion_r", "acromion_l"),
+    ("iliac_crest_r", "iliac_crest_l"),
+    ("wrist_r", "dactylion_r"),
+    ("heel_r", "toe_tip_r"),
+)
+_MARKS = (
+    "acromion_r", "acromion_l", "lateral_humeral_epicondyle_r", "radial_styloid_r", "ulnar_styloid_r",
+    "dactylion_r", "C7", "suprasternale", "omphalion", "iliac_crest_r", "iliac_crest_l", "tragion_r",
+    "tragion_l", "heel_r", "toe_tip_r", "first_metatarsal_head_r", "lateral_malleolus_r",
+    "medial_malleolus_r", "bust_r", "bust_l", "buttock",
+)  # fmt: skip
+
+
+def _ribbon(path: np.ndarray, width: float) -> tuple[np.ndarray, np.ndarray]:
+    """A closed band (vertices, triangles) of ``width`` metres along the closed polyline ``path`` (k, 3),
+    offset across it both ways so that it shows from any side."""
+    k = len(path)
+    centre = path.mean(0)
+    out = path + 0.002 * (path - centre) / np.linalg.norm(path - centre, axis=1, keepdims=True).clip(1e-9)
+    tangent = np.roll(out, -1, 0) - np.roll(out, 1, 0)
+    normal = np.cross(tangent, out - centre)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True).clip(1e-12)
+    verts = np.concatenate([out + width / 2 * normal, out - width / 2 * normal])
+    i = np.arange(k)
+    j = (i + 1) % k
+    faces = np.concatenate([np.stack([i, i + k, j], 1), np.stack([i + k, j + k, j], 1)])
+    return verts, faces
+
+
+def _rod(a: np.ndarray, b: np.ndarray, width: float) -> tuple[np.ndarray, np.ndarray]:
+    """A thin square rod (vertices, triangles) from a to b (3,)."""
+    axis = (b - a) / max(float(np.linalg.norm(b - a)), 1e-9)
+    side = np.cross(axis, [0.0, 0.0, 1.0] if abs(axis[2]) < 0.9 else [1.0, 0.0, 0.0])
+    side /= np.linalg.norm(side)
+    up = np.cross(axis, side)
+    ring = np.array([side, up, -side, -up]) * width / 2
+    verts = np.concatenate([a + ring, b + ring])
+    faces = [[q, (q + 1) % 4, 4 + q] for q in range(4)] + [
+        [(q + 1) % 4, 4 + (q + 1) % 4, 4 + q] for q in range(4)
+    ]
+    return verts, np.asarray(faces)
+
+
+def _marker(p: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
+    """An octahedron (vertices, triangles) of radius ``size`` at p (3,)."""
+    verts = p + size * np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
+    faces = [[a, b, c] for a in (0, 1) for b in (2, 3) for c in (4, 5)]
+    return verts, np.asarray(faces)
+
+
+def figure(path: Path) -> None:
+    """The landmarks (red), straight lengths (green) and tapes (blue) on the mean body in the measuring
+    posture, from the front and the side, written as a PNG."""
+    from render import RenderMesh, label_grid, render, save_png, tile  # benchmarks/ is on sys.path
+
+    from bodyfit.models.anthropometry.measure import _points, body_in_pose, measure_torch
+    from bodyfit.models.anthropometry.regions import topology
+
+    model = BodyModel.load()
+    topo = topology(model)
+    v, j = body_in_pose(model, torch.zeros(1, model.n_shape))
+    paths: dict[str, torch.Tensor] = {}
+    with torch.no_grad():
+        measure_torch(topo, v, j, paths)
+        named = {k: t[0].numpy().astype(np.float64) for k, t in _points(topo, v, j).items() if t.ndim == 2}
+    named["wrist_r"] = 0.5 * (named["radial_styloid_r"] + named["ulnar_styloid_r"])
+    skin = v[0].numpy().astype(np.float64)
+    meshes = [RenderMesh(skin, model.faces, _SKIN, opacity=0.5)]
+    for tape in paths.values():
+        meshes.append(RenderMesh(*_ribbon(tape[0].numpy().astype(np.float64), 0.006), _TAPE))
+    for a, b in _LINES:
+        meshes.append(RenderMesh(*_rod(named[a], named[b], 0.005), _LINE))
+    for name in _MARKS:
+        meshes.append(RenderMesh(*_marker(named[name], 0.009), _MARK))
+    images = [render(meshes, view=view, size=(520, 820)) for view in ("front", "side")]
+    grid = label_grid(
+        tile(images, 2),
+        [["front", "side"]],
+        [""],
+        caption="landmarks (red), straight lengths (green) and tapes (blue): mean body, measuring posture",
+    )
+    save_png(grid, path)
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = sys.argv[1:] if argv is None else argv
+    if args[:1] == ["figure"]:
+        figure(Path(args[1]) if len(args) > 1 else REPO / "docs" / "anthropometry_tapes.png")
+        return
+    from bench_cli import bench_main
+
+    bench_main(run, __doc__.split("\n")[0], "40 test subjects per sex and 200 draws", args)
+
+
+if __name__ == "__main__":
+    main()
