@@ -191,6 +191,10 @@ class Page:
             raise RuntimeError(f"no element matches {selector!r}")
         self.call("DOM.setFileInputFiles", nodeId=node, files=[str(p.resolve()) for p in paths])
 
+    def hover(self, x: float, y: float) -> None:
+        """Move the mouse to (x, y) CSS pixels of the viewport."""
+        self.call("Input.dispatchMouseEvent", type="mouseMoved", x=x, y=y)
+
     def press(self, key: str, code: int) -> None:
         """Press and release ``key`` (DOM key name, e.g. "End") with Windows virtual key ``code`` (35) on
         the focused element."""

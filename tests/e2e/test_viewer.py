@@ -12,21 +12,34 @@ import base64
 import io
 import json
 import math
+import re
 from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
+from fastapi.testclient import TestClient
 from PIL import Image
 
 from benchmarks.chromium import BrowserUnavailableError, Page, browser
 from benchmarks.server_process import ServerProcess, start_server
+from bodyfit.api.rest import routes_viewer
+from bodyfit.api.rest.app import create_app
+from bodyfit.api.settings import ServiceSettings
 
 ROOT = Path(__file__).resolve().parents[2]
 SHOTS = ROOT / "build" / "screenshots"
 UPGRADE = ROOT / "tests" / "data" / "smpl_format" / "cmu_131_smpl.npz"
 SYNTH = "window.bodyfitViewer.modes.synth"
+# the knee_r joint centre on the screen: its sphere projected by the view's camera
+KNEE_ON_SCREEN = """(() => {
+  const v = window.bodyfitViewer.view;
+  const sphere = v.joints.children[v.jointInfo.findIndex(j => j.name === 'knee_r')];
+  const p = sphere.getWorldPosition(v.camera.position.clone()).project(v.camera);
+  const r = v.canvas.getBoundingClientRect();
+  return [r.x + (p.x + 1) / 2 * r.width, r.y + (1 - p.y) / 2 * r.height];
+})()"""
 TIMELINE = "document.getElementById('up-frame')"
 POSE = {"hip_flexion_r": 0.6, "knee_angle_r": 0.9, "elbow_flex_l": 1.2, "arm_add_r": -0.4}
 
@@ -100,6 +113,9 @@ def check_synthesize(page: Page, url: str) -> np.ndarray:
     )
     knee_centre = [float(v) for v in shown[names.index("knee_r")].split(",")]
     np.testing.assert_allclose(knee_centre, joints[names.index("knee_r")], atol=6e-4)
+    page.hover(*page.evaluate(KNEE_ON_SCREEN))
+    tip = page.wait_for("(t => !t.hidden && t.textContent)(document.getElementById('tooltip'))")
+    assert tip.split("\n") == ["knee_r", "knee_angle_r"]  # the joint's and its coordinate's OpenSim names
     return after
 
 
@@ -193,3 +209,38 @@ def test_viewer_in_chromium(server: ServerProcess, page: Page, tmp_path: Path) -
     check_problem(page, server.url, tmp_path)
     # the refused upload is the one error: the browser logs every 4xx answer it receives
     assert all("status of 422" in e for e in page.errors()), page.errors()
+
+
+def test_viewer_files_are_ours_and_small() -> None:
+    """Every file the page loads is served by us (no CDN), three.js is the version the npm lock pins, and
+    the whole viewer stays under 2 MiB. No browser and no model needed."""
+    client = TestClient(create_app(ServiceSettings()))
+    html = client.get("/").text
+    assert client.get("/viewer").text == html and client.head("/").status_code == 200
+    assert not re.search(r"""(src|href|import)[=\s(]*["']https?://""", html)
+    urls = re.findall(r"""["'](/viewer/static/[^"']+)["']""", html)
+    for name in ("three.module.min.js", "three.core.min.js", "app.js", "style.css"):
+        assert any(u.endswith(name) for u in urls), name
+    for url in urls:
+        answer = client.get(url)
+        assert answer.status_code == 200, url
+        assert answer.headers["content-type"].startswith(("text/javascript", "text/css")), url
+    static = routes_viewer.STATIC
+    for script in static.glob("*.js"):
+        assert not re.search(r"""from\s+["']https?://""", script.read_text()), script
+    assert sum(p.stat().st_size for p in static.rglob("*") if p.is_file()) <= 2048 * 1024
+    lock = json.loads((ROOT / "viewer" / "package-lock.json").read_text())
+    pinned = lock["packages"]["node_modules/three"]["version"]
+    assert (static / "vendor" / "VERSION").read_text().split() == ["three", pinned]
+    installed = ROOT / "viewer" / "node_modules" / "three"
+    if installed.is_dir():  # after `npm ci` in viewer/: the vendored build is the installed one
+        for name in ("three.module.min.js", "three.core.min.js"):
+            assert (static / "vendor" / name).read_bytes() == (installed / "build" / name).read_bytes()
+
+def test_missing_viewer_files_leave_the_api_serving(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """An installation without the viewer's files answers / with a problem+json 404 that says so."""
+    monkeypatch.setattr(routes_viewer, "STATIC", tmp_path)
+    answer = TestClient(create_app(ServiceSettings())).get("/")
+    assert answer.status_code == 404
+    assert answer.headers["content-type"] == "application/problem+json"
+    assert "no viewer files" in answer.json()["detail"]
