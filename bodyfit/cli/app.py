@@ -8,7 +8,7 @@ import sys
 
 import typer
 
-from bodyfit.cli import assets, batch, demo, serve, synth, upgrade
+from bodyfit.cli import assets, batch, demo, measure, serve, synth, upgrade
 from bodyfit.cli.fit.commands import app as fit_app
 
 app = typer.Typer(
@@ -21,6 +21,7 @@ app = typer.Typer(
 )
 app.add_typer(fit_app, name="fit")
 app.command("synth")(synth.synth)
+app.command("measure")(measure.measure)
 app.command("upgrade")(upgrade.upgrade)
 app.command("batch-upgrade")(batch.batch_upgrade)
 app.command("serve")(serve.serve)
