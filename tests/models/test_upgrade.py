@@ -23,6 +23,7 @@ from bodyfit.models.fitting.retarget.fitter import wrap_pelvis
 from bodyfit.models.fitting.sequence.fitter import SequenceFitter
 from bodyfit.models.upgrade.axes import orient, turn_to_y_up, turned
 from bodyfit.models.upgrade.inputs import check_axis_angle, layout_error, read_sequence
+from bodyfit.models.upgrade.proportions import ProportionRange
 from bodyfit.models.upgrade.proxy import ShapeHintError, ShapeHints, SmplProxy, load_proxy
 from bodyfit.models.upgrade.smpl_model import SmplModel, SmplModelError, load_smpl_model, rodrigues
 from bodyfit.models.upgrade.upgrade import (
@@ -455,3 +456,18 @@ def test_nan_frames_do_not_move_the_shape(
     fitter = SequenceFitter(upgrade_fitter(model).fitter, replace(UPGRADE_SEQUENCE, chunk=32))
     other = upgrade_with_model(replace(seq, bad_frames=more), smpl, fitter)
     assert np.abs(other.shape - result.shape).max() < 0.1, np.abs(other.shape - result.shape).max()
+
+
+def test_bone_proportions_are_checked_against_the_population(
+    upgraded: tuple[UpgradeResult, SmplSequence], model: BodyModel
+) -> None:
+    """The fitted subject's bones are proportioned like the population's; a tibia scaled 1.53 next to a
+    femur at 1.04 (what an unconstrained shape gave for betas of -3) is reported."""
+    result, _ = upgraded
+    assert result.extra["scale_outliers"] == []
+    population = ProportionRange.of(model)
+    assert population.outliers(result.scales) == []
+    odd = result.scales.copy()
+    odd[model.skeleton.segments.index("tibia_r")] = 1.53
+    odd[model.skeleton.segments.index("femur_r")] = 1.04
+    assert any(o.startswith("tibia_r y") for o in population.outliers(odd))

@@ -25,6 +25,7 @@ import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +45,7 @@ from bodyfit.models.fitting.sequence.offsets import OffsetConfig
 from bodyfit.models.skeleton.opensim_export import write_mot, write_osim
 from bodyfit.models.upgrade.axes import orient
 from bodyfit.models.upgrade.inputs import check_axis_angle
+from bodyfit.models.upgrade.proportions import ProportionRange
 from bodyfit.models.upgrade.proxy import ShapeHints, SmplProxy, load_proxy
 from bodyfit.models.upgrade.smpl_model import SmplModel, SmplModelError
 
@@ -285,12 +287,8 @@ def _result(
             f"{int(sequence.bad_frames.sum())} frames held NaN / inf: left out of the fit; their coordinates "
             "and root interpolated, their joints computed from those; flagged"
         )
-    largest = float(np.abs(shape).max()) if len(shape) else 0.0
-    if largest > SHAPE_LIMIT_SD:
-        notes.append(
-            f"the subject's shape reaches {largest:.1f} standard deviations of the population (coefficient "
-            f"{int(np.abs(shape).argmax())}), beyond {SHAPE_LIMIT_SD:g}: the data demanded it"
-        )
+    subject_notes, subject = _subject(model, shape, scales)
+    notes.extend(subject_notes)
     return UpgradeResult(
         path=path,
         coordinates=coordinates,
@@ -307,8 +305,33 @@ def _result(
         segment_names=tuple(skel.segments),
         limit_violations=count_limit_violations(in_range, skel.ranges),
         notes=tuple(notes),
-        extra={"shape_max_sd": round(largest, 3)},
+        extra=subject,
     )
+
+
+def _subject(model: BodyModel, shape: np.ndarray, scales: np.ndarray) -> tuple[list[str], dict[str, Any]]:
+    """Notes and summary fields on the subject's plausibility: the largest shape coefficient (n_shape,) in
+    population standard deviations, and the bone scales (n_seg, 3) proportioned unlike the population's."""
+    notes = []
+    largest = float(np.abs(shape).max()) if len(shape) else 0.0
+    if largest > SHAPE_LIMIT_SD:
+        notes.append(
+            f"the subject's shape reaches {largest:.1f} standard deviations of the population (coefficient "
+            f"{int(np.abs(shape).argmax())}), beyond {SHAPE_LIMIT_SD:g}: the data demanded it"
+        )
+    outliers = _proportion_range(model).outliers(scales)
+    if outliers:
+        notes.append(
+            "bone scales proportioned unlike the population's (segment scale over the body's median, by "
+            f"axis): {'; '.join(outliers)}"
+        )
+    return notes, {"shape_max_sd": round(largest, 3), "scale_outliers": outliers}
+
+
+@lru_cache(maxsize=4)
+def _proportion_range(model: BodyModel) -> ProportionRange:
+    """The population's bone proportions of ``model`` (computed once per model: about a second)."""
+    return ProportionRange.of(model)
 
 
 def _joints(model: BodyModel, shape: np.ndarray, q: np.ndarray, root: np.ndarray) -> np.ndarray:
