@@ -57,6 +57,8 @@ function bindLayers(view) {
     $(`show-${layer}`).addEventListener("change", (e) => {
       view.layers[layer] = e.target.checked;
       view.render();
+      const { modes, tab } = window.bodyfitViewer;
+      if (layer === "bones" && e.target.checked && tab === "synth") modes.synth.request(true); // fetch them
     });
   }
   $("skin-opacity").addEventListener("input", (e) => view.setOpacity(Number(e.target.value)));

@@ -98,17 +98,19 @@ export class SynthMode {
       this.last = parseNpz(await (await answered(first)).arrayBuffer());
       this.timings.push({ ms: performance.now() - began, bones: false });
       window.bodyfitViewer.marks.body = performance.now();
-      this.show(this.last);
+      this.show(this.last, false); // drawn once, by frame() below
     } else {
       await this.request(false);
     }
     this.view.frame();
+    this.view.finish();
     window.bodyfitViewer.marks.drawn = performance.now();
     if (this.view.layers.bones) this.request(true);
   }
 
   enter() {
-    if (this.last) this.show(this.last);
+    if (this.last && !this.last.bones) this.view.setBones(null); // not the bones of another mode's body
+    if (this.last) this.show(this.last, false);
     this.view.setPoints(null);
     this.view.frame();
   }
@@ -159,8 +161,8 @@ export class SynthMode {
     }
   }
 
-  /** Draw a synthesize answer (npz arrays of one body). */
-  show(arrays) {
+  /** Draw a synthesize answer (npz arrays of one body); `draw` false: leave the render to the caller. */
+  show(arrays, draw = true) {
     if (arrays.faces) this.faces = arrays.faces.data;
     if (arrays.bone_faces) this.boneFaces = arrays.bone_faces.data;
     const vertices = arrays.vertices.data;
@@ -168,7 +170,7 @@ export class SynthMode {
     this.view.setSkin(vertices, fresh || (this.view.skin.geometry.index ? null : this.faces));
     if (arrays.bones) this.view.setBones(arrays.bones.data, arrays.bone_faces ? this.boneFaces : null);
     this.view.setJoints(arrays.joints.data, this.model.jointInfo);
-    this.view.render();
+    if (draw) this.view.render();
     let lo = Infinity;
     let hi = -Infinity;
     for (let i = 1; i < vertices.length; i += 3) {

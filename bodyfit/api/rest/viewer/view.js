@@ -79,6 +79,13 @@ export class View {
     this.frames = (this.frames || 0) + 1;
   }
 
+  /** Wait until the frame is on the canvas: the draw calls run after render() returns (in the GPU
+   * process); reading one pixel waits for them. */
+  finish() {
+    const gl = this.renderer.getContext();
+    gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4));
+  }
+
   static setMesh(mesh, vertices, faces) {
     const geometry = mesh.geometry;
     const position = geometry.getAttribute("position");
