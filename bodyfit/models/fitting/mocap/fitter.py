@@ -185,7 +185,7 @@ def fit_markers(
     setup = _Setup(
         skel, ScaleModel(model), _weighted(virtual_markers(defn, model), weights, defn.name), defn.name,
         plan, plan.holding(skel, static_pose) if static_pose else plan, trial, window, static_pose,
-        calibration_frames, max_iterations,
+        calibration_frames, max_iterations, defn.calibration_held,
     )  # fmt: skip
     kinds = ["motion"] if window is None else ["static", "motion"]
     fitted = {kind: _candidate(setup, kind) for kind in kinds}
@@ -246,6 +246,16 @@ class _Setup:
     static_pose: Mapping[str, float] | None
     calibration_frames: int
     max_iterations: int
+    calibration_held: tuple[str, ...] = ()
+
+    def placing(self, markers: VirtualMarkers, place: np.ndarray) -> DofPlan:
+        """The IK plan for a calibration that places the markers ``place`` (M,) bool of ``markers``: the
+        set's ``calibration_held`` coordinates that move a placed marker are held near neutral (their zero
+        and the placed markers' locations trade off one to one, see :mod:`.marker_sets`)."""
+        on = np.zeros(len(self.skel.body_names), bool)
+        on[np.asarray(markers.body_indices(self.skel))[place]] = True
+        held = [n for n in self.calibration_held if (moved_bodies(self.skel, [n]) & on).any()]
+        return holding_neutral(self.skel, self.plan, held) if held else self.plan
 
 
 @dataclass(frozen=True)
@@ -372,16 +382,16 @@ def _refine_on_motion(
     moving = markers.subset(names)
     obs = observed_positions(trial, names)
     frames = _calibration_frames(obs, setup.calibration_frames)
-    first = solve_ik(skel, moving, static.scales, obs[frames], trial.times[frames], setup.plan)
     lower = np.array([b.startswith(LOWER_BODIES) for b in moving.bodies])
     arm = np.array([b.startswith(ARM_BODIES) for b in moving.bodies])
     place = ~moving.anatomical | ~(lower | arm)
     start_local = np.where(lower[:, None], moving.local, defaults.subset(names).local)
     moving = replace(moving, local=start_local)
+    first = solve_ik(skel, moving, static.scales, obs[frames], trial.times[frames], setup.plan)
     centre, sigma = _refine_scale_prior(skel, setup.scale_model, static.scales)
     cal = calibrate(
-        skel, setup.scale_model.centred(centre), moving, obs[frames], trial.times[frames], setup.plan,
-        place, start=first.q, scale_sigma=sigma,
+        skel, setup.scale_model.centred(centre), moving, obs[frames], trial.times[frames],
+        setup.placing(moving, place), place, start=first.q, scale_sigma=sigma,
     )  # fmt: skip
     # The markers only the static trial shows keep their static places.
     local = markers.local.copy()
@@ -420,7 +430,7 @@ def _subject_from_motion(setup: _Setup, vm: VirtualMarkers) -> _Subject:
         vm,
         obs[frames],
         trial.times[frames],
-        setup.plan,
+        setup.placing(vm, ~vm.anatomical),
         ~vm.anatomical,
         start=first.q,
     )

@@ -22,10 +22,19 @@ default location comes from one of two sources, or the mean of several:
 
 ``anatomical`` markers sit on palpated bony landmarks: they scale the subject and set its static pose.
 The others (thigh and shank clusters, forearm and midfoot markers) are technical: wherever the lab put
-them, calibration places them from the data. ``weight`` is the inverse-kinematics weight (the values of
+them, calibration places them from the data. The gait2392 protocol's head and arm markers are technical
+too: the head marker sits on a cap or headband rather than the vertex, and labs put the elbow and wrist
+markers where their own model places them (the Hamner pipeline's marker placement moves them up to 11 cm
+from its generic model, and puts ``Wrist.Med`` on the radial side of its forearm), so their default
+places carry no anatomical meaning. ``weight`` is the inverse-kinematics weight (the values of
 the OpenSim example setups). ``locked`` DOFs are held at a value because the protocol cannot see them
 (subtalar and mtp as in OpenSim's setups, wrists without hand markers); ``soft`` DOFs (our added spine
 and scapula joints) are pulled gently towards neutral so the Rajagopal DOFs explain what they can.
+``calibration_held`` DOFs are held near neutral while calibration places technical markers on the bodies
+they move: a constant offset of such a coordinate and a rotation of those markers' places are the same
+motion of the markers (the wrist markers about the forearm's axis and ``pro_sup``), so the markers alone
+cannot fix the coordinate's zero; holding it sets that zero where the model defines it (0: the forearm
+supinated, as OpenSim's arm models define it), instead of wherever the first frames' noise leaves it.
 """
 
 from __future__ import annotations
@@ -129,12 +138,14 @@ class MarkerDef:
 
 @dataclass(frozen=True)
 class MarkerSetDef:
-    """A named protocol: its markers, DOFs held fixed (name -> radians) and DOFs pulled to neutral."""
+    """A named protocol: its markers, DOFs held fixed (name -> radians), DOFs pulled to neutral and DOFs
+    held near neutral while technical markers are placed (see the module docstring)."""
 
     name: str
     markers: tuple[MarkerDef, ...]
     locked: tuple[tuple[str, float], ...]
     soft: tuple[str, ...]
+    calibration_held: tuple[str, ...] = ()
 
     @property
     def names(self) -> list[str]:
@@ -188,7 +199,7 @@ GAIT2392 = MarkerSetDef(
     (
         MarkerDef("V.Sacral", "pelvis", ("raj:RPSI", "raj:LPSI"), True, 10.0),
         MarkerDef("Sternum", "thorax", ("lm:suprasternale", "lm:xiphoid"), False, 1.0),
-        MarkerDef("Top.Head", "head", ("lm:vertex",), True, 0.1),
+        MarkerDef("Top.Head", "head", ("lm:vertex",), False, 0.1),
         *_sided(
             [
                 ("{S}.ASIS", "pelvis", ("raj:{S}ASI",), True, 10.0),
@@ -210,9 +221,9 @@ GAIT2392 = MarkerSetDef(
                 ("{S}.Toe.Tip", "toes_{s}", ("lm:toe_tip_{s}",), True, 10.0),
                 ("{S}.Acromium", "scapula_{s}", ("raj:{S}ACR",), True, 0.5),
                 ("{S}.Bicep", "humerus_{s}", ("raj:{S}UA3",), False, 1.0),
-                ("{S}.Elbow", "humerus_{s}", ("raj:{S}LEL",), True, 1.0),
-                ("{S}.Wrist.Med", "radius_{s}", ("raj:{S}FAulna",), True, 1.0),
-                ("{S}.Wrist.Lat", "radius_{s}", ("raj:{S}FAradius",), True, 1.0),
+                ("{S}.Elbow", "humerus_{s}", ("raj:{S}LEL",), False, 1.0),
+                ("{S}.Wrist.Med", "radius_{s}", ("raj:{S}FAulna",), False, 1.0),
+                ("{S}.Wrist.Lat", "radius_{s}", ("raj:{S}FAradius",), False, 1.0),
                 ("{S}.Temple", "head", ("lm:tragion_{s}",), False, 0.1),
             ],
             near={"{S}.Toe.Tip": HALLUX_NAIL},
@@ -220,6 +231,7 @@ GAIT2392 = MarkerSetDef(
     ),
     _LOCK_FEET_HANDS,
     _SOFT,
+    ("pro_sup_r", "pro_sup_l"),
 )
 
 _TORSO_OURS = {"RACR", "LACR", "C7", "CLAV", "RASH", "RPSH", "LASH", "LPSH"}
@@ -278,6 +290,7 @@ RAJAGOPAL = MarkerSetDef(
     ),
     _LOCK_FEET_HANDS,
     _SOFT,
+    ("pro_sup_r", "pro_sup_l"),
 )
 
 MARKER_SETS: dict[str, MarkerSetDef] = {s.name: s for s in (GAIT2392, RAJAGOPAL)}
