@@ -5,7 +5,9 @@ What is measured
 * Data: ANSUR II (US Army 2012: 4,082 men, 1,986 women) and NHANES 2017-2020 adults from
   ../shared/data/anthropometry when present, else the 200-per-sex and 500-per-sex extracts in
   tests/data/anthropometry. Subjects are split 80/20 per sex with seed 39; scores are on the test split.
-* ``repro_*``: a body built (``fit_measurements``, the sex's prior mean) from all of a test subject's
+* Prior: bodies are built under a Gaussian prior over the shape coefficients per sex, learned from the
+  bodies built (under the mean ANSUR II body of the sex) for 400 training subjects (60 with ``--quick``).
+* ``repro_*``: a body built (``fit_measurements``) from all of a test subject's
   measurements that have an ANSUR II column; mean absolute error of its measurements against the subject's,
   over heights, lengths and breadths (``repro_mae_length_mm``), circumferences (``repro_mae_circ_mm``)
   and the weight (``repro_mae_mass_kg``).
@@ -37,8 +39,14 @@ import numpy as np
 import torch
 
 from bodyfit.models.anthropometry.definitions import MEASUREMENTS
-from bodyfit.models.anthropometry.inverse import NAMES, evaluate, fit_measurements, sex_prior_mean
-from bodyfit.models.anthropometry.measure import measure
+from bodyfit.models.anthropometry.inverse import (
+    NAMES,
+    evaluate,
+    fit_measurements,
+    gaussian_prior,
+    sex_prior_mean,
+)
+from bodyfit.models.anthropometry.measure import DENSITY, measure
 from bodyfit.models.anthropometry.surveys import read_ansur, read_nhanes
 from bodyfit.models.body.model import BodyModel
 
@@ -109,34 +117,50 @@ def linear_baseline(
     return out
 
 
-def _fit(model: BodyModel, targets: np.ndarray, sexes: np.ndarray) -> np.ndarray:
-    """Measurements (n, M) of the bodies built from ``targets`` (n, M; NaN = not given)."""
+Prior = tuple[np.ndarray, np.ndarray]
+
+
+def _fit(model: BodyModel, targets: np.ndarray, sexes: np.ndarray, priors: dict[str, Prior]) -> np.ndarray:
+    """Measurements (n, M) of the bodies built from ``targets`` (n, M; NaN = not given) under each sex's
+    prior (mean, precision)."""
     out = np.empty_like(targets)
     for s in SEXES:
         rows = np.flatnonzero(sexes == s)
         if len(rows):
-            out[rows] = fit_measurements(model, targets[rows], sex_prior_mean(model, s))[1]
+            out[rows] = fit_measurements(model, targets[rows], *priors[s])[1]
     return out
 
 
-def scores(model: BodyModel, ansur: dict[str, dict[str, np.ndarray]], per_sex: int | None) -> dict[str, Any]:
+def learn_priors(model: BodyModel, train: dict[str, np.ndarray], n: int) -> dict[str, Prior]:
+    """Each sex's Gaussian prior over the coefficients, from bodies built (under the mean-body prior of the
+    sex) for ``n`` training subjects' full measurement rows."""
+    priors = {}
+    for s in SEXES:
+        rows = train[s][np.random.default_rng(SEED).permutation(len(train[s]))[:n]]
+        shapes, _ = fit_measurements(model, rows, sex_prior_mean(model, s))
+        priors[s] = gaussian_prior(shapes)
+    return priors
+
+
+def scores(
+    model: BodyModel, ansur: dict[str, dict[str, np.ndarray]], per_sex: int | None, n_prior: int
+) -> dict[str, Any]:
     """Reproduction, prediction and mass-from-volume scores on the test split (``per_sex`` test subjects
-    per sex at most)."""
-    parts = {"train": [], "test": [], "sex_train": [], "sex_test": []}  # type: dict[str, list[np.ndarray]]
+    per sex at most), the bodies built under priors learned from ``n_prior`` training subjects per sex."""
+    train_rows, test_rows = {}, {}
     for s in SEXES:
         train, test = split(len(ansur[s]["stature"]))
-        test = test[:per_sex] if per_sex else test
-        parts["train"].append(table(ansur[s], train))
-        parts["test"].append(table(ansur[s], test))
-        parts["sex_train"].append(np.full(len(train), s))
-        parts["sex_test"].append(np.full(len(test), s))
-    train, test = np.concatenate(parts["train"]), np.concatenate(parts["test"])
-    sex_train, sex_test = np.concatenate(parts["sex_train"]), np.concatenate(parts["sex_test"])
-    out: dict[str, Any] = {"test_subjects": len(test)}
-    out.update(_mae_by_kind(_fit(model, test, sex_test), test))
+        train_rows[s] = table(ansur[s], train)
+        test_rows[s] = table(ansur[s], test[:per_sex] if per_sex else test)
+    priors = learn_priors(model, train_rows, n_prior)
+    train, test = np.concatenate(list(train_rows.values())), np.concatenate(list(test_rows.values()))
+    sex_train = np.concatenate([np.full(len(train_rows[s]), s) for s in SEXES])
+    sex_test = np.concatenate([np.full(len(test_rows[s]), s) for s in SEXES])
+    out: dict[str, Any] = {"test_subjects": len(test), "prior_subjects": 2 * n_prior}
+    out.update(_mae_by_kind(_fit(model, test, sex_test, priors), test))
     given = np.isin(NAMES, INPUTS)
     others = ~given & np.isfinite(test).all(0)
-    predicted = _fit(model, np.where(given, test, np.nan), sex_test)
+    predicted = _fit(model, np.where(given, test, np.nan), sex_test, priors)
     baseline = linear_baseline(train, test, sex_train == "male", sex_test == "male")
     out["predict_mae_mm"] = float(np.mean(np.abs(predicted - test)[:, others]) * 1000)
     out["baseline_mae_mm"] = float(np.mean(np.abs(baseline - test)[:, others]) * 1000)
@@ -144,10 +168,8 @@ def scores(model: BodyModel, ansur: dict[str, dict[str, np.ndarray]], per_sex: i
     mass = NAMES.index("weightkg")
     no_weight = test.copy()
     no_weight[:, mass] = np.nan
-    from_volume = _fit(model, no_weight, sex_test)[:, mass]
+    from_volume = _fit(model, no_weight, sex_test, priors)[:, mass]
     out["mass_from_volume_mae_kg"] = float(np.mean(np.abs(from_volume - test[:, mass])))
-    from bodyfit.models.anthropometry.measure import DENSITY
-
     out["implied_density"] = float(DENSITY * np.median(test[:, mass] / from_volume))
     return out
 
@@ -187,7 +209,7 @@ def run(quick: bool) -> dict[str, Any]:
     model = BodyModel.load()
     ansur, nhanes, source = load_surveys()
     out: dict[str, Any] = {"data": source}
-    out.update(scores(model, ansur, 40 if quick else None))
+    out.update(scores(model, ansur, 40 if quick else None, 60 if quick else 400))
     out["measure_ms_b1"] = measure_ms(model)
     out.update(ks_scores(model, nhanes, 200 if quick else 1000))
     return {k: round(v, 3) if isinstance(v, float) else v for k, v in out.items()}

@@ -137,6 +137,24 @@ def fit_measurements(
     return c, f
 
 
+def gaussian_prior(shapes: np.ndarray, shrink: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """A Gaussian prior learned from shapes built for a population's measurements.
+
+    The covariance is shrunk towards its diagonal by ``shrink`` so that it stays well conditioned for a few
+    hundred bodies in the shape space's dimensions (O. Ledoit and M. Wolf, "A well-conditioned estimator
+    for large-dimensional covariance matrices", Journal of Multivariate Analysis 88(2), 2004).
+
+    Args:
+        shapes: (N, n_shape).
+    Returns:
+        mean (n_shape,) and precision (n_shape, n_shape), for :func:`fit_measurements`.
+    """
+    c = np.asarray(shapes, np.float64)
+    cov = np.cov(c, rowvar=False)
+    cov = (1.0 - shrink) * cov + shrink * np.diag(np.diag(cov))
+    return c.mean(0), np.linalg.inv(cov)
+
+
 _SEX_MEANS: dict[tuple[int, str], np.ndarray] = {}
 # The mean body is matched to within a few tolerances only: some definitions differ from ANSUR II's by more
 # than one (docs/anthropometry.md), and meeting them all would push the prior's mean to the edge of the
