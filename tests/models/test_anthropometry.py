@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from bodyfit.models.anthropometry.definitions import MEASUREMENTS, UnknownMeasurementError
-from bodyfit.models.anthropometry.inverse import TOLERANCE, shape_from_measurements
+from bodyfit.models.anthropometry.inverse import NAMES, TOLERANCE, gaussian_prior, shape_from_measurements
 from bodyfit.models.anthropometry.measure import body_in_pose, measure, measure_torch, measure_vertices
 from bodyfit.models.anthropometry.ranges import ImplausibleMeasurementError, plausible_range
 from bodyfit.models.anthropometry.regions import topology
@@ -194,3 +194,35 @@ def test_survey_extracts_read_in_our_units() -> None:
     nhanes = read_nhanes(DATA / "nhanes_adult_male_bmx_2020_500.csv")
     assert 1.65 < float(np.nanmean(nhanes["stature"])) < 1.85
     assert 0.8 < float(np.nanmean(nhanes["waistcircumferenceiliaccrest"])) < 1.2
+
+
+def test_gaussian_prior_recovers_a_population() -> None:
+    rng = np.random.default_rng(6)
+    scale = np.linspace(0.5, 2.0, 4)
+    shapes = rng.standard_normal((20000, 4)) * scale + [1.0, -1.0, 0.0, 2.0]
+    mean, precision = gaussian_prior(shapes, shrink=0.0)
+    assert np.allclose(mean, [1.0, -1.0, 0.0, 2.0], atol=0.05)
+    assert np.allclose(np.linalg.inv(precision), np.diag(scale**2), atol=0.08)
+
+
+def test_benchmark_split_and_linear_baseline() -> None:
+    from benchmarks.anthropometry import INPUTS, linear_baseline, split, table
+
+    train, test = split(100)
+    assert len(train) == 80 and len(test) == 20 and not set(train) & set(test)
+    assert np.array_equal(split(100)[1], test)
+    ansur = read_ansur(DATA / "ansur2_male_200.csv")
+    rows = table(ansur, np.arange(200))
+    assert (
+        rows.shape == (200, len(MEASUREMENTS))
+        and np.isnan(rows[:, NAMES.index("forearmcircumference")]).all()
+    )
+    # A measurement that is exactly linear in the inputs is predicted exactly.
+    x = rows.copy()
+    x[:, NAMES.index("sittingheight")] = (
+        0.5 * x[:, NAMES.index(INPUTS[0])] + 0.01 * x[:, NAMES.index(INPUTS[1])]
+    )
+    male = np.ones(200, bool)
+    pred = linear_baseline(x[:150], x[150:], male[:150], male[150:])
+    column = NAMES.index("sittingheight")
+    assert np.allclose(pred[:, column], x[150:, column], atol=1e-9)
