@@ -8,9 +8,11 @@ The protocol: https://chromedevtools.github.io/devtools-protocol/ (Page, Runtime
 from __future__ import annotations
 
 import base64
+import contextlib
 import json
 import os
 import shutil
+import signal
 import subprocess
 import tempfile
 import time
@@ -221,7 +223,8 @@ def browser(width: int = 1280, height: int = 800, install: bool = False) -> Iter
         RuntimeError: the browser did not start (with the end of its output).
     """
     exe = find_chromium(install)
-    with tempfile.TemporaryDirectory(prefix="bodyfit-chromium-") as profile, open(
+    # ignore_cleanup_errors: a helper process of the browser may still write to the profile as it ends
+    with tempfile.TemporaryDirectory(prefix="bodyfit-chromium-", ignore_cleanup_errors=True) as profile, open(
         Path(profile) / "chromium.log", "w+"
     ) as log:
         proc = subprocess.Popen(
@@ -229,6 +232,7 @@ def browser(width: int = 1280, height: int = 800, install: bool = False) -> Iter
              "--remote-debugging-port=0", "about:blank"],
             stdout=subprocess.DEVNULL,
             stderr=log,  # a file, never a pipe: a chatty browser would block on a full one
+            start_new_session=True,  # its own process group: its helper processes end with it
         )
         try:
             port = _devtools_port(proc, Path(profile))
@@ -242,12 +246,20 @@ def browser(width: int = 1280, height: int = 800, install: bool = False) -> Iter
                           deviceScaleFactor=1, mobile=False)
                 yield page
         finally:
-            proc.terminate()
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(5)
+            _stop(proc)
+
+
+def _stop(proc: subprocess.Popen[bytes]) -> None:
+    """End the browser, then whatever helper process of its group outlived it."""
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGTERM)
+    try:
+        proc.wait(10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(5)
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGKILL)
 
 
 def _devtools_port(proc: subprocess.Popen[bytes], profile: Path, timeout_s: float = 30.0) -> int:

@@ -230,9 +230,15 @@ export class UpgradeMode {
       const scale = this.model.dofs[i].unit === "rad" ? DEG : 1;
       return this.coordinates.map((row) => row[i] * scale);
     });
-    const all = series.flat();
-    const lo = Math.min(...all, 0);
-    const hi = Math.max(...all, 1);
+    // a loop, not Math.min(...values): a long sequence's values would overflow the call's arguments
+    let lo = 0;
+    let hi = 1;
+    for (const values of series) {
+      for (const v of values) {
+        if (v < lo) lo = v;
+        if (v > hi) hi = v;
+      }
+    }
     const pad = 24;
     const x = (f) => pad + ((w - pad - 4) * f) / Math.max(this.frames - 1, 1);
     const y = (v) => h - 14 - ((h - 24) * (v - lo)) / (hi - lo);

@@ -24,11 +24,25 @@ function meshOf(material) {
   return mesh;
 }
 
+/**
+ * Whether WebGL runs on the CPU (SwiftShader, llvmpipe: a machine or browser without a GPU), where 4x
+ * multisampling doubles a frame's time: the view leaves edges unsmoothed there. A probe context tells.
+ */
+function softwareWebGL() {
+  const gl = document.createElement("canvas").getContext("webgl2");
+  if (!gl) return true;
+  const info = gl.getExtension("WEBGL_debug_renderer_info");
+  const name = info ? String(gl.getParameter(info.UNMASKED_RENDERER_WEBGL)) : "";
+  gl.getExtension("WEBGL_lose_context")?.loseContext();
+  return /swiftshader|llvmpipe|software/i.test(name);
+}
+
 export class View {
   constructor(canvas, tooltip) {
     this.canvas = canvas;
     this.tooltip = tooltip;
-    this.renderer = new THREE.WebGLRenderer({ canvas, antialias: true, preserveDrawingBuffer: true });
+    this.software = softwareWebGL();
+    this.renderer = new THREE.WebGLRenderer({ canvas, antialias: !this.software, preserveDrawingBuffer: true });
     this.renderer.setPixelRatio(Math.min(window.devicePixelRatio, 2));
     this.renderer.setClearColor(0xf7f8fa);
     this.scene = new THREE.Scene();
@@ -51,6 +65,7 @@ export class View {
       new THREE.PointsMaterial({ color: 0x56606e, size: 2, sizeAttenuation: false, transparent: true, opacity: 0.7 }));
     this.points.visible = false;
     this.joints = new THREE.Group();
+    this.jointMaterial = new THREE.MeshBasicMaterial({ color: JOINT, depthTest: false, transparent: true });
     this.jointInfo = [];
     this.scene.add(this.bones, this.skin, this.points, this.joints);
     this.layers = { skin: true, bones: true, joints: true, scan: true };
@@ -59,6 +74,22 @@ export class View {
     canvas.addEventListener("pointerleave", () => { this.tooltip.hidden = true; });
     new ResizeObserver(() => this.resize()).observe(canvas);
     this.resize();
+    this.warm();
+  }
+
+  /**
+   * Compile the skin's and bones' shaders now: the GPU process compiles them while the page waits for
+   * its first body, instead of after it (a software WebGL takes hundreds of milliseconds for it).
+   */
+  warm() {
+    const triangle = new THREE.BufferGeometry();
+    triangle.setAttribute("position", new THREE.BufferAttribute(new Float32Array(9), 3));
+    triangle.setAttribute("normal", new THREE.BufferAttribute(new Float32Array(9), 3));
+    const scene = new THREE.Scene();
+    scene.add(...this.scene.children.filter((o) => o.isLight).map((light) => light.clone()));
+    scene.add(new THREE.Mesh(triangle, this.skin.material), new THREE.Mesh(triangle, this.bones.material));
+    scene.add(new THREE.Mesh(triangle, this.jointMaterial));
+    this.renderer.compile(scene, this.camera);
   }
 
   resize() {
@@ -138,7 +169,7 @@ export class View {
     if (this.joints.children.length !== info.length) {
       this.joints.clear();
       const geometry = new THREE.SphereGeometry(0.014, 12, 8);
-      const material = new THREE.MeshBasicMaterial({ color: JOINT, depthTest: false, transparent: true });
+      const material = this.jointMaterial;
       info.forEach((_, i) => {
         const s = new THREE.Mesh(geometry, material);
         s.renderOrder = 3;
@@ -147,6 +178,7 @@ export class View {
       });
     }
     this.jointInfo = info;
+    this.tooltip.hidden = true; // it named a joint of the body drawn before
     this.joints.children.forEach((s, i) => s.position.fromArray(positions, 3 * i));
   }
 
@@ -230,12 +262,13 @@ export function nearestDistances(vertices, points) {
     const c = p.map((x, k) => Math.min(Math.max(Math.floor((x - lo[k]) / cell), 0), dims[k] - 1));
     let best = Infinity;
     for (let ring = 0; ring < Math.max(...dims); ring++) {
-      for (let a = c[0] - ring; a <= c[0] + ring; a++) {
-        for (let b = c[1] - ring; b <= c[1] + ring; b++) {
-          for (let d = c[2] - ring; d <= c[2] + ring; d++) {
+      // the cells of this ring's shell that lie inside the grid
+      for (let a = Math.max(c[0] - ring, 0); a <= Math.min(c[0] + ring, dims[0] - 1); a++) {
+        for (let b = Math.max(c[1] - ring, 0); b <= Math.min(c[1] + ring, dims[1] - 1); b++) {
+          for (let d = Math.max(c[2] - ring, 0); d <= Math.min(c[2] + ring, dims[2] - 1); d++) {
             const onShell = Math.max(Math.abs(a - c[0]), Math.abs(b - c[1]), Math.abs(d - c[2])) === ring;
             const bucket = onShell && grid.get(key(a, b, d));
-            if (!bucket || a < 0 || b < 0 || d < 0 || a >= dims[0] || b >= dims[1] || d >= dims[2]) continue;
+            if (!bucket) continue;
             for (const i of bucket) {
               const dx = points[3 * i] - p[0];
               const dy = points[3 * i + 1] - p[1];
