@@ -57,7 +57,7 @@ def test_tape_around_a_cylinder_is_its_circumference() -> None:
     vt = torch.as_tensor(v)[None]
     normal = torch.tensor([[0.0, 1.0, 0.0]], dtype=torch.float64)
     origin = torch.tensor([[0.0, 0.2, 0.0]], dtype=torch.float64)
-    points, valid = crossings(vt[:, e[:, 0]], vt[:, e[:, 1]], origin, normal, torch.zeros(1, 1))
+    points, valid = crossings(vt, e, origin, normal, torch.zeros(1, 1))
     u, w = plane_basis(normal)
     length = float(polygon_perimeter(support_polygon(points, valid, u, w))[0])
     polygon = 90 * 2 * 0.1 * math.sin(math.pi / 90)  # the inscribed 90-gon the mesh is made of
@@ -77,7 +77,7 @@ def test_tape_bridges_a_concavity() -> None:
     vt = torch.as_tensor(v)[None]
     normal = torch.tensor([[0.0, 1.0, 0.0]], dtype=torch.float64)
     origin = torch.tensor([[0.0, 0.1, 0.0]], dtype=torch.float64)
-    points, valid = crossings(vt[:, e[:, 0]], vt[:, e[:, 1]], origin, normal, torch.zeros(1, 1))
+    points, valid = crossings(vt, e, origin, normal, torch.zeros(1, 1))
     u, w = plane_basis(normal)
     length = float(polygon_perimeter(support_polygon(points, valid, u, w))[0])
     assert length == pytest.approx(2 * math.pi * r + 2 * gap, rel=2e-3)
@@ -125,7 +125,7 @@ def test_measure_vertices_matches_measure_and_batches(body: BodyModel) -> None:
 def test_section_bands_hold_across_the_shape_space(body: BodyModel) -> None:
     """The template's edge bands contain every edge the planes cross on bodies 3 SD away."""
     topo = topology(body)
-    wide = topo.__class__(**{**topo.__dict__, "edges": _all_region_edges(body, topo)})
+    wide = topo.__class__(**{**topo.__dict__, "edges": _all_region_edges(body, topo), "_local": {}})
     shape = 3.0 * np.random.default_rng(5).standard_normal((4, body.n_shape))
     v, j = body_in_pose(body, torch.as_tensor(shape, dtype=torch.float64))
     with torch.no_grad():

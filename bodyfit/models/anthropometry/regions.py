@@ -14,7 +14,7 @@ model's frame: metres, +x forward, +y up, +z the body's right.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -60,6 +60,17 @@ class Topology:
     faces: torch.Tensor
     joint_names: list[str]
     joint_regressor: np.ndarray
+    _local: dict[str, tuple[torch.Tensor, torch.Tensor]] = field(
+        default_factory=dict, repr=False, compare=False
+    )
+
+    def section_index(self, name: str) -> tuple[torch.Tensor, torch.Tensor]:
+        """The vertices (n,) a section's edges touch and its edges (E, 2) as indices into them, as tensors:
+        a plane's signed distance is then taken once per vertex, not twice per edge. Cached."""
+        if name not in self._local:
+            vertices, local = np.unique(self.edges[name], return_inverse=True)
+            self._local[name] = (torch.as_tensor(vertices), torch.as_tensor(local.reshape(-1, 2)))
+        return self._local[name]
 
 
 _CACHE: dict[int, Topology] = {}

@@ -46,20 +46,26 @@ def plane_basis(normal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def crossings(
-    a: torch.Tensor, b: torch.Tensor, origin: torch.Tensor, normal: torch.Tensor, offsets: torch.Tensor
+    points: torch.Tensor,
+    edges: torch.Tensor,
+    origin: torch.Tensor,
+    normal: torch.Tensor,
+    offsets: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Where edges a-b cross L parallel planes per body, packed: only crossing edges are interpolated.
+    """Where a mesh's edges cross L parallel planes per body, packed: only crossing edges are interpolated.
 
     Args:
-        a, b: (B, E, 3) edge end points; origin, normal: (B, 3) a point and the unit normal of each body's
-            planes; offsets: (B, L) the planes' distances from the origin along the normal.
+        points: (B, n, 3) vertices; edges: (E, 2) indices into them; origin, normal: (B, 3) a point and the
+            unit normal of each body's planes; offsets: (B, L) the planes' distances from the origin along
+            the normal.
     Returns:
-        points (B * L, C, 3) relative to each plane's own origin (origin + offset * normal), C the largest
-        number of crossings on one plane, and valid (B * L, C) bool marking the real ones.
+        crossings (B * L, C, 3) relative to each plane's own origin (origin + offset * normal), C the
+        largest number of crossings on one plane, and valid (B * L, C) bool marking the real ones.
     """
     B, L = offsets.shape
-    da = ((a - origin[:, None]) * normal[:, None]).sum(-1)[:, None] - offsets[..., None]  # (B, L, E)
-    db = ((b - origin[:, None]) * normal[:, None]).sum(-1)[:, None] - offsets[..., None]
+    height = ((points - origin[:, None]) * normal[:, None]).sum(-1)  # (B, n)
+    da = height[:, edges[:, 0]][:, None] - offsets[..., None]  # (B, L, E)
+    db = height[:, edges[:, 1]][:, None] - offsets[..., None]
     cross = ((da > 0) != (db > 0)).reshape(B * L, -1)
     rows, cols = cross.nonzero(as_tuple=True)
     slot = (cross.cumsum(1) - 1)[rows, cols]
@@ -69,7 +75,7 @@ def crossings(
     edge[rows, slot] = cols
     valid[rows, slot] = True
     body = torch.arange(B).repeat_interleave(L)[:, None]
-    pa, pb = a[body, edge], b[body, edge]  # (B * L, C, 3)
+    pa, pb = points[body, edges[edge, 0]], points[body, edges[edge, 1]]  # (B * L, C, 3)
     sa, sb = da.reshape(B * L, -1).gather(1, edge), db.reshape(B * L, -1).gather(1, edge)
     t = sa / torch.where(valid, sa - sb, torch.ones_like(sa))
     plane = (origin[:, None] + offsets[..., None] * normal[:, None]).reshape(B * L, 1, 3)

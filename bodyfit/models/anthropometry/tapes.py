@@ -64,8 +64,8 @@ class Cutter:
         """
         offsets = torch.zeros(len(origin), 1, dtype=origin.dtype) if offsets is None else offsets
         B, L = offsets.shape
-        e = torch.as_tensor(self.topo.edges[edges])
-        points, valid = crossings(self.v[:, e[:, 0]], self.v[:, e[:, 1]], origin, normal, offsets)
+        vertices, local = self.topo.section_index(edges)
+        points, valid = crossings(self.v[:, vertices], local, origin, normal, offsets)
         if radius is not None:
             limit = (radius * self.scale).repeat_interleave(L)[:, None]
             valid = valid & (points.norm(dim=-1) < limit)
