@@ -147,6 +147,13 @@ class MeshFitResult:
     def confident(self) -> bool:
         return bool(self.report.get("confident"))
 
+    @property
+    def predicted_error_mm(self) -> float | None:
+        """Raw scans: the report's calibrated predicted registration error (mm), which ``confident``
+        follows; None where the server did not estimate it."""
+        value = self.report.get("predicted_error_mm")
+        return None if value is None else float(value)
+
     @classmethod
     def from_event(cls, doc: w.MeshFit) -> MeshFitResult:
         a = doc.arrays

@@ -120,7 +120,12 @@ class FitReport(OpenDocument):
     ``model_to_scan`` each vertex of the fitted surface to its nearest scan point, weighted by area, over
     the part the scan can show (``extra["model_to_scan_over"]``: the whole body, the side facing a single
     view's sensor, or the head and shoulders), with ``extra["unsupported_fraction"]`` of that area farther
-    than ``extra["unsupported_threshold_mm"]`` from every scan point. Null for fits with a correspondence."""
+    than ``extra["unsupported_threshold_mm"]`` from every scan point. Null for fits with a correspondence.
+
+    Raw scans also carry a calibrated estimate of the registration's error: ``predicted_error_mm`` (the mean
+    distance to the true body the fit is predicted to have) and ``predicted_error_interval_mm`` (its 10% and
+    90% quantiles); ``confident`` needs the interval's upper end below the calibrated bound. Null where not
+    estimated."""
 
     distances: DistanceStats
     limit_violations: int
@@ -131,6 +136,8 @@ class FitReport(OpenDocument):
     extra: dict[str, object] = Field(default_factory=dict)
     scan_to_model: DistanceStats | None = None
     model_to_scan: DistanceStats | None = None
+    predicted_error_mm: float | None = None
+    predicted_error_interval_mm: tuple[float, float] | None = None
 
 
 class MeshFitArrays(WireModel):

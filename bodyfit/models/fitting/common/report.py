@@ -80,6 +80,11 @@ class FitReport:
         model_to_scan: raw scans: each vertex of the result's surface to its nearest scan point (mm),
             weighted by the area the vertex stands for, over the part of the body the scan can show
             (``extra["model_to_scan_over"]``); None for fits with a correspondence.
+        predicted_error_mm: raw scans: the registration's predicted mean distance to the true body (mm),
+            calibrated on synthetic scans (:mod:`bodyfit.models.fitting.common.quality`); None where not
+            estimated.
+        predicted_error_interval_mm: the 10% and 90% quantiles of that prediction (mm); ``confident``
+            needs the upper one below the calibrated bound.
     """
 
     distances: DistanceStats
@@ -91,6 +96,8 @@ class FitReport:
     extra: dict[str, Any] = field(default_factory=dict)
     scan_to_model: DistanceStats | None = None
     model_to_scan: DistanceStats | None = None
+    predicted_error_mm: float | None = None
+    predicted_error_interval_mm: tuple[float, float] | None = None
 
     @classmethod
     def judged(
@@ -104,9 +111,11 @@ class FitReport:
         extra: dict[str, Any] | None = None,
         scan_to_model: DistanceStats | None = None,
         model_to_scan: DistanceStats | None = None,
+        predicted: tuple[float, tuple[float, float]] | None = None,
     ) -> FitReport:
         """A report whose confidence follows from ``reasons`` (causes found by the fitter) plus the
-        joint-limit violations of q (..., n_dof) against ``ranges`` (n_dof, 2), counted here."""
+        joint-limit violations of q (..., n_dof) against ``ranges`` (n_dof, 2), counted here; ``predicted``:
+        the predicted error (mm) and its interval (mm), when estimated."""
         violations = count_limit_violations(q, ranges)
         if violations:
             reasons = [*reasons, f"{violations} coordinate values outside their joint limits"]
@@ -120,12 +129,16 @@ class FitReport:
             extra or {},
             scan_to_model,
             model_to_scan,
+            None if predicted is None else predicted[0],
+            None if predicted is None else predicted[1],
         )
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary (distances in mm)."""
         out = asdict(self)
         out["reasons"] = list(self.reasons)
+        interval = self.predicted_error_interval_mm
+        out["predicted_error_interval_mm"] = None if interval is None else list(interval)
         return out
 
 

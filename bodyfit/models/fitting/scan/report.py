@@ -1,6 +1,6 @@
 """A scan fit's result (:class:`ScanFit`, :func:`placed_fit`): its parameters moved into the scan's frame
 (:func:`in_scan_frame`), its distances both ways (:func:`both_ways`: scan to model and model to scan) and its
-report, judged confident or not (:func:`judge`)."""
+report, judged confident or not by its calibrated predicted error (:func:`judge`, :func:`assessed`)."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from scipy.sparse.csgraph import connected_components
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting.common.nearest import PointTree
 from bodyfit.models.fitting.common.nonrigid import refine_nonrigid
+from bodyfit.models.fitting.common.quality import Prediction, prior_distance, scan_features, shipped_model
 from bodyfit.models.fitting.common.report import DistanceStats, FitReport
 from bodyfit.models.fitting.common.surface import point_to_surface, vertex_normals
 from bodyfit.models.fitting.scan.config import PART_NAMES, ScanFitConfig
@@ -42,6 +43,7 @@ MAX_GAP = 0.03
 # A vertex of a single view's fit counts as seen when its normal turns this far towards the sensor: the
 # grazing band at the silhouette, where a depth camera returns few points, is left out.
 FACING_COS = 0.2
+PREDICTED = "predicted registration error"  # how the reason that states the prediction begins
 
 
 @dataclass(frozen=True)
@@ -224,45 +226,86 @@ def both_ways(
     )
 
 
-def _reasons(
-    fraction: float,
-    mean_mm: float,
-    coverage: float,
-    partial_extent: float | None,
-    view: np.ndarray | None,
-    searched: bool,
-) -> list[str]:
-    """Why a fit is not confident (empty when it is): the lines of its report."""
+def _hard_reasons(fraction: float, partial_extent: float | None) -> list[str]:
+    """Causes that make a fit not confident whatever its predicted error: too few inliers (the scan may hold
+    more than one body, or none), or a head and shoulders fitted in place of a body."""
     reasons = []
     if fraction < MIN_INLIER_FRACTION:
         reasons.append(
             f"only {fraction:.0%} of the scan's points lie within {INLIER_MM:.0f} mm of the fitted body: "
             "crop the background or other objects, or the scan may not be a human body"
         )
-    if not mean_mm <= CONFIDENT_MEAN_MM:
-        reasons.append(f"mean scan-to-body distance {mean_mm:.1f} mm exceeds {CONFIDENT_MEAN_MM:.0f} mm")
-    if coverage < MIN_COVERAGE:
-        reasons.append(
-            f"the scan covers {coverage:.0%} of the body surface: the shape and pose of the rest are guesses"
-        )
     if partial_extent is not None:
         reasons.append(
             f"the scan is {partial_extent:.2f} m across, less than a body: it was fitted as a head and "
             "shoulders; the rest of the body is the shape space's guess, in the start pose"
         )
-    if view is not None:
-        reasons.append(
-            "the scan is one sensor's view: the side of the body it did not see is the model's guess"
-        )
-    if searched:
-        reasons.append(
-            "the orientation was searched: on varied poses such fits often match the surface with a "
-            "wrong heading or wrong limbs, which the distances cannot show; give the scan's up axis and "
-            "facing when you know them (up= and facing=, e.g. up=+y facing=+z, on REST, gRPC and the SDK; "
-            "--up and --facing on the command line; ScanFitter.fit(orientation=)), and its pose class "
-            "(pose=, --pose: standing, sitting, a-pose or t-pose)"
-        )
     return reasons
+
+
+def _observations(
+    mean_mm: float, coverage: float, view: np.ndarray | None, searched: bool, both: BothWays | None
+) -> list[str]:
+    """What in a fit's distances and circumstances can make its predicted error large: the report's
+    ``extra["observations"]``, and its reasons when the prediction is not confident."""
+    out = []
+    if not mean_mm <= CONFIDENT_MEAN_MM:
+        out.append(f"mean scan-to-body distance {mean_mm:.1f} mm exceeds {CONFIDENT_MEAN_MM:.0f} mm")
+    if coverage < MIN_COVERAGE:
+        out.append(
+            f"the scan covers {coverage:.0%} of the body surface: the shape and pose of the rest are guesses"
+        )
+    if view is not None:
+        out.append("the scan is one sensor's view: the side of the body it did not see is the model's guess")
+    if both is not None:
+        out += both.reasons()
+    if searched:
+        out.append(
+            "the orientation was searched: give the scan's up axis and facing when you know them (up= and "
+            "facing=, e.g. up=+y facing=+z, on REST, gRPC and the SDK; --up and --facing on the command "
+            "line; ScanFitter.fit(orientation=)), and its pose class (pose=, --pose: standing, sitting, "
+            "a-pose or t-pose)"
+        )
+    return out
+
+
+def _prediction(report: FitReport) -> Prediction | None:
+    """The calibrated prediction of a raw-scan fit's registration error (:mod:`.common.quality`), or None
+    when the shipped model cannot be read."""
+    try:
+        model = shipped_model()
+    except (OSError, ValueError, KeyError):
+        return None
+    return model.predict(scan_features(report.to_dict()))
+
+
+def assessed(report: FitReport) -> FitReport:
+    """``report`` with its predicted error, interval and confidence from its current entries: confident
+    when the prediction is (its interval's upper end below the calibrated bound) and no hard reason (joint
+    limits, too few inliers, a head-and-shoulders fit) stands; when it is not, the reasons say what the
+    prediction is and what in the fit leads to it (``extra["observations"]``)."""
+    observations = list(report.extra.get("observations", []))
+    hard = [r for r in report.reasons if r not in observations and not r.startswith(PREDICTED)]
+    prediction = _prediction(report)
+    if prediction is None:
+        reasons = hard + observations
+        return replace(report, confident=not reasons, reasons=tuple(reasons))
+    low, high = prediction.interval_mm
+    reasons = list(hard)
+    if not prediction.confident:
+        bound = shipped_model().confident_below_mm
+        reasons += [
+            f"{PREDICTED} {prediction.error_mm:.0f} mm (80% interval {low:.0f}-{high:.0f} mm): the "
+            f"interval's upper end is not below {bound:.0f} mm",
+            *observations,
+        ]
+    return replace(
+        report,
+        confident=not reasons,
+        reasons=tuple(reasons),
+        predicted_error_mm=round(prediction.error_mm, 2),
+        predicted_error_interval_mm=(round(low, 2), round(high, 2)),
+    )
 
 
 def judge(
@@ -278,20 +321,20 @@ def judge(
     losses: dict[str, float],
     partial_extent: float | None = None,
     both: BothWays | None = None,
+    prior: dict[str, float] | None = None,
 ) -> FitReport:
     """The report of a fit: every scan point's distance (N,) to the registration, the share of the body's
     surface the scan covers, the non-rigid refinement's mean offset (m), whether the orientation was
     searched, a single view's direction (3,) or None, the coordinates (n_dof,) against their ``ranges``
     (n_dof, 2), the iterations, seconds and each phase's score, ``partial_extent`` (m) when the scan
-    was fitted as a head and shoulders, and the distances both ways (:func:`both_ways`) when measured.
-    ``distances`` in the report are the inliers' (within :data:`INLIER_MM`); ``scan_to_model`` all
-    points'."""
+    was fitted as a head and shoulders, the distances both ways (:func:`both_ways`) when measured, and the
+    pose's and shape's distance from the prior (:func:`.common.quality.prior_distance`). ``distances`` in
+    the report are the inliers' (within :data:`INLIER_MM`); ``scan_to_model`` all points'. Its confidence
+    and predicted error: :func:`assessed`."""
     inlier = distances * 1000.0 <= INLIER_MM
     stats = DistanceStats.of(distances[inlier])
     fraction = float(inlier.mean())
-    reasons = _reasons(fraction, stats.mean, coverage, partial_extent, view, searched)
-    if both is not None:
-        reasons += both.reasons()
+    hard = _hard_reasons(fraction, partial_extent)
     extra = {
         "inlier_fraction": round(fraction, 4),
         "inlier_threshold_mm": INLIER_MM,
@@ -300,13 +343,18 @@ def judge(
         "nonrigid_offset_mm": round(offset * 1000, 2),
         "phase_scores": {k: round(v, 5) for k, v in losses.items()},
         "fitted_part": PART_NAMES["all" if partial_extent is None else "upper"],
+        "orientation_searched": searched,
         **({} if both is None else both.extra()),
+        **({} if prior is None else {"prior_distance": prior}),
+        "observations": _observations(stats.mean, coverage, view, searched, both),
     }
     if both is None:
-        return FitReport.judged(stats, q, ranges, iterations, seconds, reasons, extra)
-    return FitReport.judged(
-        stats, q, ranges, iterations, seconds, reasons, extra, both.scan_to_model, both.model_to_scan
-    )
+        report = FitReport.judged(stats, q, ranges, iterations, seconds, hard, extra)
+    else:
+        report = FitReport.judged(
+            stats, q, ranges, iterations, seconds, hard, extra, both.scan_to_model, both.model_to_scan
+        )
+    return assessed(report)
 
 
 def placed_fit(
@@ -355,6 +403,7 @@ def placed_fit(
     both = both_ways(points, distances, run.cleaned, registration, faces, part, over)
     seconds = time.perf_counter() - start
     ranges = model.skeleton.ranges
+    prior = prior_distance(q, c, model.bind_coordinates, ranges)
     report = judge(
         distances,
         coverage,
@@ -368,15 +417,17 @@ def placed_fit(
         losses,
         partial_extent,
         both,
+        prior,
     )
     return ScanFit(c, q, root, vertices, registration, joints, scan_to_body, distances, report)
 
 
 def with_branch(fit: ScanFit, best: int, scores: list[float]) -> ScanFit:
-    """``fit`` with its report saying which branch it came from (``best``) and each branch's score."""
+    """``fit`` with its report saying which branch it came from (``best``) and each branch's score, and
+    assessed again (:func:`assessed`): branches that disagree make the prediction less certain."""
     extra = {
         **fit.report.extra,
         "branch": best,
         "branch_scores": [round(x, 5) for x in scores],
     }
-    return replace(fit, report=replace(fit.report, extra=extra))
+    return replace(fit, report=assessed(replace(fit.report, extra=extra)))
