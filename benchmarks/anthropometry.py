@@ -10,7 +10,7 @@ What is measured
 * ``repro_*``: a body built (``fit_measurements``) from all of a test subject's
   measurements that have an ANSUR II column; mean absolute error of its measurements against the subject's,
   over heights, lengths and breadths (``repro_mae_length_mm``), circumferences (``repro_mae_circ_mm``)
-  and the weight (``repro_mae_mass_kg``).
+  and the weight (``repro_mae_mass_kg``); ``repro_worst_mm`` the six measurements reproduced worst.
 * ``predict_mae_mm``: a body built from sex, stature, weight, chest, waist and buttock circumference;
   mean absolute error over the subject's other measurements (mm). ``baseline_mae_mm``: a least-squares
   linear regression from the same inputs (and sex) fitted on the training split, in the same run;
@@ -157,7 +157,12 @@ def scores(
     sex_train = np.concatenate([np.full(len(train_rows[s]), s) for s in SEXES])
     sex_test = np.concatenate([np.full(len(test_rows[s]), s) for s in SEXES])
     out: dict[str, Any] = {"test_subjects": len(test), "prior_subjects": 2 * n_prior}
-    out.update(_mae_by_kind(_fit(model, test, sex_test, priors), test))
+    reproduced = _fit(model, test, sex_test, priors)
+    out.update(_mae_by_kind(reproduced, test))
+    err = np.abs(reproduced - test)
+    per = np.nansum(err, 0) / np.maximum(np.isfinite(err).sum(0), 1)  # 0 where ANSUR II has no column
+    worst = [k for k in np.argsort(-per) if NAMES[k] != "weightkg"][:6]
+    out["repro_worst_mm"] = {NAMES[k]: round(float(per[k]) * 1000, 1) for k in worst}
     given = np.isin(NAMES, INPUTS)
     others = ~given & np.isfinite(test).all(0)
     predicted = _fit(model, np.where(given, test, np.nan), sex_test, priors)
