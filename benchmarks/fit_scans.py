@@ -27,7 +27,9 @@ What is measured
   ``seconds``: wall time of the fit; ``s_per_100k``: seconds scaled to 100,000 input points.
 * ``scan_registration_by_part_mm``: the registration error averaged over each part's vertices (head,
   hands, arms, legs, feet, trunk); the template's vertices are not spread evenly (head 32%, hands 24%).
-* ``scan_holes_mm``, ``scan_depth_mm``, ``scan_clothing_mm``: the registration error of those conditions.
+* ``scan_holes_mm``, ``scan_depth_mm``, ``scan_clothing_mm``: the registration error of those conditions;
+  ``scan_per_condition``'s ``clothed``: the share of each condition's scans the fit took for clothed (the
+  body fitted under the cloth, :mod:`bodyfit.models.fitting.scan.clothing`).
 * Targets (issue): scan_mm <= 3 clean, <= 6 corrupted; registration_mm <= 10; <= 3 s per 100k points;
   scan_clutter_mm <= 10.
 
@@ -238,6 +240,7 @@ def fit_one(
         "confident": fit.report.confident,
         "violations": fit.report.limit_violations,
         "scene_points_removed": fit.report.extra.get("scene", {}).get("points_removed", 0),
+        "clothed": "clothing" in fit.report.extra,
     }  # fmt: skip
 
 
@@ -267,6 +270,7 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
                 "scan_mm": mean("scan_mm", (c,)),
                 "registration_mm": mean("registration_mm", (c,)),
                 "inlier_fraction": mean("inlier_fraction", (c,)),
+                "clothed": mean("clothed", (c,)),
             }
             for c in CONDITIONS
         },

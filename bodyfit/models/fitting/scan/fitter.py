@@ -96,6 +96,7 @@ from bodyfit.models.fitting.common.surface import (
     NormalOperators,
 )
 from bodyfit.models.fitting.registered.fitter import DataTerm, RegisteredFitter, State
+from bodyfit.models.fitting.scan.clothing import ClothingField, clothing_field, looks_clothed, under_cloth
 from bodyfit.models.fitting.scan.config import (
     PART_NAMES,
     ScanBranch,
@@ -303,8 +304,39 @@ class ScanFitter:
         hyp = starts[best]
         n_iter, tail = self._run_phases(hyp, phases[until:], branches[best], run, "", run.pool.map)
         iterations += n_iter
-        fit = self._result(hyp, points, run, iterations, {**losses, **branch_losses[best], **tail}, began)
+        n_iter, cloth, field = self._under_cloth(hyp, run, branches[best])
+        iterations += n_iter
+        losses = {**losses, **branch_losses[best], **tail, **cloth}
+        fit = self._result(hyp, points, run, iterations, losses, began, clothing=field)
         return with_branch(fit, best, scores)
+
+    def _clothing_field(self, hyp: Hypotheses, cleaned: np.ndarray) -> ClothingField:
+        """The cleaned scan's (M, 3) outward offset over the best hypothesis's body
+        (:func:`.clothing.clothing_field`; a single view's over the side facing its sensor)."""
+        cfg = self.config.clothing
+        verts = self._vertices(hyp.state)
+        seen = self._steps.visible(hyp, np.arange(self.model.n_vertices), verts)
+        body_points = (cleaned - hyp.centre) @ hyp.rotation[0].T
+        neighbours = 48 if cfg is None else cfg.neighbours
+        seen_body = None if seen is None else seen[0]
+        return clothing_field(verts[0], self.faces, body_points, neighbours, seen=seen_body)
+
+    def _under_cloth(
+        self, hyp: Hypotheses, run: PhaseRun, branch: ScanBranch
+    ) -> tuple[int, dict[str, float], ClothingField | None]:
+        """When the scan stands off the fitted body like loose clothing (:func:`.clothing.looks_clothed`),
+        fit the body inside it (the one-sided ``config.clothing.phases``, reported as further steps); returns
+        the iterations run, each phase's score and the clothing's offset over the body fitted under it
+        (None when the scan does not look clothed)."""
+        cfg = self.config.clothing
+        if cfg is None:
+            return 0, {}, None
+        field = self._clothing_field(hyp, run.cleaned)
+        if not looks_clothed(field, cfg.threshold_mm / 1000.0, cfg.min_fraction):
+            return 0, {}, None
+        run.total += len(cfg.phases)
+        n_iter, losses = self._run_phases(hyp, cfg.phases, branch, run, "under the clothing: ", run.pool.map)
+        return n_iter, losses, self._clothing_field(hyp, run.cleaned)
 
     def progress_steps(self, partial: bool = False) -> int:
         """How many steps :meth:`fit` reports on a whole body: one per phase, the branched ones once per
@@ -478,10 +510,26 @@ class ScanFitter:
         losses: dict[str, float],
         start: float,
         partial_extent: float | None = None,
+        clothing: ClothingField | None = None,
     ) -> ScanFit:
         """The fit of the best hypothesis of ``hyp``: refined, in the scan's frame, with every raw point's
         (N, 3) distance to the registration (in parts, on the run's threads) and the report
-        (``partial_extent``: the scan's largest extent (m) when it was fitted as a head and shoulders)."""
-        return placed_fit(
-            self._steps, self.config, hyp, points, run, iterations, losses, start, partial_extent
+        (``partial_extent``: the scan's largest extent (m) when it was fitted as a head and shoulders).
+        With ``clothing`` (the scan's offset over the body fitted under loose clothing) the registration
+        is the body under the cloth: refined on the cleaned points moved in by the offset
+        (:func:`.clothing.under_cloth`), the distances still those of the raw points, and the report's
+        ``extra["clothing"]`` says how far the cloth stands off it."""
+        if clothing is None:
+            return placed_fit(
+                self._steps, self.config, hyp, points, run, iterations, losses, start, partial_extent
+            )
+        R, m = hyp.rotation[0], hyp.centre
+        body = self._vertices(hyp.state)[0]
+        moved = under_cloth(body, self.faces, (run.cleaned - m) @ R.T, clothing) @ R + m
+        under = replace(run, cleaned=moved, tree=PointTree(moved))
+        fit = placed_fit(
+            self._steps, self.config, hyp, points, under, iterations, losses, start, partial_extent
         )
+        threshold = (self.config.clothing.threshold_mm if self.config.clothing else 0.0) / 1000.0
+        extra = {**fit.report.extra, "clothing": clothing.summary(threshold)}
+        return replace(fit, report=replace(fit.report, extra=extra))
