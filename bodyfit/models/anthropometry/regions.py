@@ -14,6 +14,7 @@ model's frame: metres, +x forward, +y up, +z the body's right.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -73,15 +74,15 @@ class Topology:
         return self._local[name]
 
 
-_CACHE: dict[int, Topology] = {}
+# Per model, dropped with it (an id could be reused by a later model).
+_CACHE: weakref.WeakKeyDictionary[BodyModel, Topology] = weakref.WeakKeyDictionary()
 
 
 def topology(model: BodyModel) -> Topology:
     """The model's :class:`Topology`, built on first use and kept for the model's lifetime."""
-    key = id(model)
-    if key not in _CACHE:
-        _CACHE[key] = build_topology(model)
-    return _CACHE[key]
+    if model not in _CACHE:
+        _CACHE[model] = build_topology(model)
+    return _CACHE[model]
 
 
 def build_topology(model: BodyModel) -> Topology:
