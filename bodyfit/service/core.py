@@ -61,6 +61,7 @@ from bodyfit.service.validation import (
     invalid_input,
 )
 from bodyfit.wire import Dof, FittedAs, MeshSizes, ModelInfo, ShapeSizes
+from bodyfit.wire.measure import MeasurementInfo, Measurements
 
 LOG = logging.getLogger("bodyfit.service")
 
@@ -287,6 +288,48 @@ class BodyService:
             joint_names=tuple(self.model.joint_names),
             bones=bones,
             bone_faces=bone_faces,
+        )
+
+    # -- anthropometry --------------------------------------------------------------------------------
+    def measure(
+        self,
+        request: SynthRequest | None = None,
+        vertices: np.ndarray | None = None,
+        measurements: dict[str, float] | None = None,
+        sex: str | None = None,
+    ) -> Measurements:
+        """The anthropometric measurements (docs/anthropometry.md) of the bodies of ``request`` (its shape
+        and coordinates; the measuring posture when it has none), of ``vertices`` (B, V, 3) in the model's
+        topology, or of the body built from ``measurements`` for ``sex`` (with its shape and residuals).
+
+        Raises:
+            InvalidInputError: wrong shapes, values out of range, an unknown measurement name (with the
+                closest names) or an implausible value (named, with its plausible range).
+            LimitExceededError: more bodies than ``limits.max_batch``.
+        """
+        from bodyfit.models.anthropometry import definitions, inverse
+        from bodyfit.models.anthropometry import measure as anthropometry
+
+        built = None
+        with self._slot(), invalid_input("measurements" if measurements is not None else "shape"):
+            if measurements is not None:
+                built = inverse.shape_from_measurements(self.model, measurements, sex)
+                values = {k: np.asarray([v]) for k, v in built.achieved.items()}
+            elif vertices is not None:
+                values = anthropometry.measure_vertices(self.model, vertices)
+            else:
+                assert request is not None and request.shape is not None
+                q, _, shape = synthesis_parameters(request, self.model, self.limits.max_batch)
+                posed = None if request.coordinates is None else q
+                values = anthropometry.measure(self.model, shape.astype(np.float64), posed)
+        about = definitions.MEASUREMENTS
+        return Measurements(
+            measurements=[MeasurementInfo(name=k, kind=about[k].kind, unit=about[k].unit) for k in values],
+            values={k: np.asarray(v, np.float64).tolist() for k, v in values.items()},
+            shape=None if built is None else [built.shape.tolist()],
+            residuals=None if built is None else built.residuals,
+            unmet=[] if built is None else built.unmet,
+            flagged=built is not None and built.flagged,
         )
 
     # -- fitting ---------------------------------------------------------------------------------------

@@ -14,6 +14,7 @@ from bodyfit.api.metrics import Metrics
 from bodyfit.api.rest import (
     openapi,
     routes_fit,
+    routes_measure,
     routes_model,
     routes_ops,
     routes_synth,
@@ -71,6 +72,7 @@ def create_app(
         routes_ops.router,
     ):
         app.include_router(router)
+    routes_measure.install(app)  # POST /v1/measure: anthropometry of bodies, or a body from measurements
     routes_viewer.install(app)  # the browser viewer at / and /viewer
 
     app.add_middleware(BodyLimit, max_bytes=settings.limits().max_upload_bytes)
