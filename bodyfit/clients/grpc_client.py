@@ -26,7 +26,7 @@ from bodyfit.clients.core import AsyncClientCore, Event, Operation, SyncClientCo
 from bodyfit.clients.core.base import retry_policy
 from bodyfit.clients.core.operations import Coordinates
 from bodyfit.clients.core.retry import DEFAULT_RETRIES, RetryPolicy
-from bodyfit.clients.errors import BodyfitClientError, ServerError, error_from_status
+from bodyfit.clients.errors import BodyfitClientError, InvalidRequestError, ServerError, error_from_status
 
 DEFAULT_TARGET = "127.0.0.1:50051"
 DEFAULT_TIMEOUT = 30.0
@@ -181,6 +181,10 @@ class _Grpc(Generic[C]):
 
     def _rpc(self, op: Operation[Any]) -> tuple[Callable[..., Any], Message, float]:
         """(the stub's method, the request, the deadline in seconds) of an operation."""
+        if op.name not in RPCS:
+            raise InvalidRequestError(
+                f"{op.name} is served over REST only for now: use bodyfit.clients.Client"
+            )
         timeout = self.fit_timeout if op.stream else self.timeout
         return getattr(self._stub, RPCS[op.name]), request_of(op), timeout
 

@@ -77,6 +77,14 @@ def request_of(op: Operation[Any]) -> tuple[str, str, dict[str, Any]]:
         return "GET", "/v1/model", {}
     if op.name in ("synthesize", "synthesize_file"):
         return "POST", "/v1/synthesize", {"json": _json_body(a)}
+    if op.name == "measure":
+        if "json" in a:
+            return "POST", "/v1/measure", {"json": a["json"]}
+        return (
+            "POST",
+            "/v1/measure",
+            {"files": {"file": (a["name"], a["data"])}, "data": {"units": a["units"]}},
+        )
     stream: dict[str, Any] = {"headers": {"accept": NDJSON}}
     if op.name == "fit_scan":
         files = {"file": (a["name"], a["data"])}

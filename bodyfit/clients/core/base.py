@@ -71,6 +71,7 @@ class SyncClientCore:
     model_info = sync_method(ops.model_info)
     synthesize = sync_method(ops.synthesize)
     synthesize_file = sync_method(ops.synthesize_file)
+    measure = sync_method(ops.measure)
 
     def _send(self, op: Operation[Any]) -> Generator[Event, None, None]:
         raise NotImplementedError
@@ -111,6 +112,7 @@ class AsyncClientCore:
     model_info = async_method(ops.model_info)
     synthesize = async_method(ops.synthesize)
     synthesize_file = async_method(ops.synthesize_file)
+    measure = async_method(ops.measure)
     retry: RetryPolicy
 
     def _send(self, op: Operation[Any]) -> AsyncGenerator[Event, None]:

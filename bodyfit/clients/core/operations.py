@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any, Generic, TypeVar
 
 import numpy as np
+from pydantic import TypeAdapter
 
 from bodyfit import wire as w
 from bodyfit.clients.results import (
@@ -32,6 +33,7 @@ from bodyfit.clients.results import (
 )
 from bodyfit.clients.uploads import ScanInput, scan_upload
 from bodyfit.wire.hints import axis_name, pose_class
+from bodyfit.wire.measure import Measurements
 
 R = TypeVar("R")
 Event = Document
@@ -151,6 +153,56 @@ def synthesize_file(
         ValueError: another format (before anything is sent)."""
     args = synthesis_args(shape, coordinates, root, skeleton, True, None, format)
     return Operation("synthesize_file", _file, _result, args, idempotent=True)
+
+
+_measurements = reader(TypeAdapter(Measurements), "measurements")
+
+
+def measure(
+    shape: np.ndarray | None = None,
+    coordinates: Coordinates = None,
+    measurements: Mapping[str, float] | None = None,
+    sex: str | None = None,
+    mesh: ScanInput | None = None,
+    units: str = "m",
+) -> Operation[Measurements]:
+    """Anthropometric measurements (docs/anthropometry.md), in metres and kilograms, of one of:
+
+    - bodies given by ``shape`` (B, n_shape), posed by ``coordinates`` ((B, n_dof) or {name: value(s)};
+      default the measuring posture);
+    - a ``mesh`` in the model's topology (a .npz / .ply path, bytes of an .npz, or a (V, 3) array), in
+      ``units`` (m, mm or auto);
+    - the body built from ``measurements`` ({name: value}: ANSUR II names or aliases such as stature,
+      mass, waist; any subset) for ``sex`` (male, female or None): the answer then holds its ``shape``,
+      ``residuals`` and ``unmet`` (``flagged`` when the set cannot all be met).
+
+    Served over REST only (``POST /v1/measure``).
+
+    Raises:
+        ValueError: none or more than one of shape, mesh and measurements (before anything is sent).
+    """
+    given = [
+        k for k, v in (("shape", shape), ("mesh", mesh), ("measurements", measurements)) if v is not None
+    ]
+    if len(given) != 1:
+        raise ValueError(f"give exactly one of shape, mesh and measurements; got {given or 'none'}")
+    args: dict[str, Any] = {}
+    if mesh is not None:
+        name, data = scan_upload(mesh, "npz" if isinstance(mesh, bytes | bytearray) else None)
+        args = {"name": name, "data": data, "units": units}
+    elif measurements is not None:
+        body: dict[str, Any] = {"measurements": {str(k): float(v) for k, v in measurements.items()}}
+        args = {"json": body | ({"sex": sex} if sex is not None else {})}
+    else:
+        parts = synthesis_args(shape, coordinates, None, False, False, None, "npz")
+        coords = parts["coordinates"]
+        body = {"shape": parts["shape"].tolist()}
+        if isinstance(coords, dict):
+            body["coordinates"] = {k: v.tolist() for k, v in coords.items()}
+        elif coords is not None:
+            body["coordinates"] = coords.tolist()
+        args = {"json": body}
+    return Operation("measure", _measurements, _result, args, idempotent=True)
 
 
 def fit_scan(

@@ -1,0 +1,79 @@
+"""``Client.measure`` and ``AsyncClient.measure`` against the REST app served in process: parameters, a mesh
+and measurements in, the server's measurements read through :mod:`bodyfit.wire.measure`; refusals raised as
+typed errors; the gRPC clients say that the call is served over REST."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Iterator
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+import torch
+from fastapi.testclient import TestClient
+
+from bodyfit.api.rest.app import create_app
+from bodyfit.clients.errors import InvalidRequestError
+from bodyfit.clients.grpc_client import GrpcClient
+from bodyfit.clients.rest_client import AsyncClient, Client
+from bodyfit.models.anthropometry.measure import body_in_pose, measure
+from bodyfit.service.core import BodyService
+from bodyfit.wire.measure import Measurements
+
+
+@pytest.fixture(scope="module")
+def app(body_service: BodyService) -> Any:
+    return create_app(service=body_service)
+
+
+@pytest.fixture(scope="module")
+def client(app: Any) -> Iterator[Client]:
+    with Client("http://testserver", http_client=TestClient(app)) as c:
+        yield c
+
+
+def test_parameters_and_a_mesh_are_measured_as_the_model_measures_them(
+    client: Client, body_service: BodyService
+) -> None:
+    model = body_service.model
+    shape = np.zeros((2, model.n_shape))
+    shape[1, 0] = -1.0
+    expected = measure(model, shape)
+    answer = client.measure(shape=shape)
+    assert isinstance(answer, Measurements)
+    np.testing.assert_allclose(answer.values["stature"], expected["stature"], atol=1e-5)
+    vertices, _ = body_in_pose(model, torch.as_tensor(shape[1:], dtype=torch.float32))
+    from_mesh = client.measure(mesh=vertices[0].numpy())
+    assert from_mesh.values["stature"][0] == pytest.approx(expected["stature"][1], abs=1e-4)
+    posed = client.measure(shape=shape[:1], coordinates={"hip_flexion_r": 1.0})
+    assert posed.values["stature"] == pytest.approx(expected["stature"][:1], abs=1e-4)  # the head stays
+
+
+def test_measurements_build_a_body_sync_and_async_alike(client: Client, app: Any) -> None:
+    asked = {"stature": 1.65, "mass": 62.0}
+    built = client.measure(measurements=asked, sex="female")
+    assert built.shape is not None and built.residuals is not None
+    assert abs(built.residuals["stature"]) < 0.005 and abs(built.residuals["weightkg"]) < 1.0
+
+    async def run() -> Measurements:
+        http = httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://testserver")
+        async with AsyncClient(http_client=http) as c:
+            return await c.measure(measurements=asked, sex="female")
+
+    assert asyncio.run(run()) == built
+
+
+def test_refusals_are_typed_errors_naming_the_measurement(client: Client) -> None:
+    with pytest.raises(InvalidRequestError, match="did you mean 'stature'"):
+        client.measure(measurements={"statur": 1.8})
+    with pytest.raises(InvalidRequestError, match=r"waistcircumference = 2\.5 m is not plausible"):
+        client.measure(measurements={"waist": 2.5})
+    with pytest.raises(ValueError, match="exactly one of shape, mesh and measurements"):
+        client.measure(shape=np.zeros(32), measurements={"stature": 1.8})
+
+
+def test_the_grpc_client_says_measure_is_served_over_rest() -> None:
+    with GrpcClient("127.0.0.1:1") as c, pytest.raises(InvalidRequestError, match="REST only"):
+        c.measure(measurements={"stature": 1.8})
