@@ -256,20 +256,22 @@ class FitSequenceEvent(_message.Message):
     def __init__(self, progress: _Optional[_Union[Progress, _Mapping]] = ..., chunk: _Optional[_Union[SequenceChunk, _Mapping]] = ..., result: _Optional[_Union[SequenceSummary, _Mapping]] = ...) -> None: ...
 
 class UpgradeRequest(_message.Message):
-    __slots__ = ("data", "filename", "chunk", "sex", "height_m", "mass_kg")
+    __slots__ = ("data", "filename", "chunk", "sex", "height_m", "mass_kg", "up")
     DATA_FIELD_NUMBER: _ClassVar[int]
     FILENAME_FIELD_NUMBER: _ClassVar[int]
     CHUNK_FIELD_NUMBER: _ClassVar[int]
     SEX_FIELD_NUMBER: _ClassVar[int]
     HEIGHT_M_FIELD_NUMBER: _ClassVar[int]
     MASS_KG_FIELD_NUMBER: _ClassVar[int]
+    UP_FIELD_NUMBER: _ClassVar[int]
     data: bytes
     filename: str
     chunk: int
     sex: str
     height_m: float
     mass_kg: float
-    def __init__(self, data: _Optional[bytes] = ..., filename: _Optional[str] = ..., chunk: _Optional[int] = ..., sex: _Optional[str] = ..., height_m: _Optional[float] = ..., mass_kg: _Optional[float] = ...) -> None: ...
+    up: str
+    def __init__(self, data: _Optional[bytes] = ..., filename: _Optional[str] = ..., chunk: _Optional[int] = ..., sex: _Optional[str] = ..., height_m: _Optional[float] = ..., mass_kg: _Optional[float] = ..., up: _Optional[str] = ...) -> None: ...
 
 class UpgradeChunk(_message.Message):
     __slots__ = ("start", "stop", "coordinates", "root", "joints", "error_mm", "bad_frames")
