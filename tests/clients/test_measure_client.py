@@ -5,7 +5,9 @@ typed errors; the gRPC clients say that the call is served over REST."""
 from __future__ import annotations
 
 import asyncio
+import json
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -13,8 +15,10 @@ import numpy as np
 import pytest
 import torch
 from fastapi.testclient import TestClient
+from typer.testing import CliRunner
 
 from bodyfit.api.rest.app import create_app
+from bodyfit.cli import app as cli
 from bodyfit.clients.errors import InvalidRequestError
 from bodyfit.clients.grpc_client import GrpcClient
 from bodyfit.clients.rest_client import AsyncClient, Client
@@ -77,3 +81,31 @@ def test_refusals_are_typed_errors_naming_the_measurement(client: Client) -> Non
 def test_the_grpc_client_says_measure_is_served_over_rest() -> None:
     with GrpcClient("127.0.0.1:1") as c, pytest.raises(InvalidRequestError, match="REST only"):
         c.measure(measurements={"stature": 1.8})
+
+
+def test_the_command_line_asks_a_server(
+    app: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, body_service: BodyService
+) -> None:
+    import bodyfit.clients.rest_client as rest
+
+    urls: list[str] = []
+
+    def served(url: str) -> Client:  # the server at ``url`` is the app in this process
+        urls.append(url)
+        return Client(url, http_client=TestClient(app))
+
+    monkeypatch.setattr(rest, "Client", served)
+    path = tmp_path / "fit.npz"
+    np.savez(path, shape=np.zeros((1, 32)))
+    result = CliRunner().invoke(cli, ["measure", str(path), "--json", "--server", "http://body:8000"])
+    assert result.exit_code == 0, result.output
+    stature = json.loads(result.stdout)["measurements"]["stature"]
+    assert urls == ["http://body:8000"]
+    assert stature == pytest.approx(measure(body_service.model, np.zeros(32))["stature"], abs=1e-5)
+    out = tmp_path / "body.npz"
+    args = ["measure", "-s", "stature=1.7", "--server", "http://body:8000", "--out", str(out)]
+    table = CliRunner().invoke(cli, args)
+    assert table.exit_code == 0, table.output
+    assert "(asked 1700.0 mm)" in table.stdout and np.load(out)["shape"].shape == (1, 32)
+    refused = CliRunner().invoke(cli, ["measure", "-s", "statur=1.7", "--server", "http://body:8000"])
+    assert refused.exit_code == 2 and "did you mean 'stature'" in refused.output
