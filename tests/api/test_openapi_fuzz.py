@@ -21,6 +21,7 @@ OPERATIONS = [
     ("POST", "/v1/fit/scan"),
     ("POST", "/v1/fit/sequence"),
     ("POST", "/v1/upgrade"),
+    ("POST", "/v1/measure"),
     ("GET", "/healthz"),
     ("GET", "/readyz"),
 ]
