@@ -41,7 +41,7 @@ from bodyfit.api.grpc_wire import (
 )
 from bodyfit.api.metrics import Metrics
 from bodyfit.api.settings import ServiceSettings
-from bodyfit.service.core import BodyService, SynthRequest, shape_hints
+from bodyfit.service.core import BodyService, SynthRequest, shape_hints, upgrade_up
 from bodyfit.service.errors import InvalidInputError, ServiceError, as_service_error
 from bodyfit.service.formats import MEDIA_TYPES, encode_bodies
 from bodyfit.service.hints import ScanHints
@@ -175,8 +175,9 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
         def work(job: Job) -> list[pb.UpgradeEvent]:
             if chunk < 1:
                 raise InvalidInputError(f"chunk must be at least 1; got {chunk}", "chunk")
+            up = upgrade_up(_set(request, "up"))
             hints = shape_hints(*(_set(request, name) for name in ("sex", "height_m", "mass_kg")))
-            result = service.upgrade(service.read_upgrade(request.data, name), job, hints)
+            result = service.upgrade(service.read_upgrade(request.data, name), job, hints, up)
             files = service.upgrade_files(result, Path(name).stem or "upgrade")
             chunks = [upgrade_event(e) for e in results.upgrade_chunks(result, chunk)]
             return [*chunks, upgrade_event(results.upgrade_summary(result, files))]

@@ -269,6 +269,12 @@ def test_upgrade_over_grpc(client: GrpcClient, target: str, tmp_path: Path) -> N
     assert np.allclose(np.load(out.save(tmp_path, "walk")["npz"])["coordinates"], out.coordinates)
     hinted = client.upgrade(sequence, height_m=1.7)  # the hints reach the server (path a ignores them)
     assert any("hints were not used" in note for note in hinted.summary["notes"])
+    given = client.upgrade(sequence, up="+y")  # the up axis reaches the server and is reported as given
+    assert given.summary["up_axis"] == "+y" and given.summary["up_given"] is True
+    with grpc.insecure_channel(target) as channel, pytest.raises(grpc.RpcError) as err:
+        stub = pb_grpc.BodyfitStub(channel)
+        list(stub.Upgrade(pb.UpgradeRequest(data=b"", filename="walk.npz", up="sideways"), timeout=10))
+    assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "up" in err.value.details()
     with pytest.raises(InvalidRequestError, match="sex must be one of") as bad:
         client.upgrade(sequence, sex="robot")
     assert bad.value.field == "sex"
