@@ -10,10 +10,12 @@ What is measured
   ``n_random`` poses uniform within 80% of every range about its middle, pelvis upright. Named poses are
   clipped into the ranges.
 * ``bones_outside_frac``: the fraction of bone-mesh vertices (every ``stride``-th) whose generalised winding
-  number with respect to the posed skin is below 0.5 (``geometry.fast_winding_number``), over all bodies and
-  poses; the same per region (skull, hands, forearms, arms, shoulders, ribs, spine, pelvis, legs, feet) and
-  per pose. ``max_mm``: the largest distance from an outside bone vertex to the skin surface (exact
-  point-to-triangle distance to the triangles around its nearest skin vertices).
+  number with respect to the posed skin's envelope is below 0.5 (``geometry.fast_winding_number``), over all
+  bodies and poses. The envelope is the skin with its oral and nasal pockets closed over their openings
+  (``geometry.skin_envelope``): the teeth and palate lie in the mouth, which the skin surface lines, and are
+  not outside the body. The same per region (skull, hands, forearms, arms, shoulders, ribs, spine, pelvis,
+  legs, feet) and per pose. ``max_mm``: the largest distance from an outside bone vertex to the skin surface
+  (exact point-to-triangle distance to the triangles around its nearest skin vertices).
 * Twist diagnostic (mean body, one side): for pro_sup, wrist flexion, wrist deviation and mtp at their lower
   limit, zero and upper limit, the angle between the skin's and the bones' principal axes of the hand (palm
   normal and long axis; skin vertices weighted at least 0.9 to the hand) and of the toes (plantar normal).
@@ -41,7 +43,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from bodyfit.models.body.geometry import fast_winding_number
+from bodyfit.models.body.geometry import fast_winding_number, skin_envelope
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.skeleton.model import PELVIS_ROTATIONS
 
@@ -118,6 +120,12 @@ def region_of_vertices(body: BodyModel) -> np.ndarray:
     return region_of_body[body.skeleton.bone_mesh().vertex_body]
 
 
+def skin_cavity(body: BodyModel) -> np.ndarray | None:
+    """(F,) bool faces of the skin's oral and nasal pockets, when the assets carry them."""
+    cavity = body.data.get("skin_cavity")
+    return None if cavity is None else np.asarray(cavity, bool)
+
+
 def surface_distance(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, k: int = 8) -> np.ndarray:
     """Distance (P,) from points (P, 3) to a triangle mesh: the nearest of the triangles around each point's
     ``k`` nearest vertices (exact point-to-triangle distances)."""
@@ -129,9 +137,10 @@ def surface_distance(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray
     for f, tri in enumerate(faces):
         for v in tri:
             incident[v].append(f)
+    used = np.unique(faces)  # a surface may leave vertices out (the skin's envelope leaves its cavities)
     width = max(len(x) for x in incident)
-    table = np.array([x + [x[0]] * (width - len(x)) for x in incident])  # (V, width), padded by repeats
-    _, near = cKDTree(vertices).query(points, k=k)
+    table = np.array([x + [x[0]] * (width - len(x)) for x in incident if x])  # (V_used, width), padded
+    _, near = cKDTree(vertices[used]).query(points, k=k)
     cand = table[near].reshape(len(points), -1)  # (P, k * width)
     tris = vertices[faces[cand.ravel()]]
     closest = trimesh.triangles.closest_point(tris, np.repeat(points, cand.shape[1], axis=0))
@@ -154,9 +163,18 @@ class Tally:
         return cls(np.zeros(n), np.zeros(n), np.zeros(n), {})
 
     def add(
-        self, pose: str, skin: np.ndarray, faces: np.ndarray, bones: np.ndarray, region: np.ndarray
+        self,
+        pose: str,
+        skin: np.ndarray,
+        faces: np.ndarray,
+        bones: np.ndarray,
+        region: np.ndarray,
+        cavity: np.ndarray | None = None,
     ) -> None:
-        """One posed body: skin (V, 3), its faces, bone points (P, 3) and their regions (P,)."""
+        """One posed body: skin (V, 3), its faces, bone points (P, 3) and their regions (P,); ``cavity``
+        (F,) bool: the skin's pockets, closed before the test (:func:`skin_envelope`)."""
+        if cavity is not None:
+            skin, faces = skin_envelope(skin, faces, cavity)
         out = fast_winding_number(skin, faces, bones) < 0.5
         depth = surface_distance(skin, faces, bones[out])
         for r in range(len(REGIONS)):
@@ -189,6 +207,7 @@ def measure_outside(body: BodyModel, settings: Settings) -> dict[str, Any]:
     pick = np.arange(0, len(body.skeleton.bone_mesh().vertices), settings.stride)
     region = region_of_vertices(body)[pick]
     named = {name: pose_coordinates(body, spec) for name, spec in NAMED_POSES.items()}
+    cavity = skin_cavity(body)
     tally = Tally.empty()
     for shape in shapes:
         poses = list(named.items()) + [
@@ -198,7 +217,7 @@ def measure_outside(body: BodyModel, settings: Settings) -> dict[str, Any]:
         out = body.forward(np.repeat(shape[None], len(q), axis=0), q, skeleton_mesh=True, dtype=torch.float64)
         assert out.bones is not None
         for i, (name, _) in enumerate(poses):
-            tally.add(name, out.vertices[i].numpy(), body.faces, out.bones[i, pick].numpy(), region)
+            tally.add(name, out.vertices[i].numpy(), body.faces, out.bones[i, pick].numpy(), region, cavity)
     return {**tally.figures(), "n_bodies": len(shapes), "n_poses_per_body": len(named) + settings.n_random}
 
 
@@ -243,13 +262,16 @@ def twist_diagnostic(body: BodyModel) -> dict[str, dict[str, dict[str, float]]]:
     return out
 
 
-# Picture: the mean body neutral and with pronated forearms; whole body, head and right hand, front and side.
+# Picture: the mean body neutral and with pronated forearms; whole body, head and right hand, front and side;
+# each pose with a see-through skin (the bones inside) and an opaque one (bones that poke through show).
 _CLOSE_UPS = (("body", None, 0.0), ("head", "head", 0.13), ("right hand", "hand_r", 0.12))
+_SKINS = (("see-through", 0.35), ("opaque", 1.0))
 
 
 def render_figure(body: BodyModel, path: Path) -> None:
-    """Save a see-through picture of the mean body's skin with the bones inside (rows: neutral and
-    ``pro_sup_max``; columns: whole body, head and right hand, each from the front and the side)."""
+    """Save a picture of the mean body's skin with the bones inside (rows: neutral and ``pro_sup_max``, each
+    with a see-through and an opaque skin; columns: whole body, head and right hand, each from the front and
+    the side)."""
     import sys
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/ is not installed
@@ -257,25 +279,28 @@ def render_figure(body: BodyModel, path: Path) -> None:
 
     faces = body.skeleton.bone_mesh().faces
     names = body.skeleton.body_names
-    images, rows = [], ["neutral", "pro_sup_max"]
-    for pose in rows:
+    images, rows = [], []
+    for pose in ("neutral", "pro_sup_max"):
         q = pose_coordinates(body, NAMED_POSES[pose])[None]
         out = body.forward(None, q, skeleton_mesh=True, dtype=torch.float64)
         assert out.bones is not None
         skin, bones = out.vertices[0].numpy(), out.bones[0].numpy()
-        meshes = [
-            RenderMesh(bones, faces, (0.93, 0.90, 0.80)),
-            RenderMesh(skin, body.faces, (0.85, 0.55, 0.45), opacity=0.35),
-        ]
-        for _, part, r in _CLOSE_UPS:
-            bounds = None
-            if part is not None:
-                centre = bones[body.skeleton.bone_mesh().vertex_body == names.index(part)].mean(axis=0)
-                bounds = (centre - r, centre + r)
-            images += [render(meshes, view, (240, 240), bounds=bounds) for view in ("front", "side")]
+        for label, opacity in _SKINS:
+            rows.append(f"{pose}, {label}")
+            meshes = [
+                RenderMesh(bones, faces, (0.93, 0.90, 0.80)),
+                RenderMesh(skin, body.faces, (0.85, 0.55, 0.45), opacity=opacity),
+            ]
+            for _, part, r in _CLOSE_UPS:
+                bounds = None
+                if part is not None:
+                    centre = bones[body.skeleton.bone_mesh().vertex_body == names.index(part)].mean(axis=0)
+                    bounds = (centre - r, centre + r)
+                images += [render(meshes, view, (240, 240), bounds=bounds) for view in ("front", "side")]
     grid = tile(images, columns=2 * len(_CLOSE_UPS))
     titles = [f"{name} {view}" for name, _, _ in _CLOSE_UPS for view in ("front", "side")]
-    save_png(label_grid(grid, [titles], rows, caption="bones inside a see-through skin (mean body)"), path)
+    caption = "bones inside the skin (mean body): see-through, and opaque where only protruding bone shows"
+    save_png(label_grid(grid, [titles], rows, caption=caption), path)
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

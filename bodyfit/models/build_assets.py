@@ -13,8 +13,14 @@ import numpy as np
 import torch
 
 from bodyfit.models.assets import assets_dir, read_manifest, write_manifest
-from bodyfit.models.body.bone_geometry import fit_bone_geometry
+from bodyfit.models.body.bone_geometry import (
+    aligned_start,
+    bone_pieces,
+    fit_bone_geometry,
+    fit_piece_geometry,
+)
 from bodyfit.models.body.build import BuildConfig, build_body
+from bodyfit.models.body.geometry import cavity_faces
 from bodyfit.models.body.model import BODY_ASSET, BodyModel
 from bodyfit.models.body.onnx_export import BODY_ONNX, export_body_onnx
 from bodyfit.models.body.onnx_export import INPUTS as ONNX_INPUTS
@@ -26,7 +32,7 @@ from bodyfit.models.fitting.registered.smpl_topology import build_smpl_topology,
 from bodyfit.models.skeleton.bones import BONES_ASSET, build_bone_mesh
 from bodyfit.models.skeleton.build import build_skeleton
 from bodyfit.models.skeleton.docs import skeleton_markdown
-from bodyfit.models.skeleton.model import SKELETON_ASSET, Skeleton
+from bodyfit.models.skeleton.model import PELVIS_ROTATIONS, SKELETON_ASSET, Skeleton
 from bodyfit.models.skeleton.rajagopal import nimblephysics_data_dir
 from bodyfit.models.skeleton.spec import SkeletonSpec
 from bodyfit.models.upgrade.proxy import PROXY_ASSET, build_proxy
@@ -91,34 +97,98 @@ def build_proxy_asset(folder: Path | None = None, model: BodyModel | None = None
     return write_manifest(folder, {PROXY_ASSET: entry}, {})
 
 
-def bind_pose_bodies(model: BodyModel, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The mean body and ``n - 1`` shapes drawn from N(0, 1), in the bind pose: skins (n, V, 3), body frames
+def posed_bodies(
+    model: BodyModel, shape: np.ndarray, q: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bodies of shapes (n, n_shape) in coordinates (n, n_dof): skins (n, V, 3), body frames
     (n, n_body, 4, 4) and each body's segment scales (n, n_body, 3); float64."""
-    shape = np.random.default_rng(seed).normal(size=(n, model.n_shape))
-    shape[0] = 0.0
-    q = np.repeat(model.bind_coordinates[None], n, axis=0)
     with torch.no_grad():
         v, _, frames, scales = model.decoder(torch.float64)(
-            torch.as_tensor(shape), torch.as_tensor(q), torch.zeros(n, 3, dtype=torch.float64)
+            torch.as_tensor(shape), torch.as_tensor(q), torch.zeros(len(q), 3, dtype=torch.float64)
         )
     seg_of_body = np.asarray(model.skeleton.spec.body_segment_index)
     return v.numpy(), frames.numpy(), scales.numpy()[:, seg_of_body]
 
 
+def bind_pose_bodies(model: BodyModel, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mean body and ``n - 1`` shapes drawn from N(0, 1), in the bind pose (:func:`posed_bodies`)."""
+    shape = np.random.default_rng(seed).normal(size=(n, model.n_shape))
+    shape[0] = 0.0
+    return posed_bodies(model, shape, np.repeat(model.bind_coordinates[None], n, axis=0))
+
+
+DISTAL_COORDINATES = ("pro_sup", "wrist_flex", "wrist_dev", "mtp_angle")  # swept to their limits too
+
+
+def bone_fit_poses(model: BodyModel, n: int, rng: np.random.Generator) -> np.ndarray:
+    """(n, n_dof) poses the bone meshes are fitted in: the bind pose, then poses halfway from it to one drawn
+    uniform within 80% of every range about its middle (LBS thins the skin over a joint flexed far, which a
+    bone should not be shrunk for), every second one with the forearm, wrist and toe coordinates
+    (:data:`DISTAL_COORDINATES`) at their lower or upper limits; pelvis upright."""
+    sk = model.skeleton
+    lo, hi = sk.ranges[:, 0], sk.ranges[:, 1]
+    wide = 0.5 * (lo + hi) + 0.4 * (hi - lo) * rng.uniform(-1.0, 1.0, (n, len(lo)))
+    q = np.clip(0.5 * (model.bind_coordinates + wide), lo, hi)  # halfway from the bind pose to it
+    distal = [i for i, name in enumerate(sk.dof_names) if name[:-2] in DISTAL_COORDINATES]
+    limit = np.where(rng.integers(0, 2, (n, len(distal))) == 1, hi[distal], lo[distal])
+    q[2::2, distal] = limit[2::2]
+    for name in PELVIS_ROTATIONS:
+        q[:, sk.dof_index(name)] = 0.0
+    q[0] = model.bind_coordinates
+    return q
+
+
+BONE_FIT_SEED = 7  # the fit's bodies and poses: drawn apart from the benchmarks' (seed 0)
+
+
+def fit_bone_arrays(
+    model: BodyModel, n: int = 24, log: Callable[[str], None] = print
+) -> dict[str, np.ndarray]:
+    """The bone meshes fitted inside the skin of ``model`` (:mod:`~bodyfit.models.body.bone_geometry`) over
+    the mean body and ``n - 1`` sampled shapes, each in one pose of :func:`bone_fit_poses`: the maps
+    (``bone_geometry``, (n_body, 3, 4)) and the skin's pockets (``skin_cavity``, (F,) bool,
+    :func:`~bodyfit.models.body.geometry.cavity_faces`)."""
+    names = model.skeleton.body_names
+    rest, rest_frames, rest_scales = bind_pose_bodies(model, 1)
+    weights = np.asarray(model.data["weights"], np.float64)
+    log("bone geometry: finding the skin's oral and nasal pockets")
+    cavity = cavity_faces(rest[0], model.faces, weights[:, names.index("head")] > 0.5)
+    rng = np.random.default_rng(BONE_FIT_SEED)
+    shape = rng.normal(size=(n, model.n_shape))
+    shape[0] = 0.0
+    skins, frames, scales = posed_bodies(model, shape, bone_fit_poses(model, n, rng))
+    bones = model.skeleton.bone_mesh()
+    start = aligned_start(bones, names, rest[0], weights, rest_frames[0], rest_scales[0])
+    log(f"bone geometry: fitting every bone body's map, then every bone's, over {n} posed bodies")
+    parent = list(model.skeleton.spec.body_parent_index)
+    geometry = fit_bone_geometry(
+        bones, names, skins, model.faces, frames, scales, cavity=cavity, start=start, weights=weights,
+        parent=parent,
+    )  # fmt: skip
+    pieces = bone_pieces(bones)
+    geometry = fit_piece_geometry(
+        bones, pieces, geometry, skins, model.faces, frames, scales, cavity=cavity, weights=weights,
+        parent=parent,
+    )  # fmt: skip
+    return {
+        "bone_geometry": geometry.astype(np.float32),
+        "bone_piece": pieces.astype(np.int32),
+        "skin_cavity": cavity,
+    }
+
+
 def build_bone_geometry_asset(
-    folder: Path | None = None, model: BodyModel | None = None, n: int = 16
+    folder: Path | None = None,
+    model: BodyModel | None = None,
+    n: int = 24,
+    log: Callable[[str], None] = print,
 ) -> Path:
-    """Fit the bone meshes of the skull, hands and feet inside the skin of ``model`` (the body asset in
-    ``folder``) in its bind pose (:mod:`~bodyfit.models.body.bone_geometry`), over the mean body and
-    ``n - 1`` sampled shapes; store the maps in ``body.npz`` and record it in the manifest."""
+    """Refit the bone meshes inside the skin of the body asset in ``folder`` (:func:`fit_bone_arrays`), store
+    the arrays in its ``body.npz`` and record it in the manifest."""
     folder = folder or assets_dir()
     model = model or BodyModel.load(folder)
     t0 = time.perf_counter()
-    skins, frames, scales = bind_pose_bodies(model, n)
-    geometry = fit_bone_geometry(
-        model.skeleton.bone_mesh(), model.skeleton.body_names, skins, model.faces, frames, scales
-    )
-    data = {**model.data, "bone_geometry": geometry.astype(np.float32)}
+    data = {**model.data, **fit_bone_arrays(model, n, log)}
     np.savez_compressed(folder / BODY_ASSET, allow_pickle=False, **data)
     entry = read_manifest(folder)["files"].get(BODY_ASSET, {})
     entry = {k: v for k, v in entry.items() if k not in ("sha256", "bytes")}
@@ -180,6 +250,8 @@ def _write_body(
     model = BodyModel(skeleton, body)
     # The mesh users get at zero parameters (zero shape, zero coordinates, zero root).
     body["template"] = model.forward(dtype=torch.float64).vertices[0].numpy().astype(np.float32)
+    body.update(fit_bone_arrays(model, log=log))
+    model = BodyModel(skeleton, body)
     np.savez_compressed(out / BODY_ASSET, allow_pickle=False, **body)
     return model, metrics
 

