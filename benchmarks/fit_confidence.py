@@ -106,8 +106,9 @@ def summarise(rows: list[dict[str, Any]], model: BodyModel) -> dict[str, Any]:
         for corruption in scan_matrix.CORRUPTIONS:
             ran = [r for r in rows if r["pose"] == pose and r["corruption"] == corruption]
             if ran:
-                counts = [sum(r["gross"] for r in ran if r["mode"] == m) for m in scan_matrix.MODES]
-                cells.setdefault(pose, {})[corruption] = "/".join(str(c) for c in counts)
+                counts = [[r["gross"] for r in ran if r["mode"] == m] for m in scan_matrix.MODES]
+                text = "/".join(str(sum(c)) if c else "-" for c in counts)  # "-": that mode not run
+                cells.setdefault(pose, {})[corruption] = text
     limbs = max(rate(m, lambda r: gross_limbs(r, model)) for m in scan_matrix.MODES)
     return {
         "conf_auroc": None if (a := auroc(predicted, error > quality.BAD_MM)) is None else round(a, 4),
@@ -153,7 +154,7 @@ def show(result: dict[str, Any]) -> None:
             print(f"{key:>32}: {value}")
     cells = result["gross_cells"]
     names = [c for c in scan_matrix.CORRUPTIONS if any(c in row for row in cells.values())]
-    print("\ngross failures (searched/hinted) per pose and corruption; '.' not run")
+    print("\ngross failures (searched/hinted) per pose and corruption; '.' or '-' not run")
     print(f"{'':>16}" + "".join(f"{c[:10]:>11}" for c in names))
     for pose, row in cells.items():
         print(f"{pose:>16}" + "".join(f"{row.get(c, '.'):>11}" for c in names))
