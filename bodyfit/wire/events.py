@@ -282,7 +282,9 @@ class UpgradeSummary(OpenDocument):
     """An upgrade's numbers: which path ran ("a": the SMPL-family model file; "b": the joint rotations),
     frames, the bad ones, the input's frame rate, seconds and frames per second, the mean and worst
     per-frame distance to the input meshes (mm; null without input meshes), joint-limit violations, the
-    largest frame-to-frame jump (degrees) and notes. Path (b) adds ``proxy_fit_mm``."""
+    largest frame-to-frame jump (degrees) and notes. Path (b) adds ``proxy_fit_mm``. Both add ``up_axis``
+    (the input's up axis), ``up_given``, ``up_weak``, ``floor_found``, ``shape_max_sd`` (largest shape
+    coefficient, population SD) and ``scale_outliers`` (segments proportioned unlike the population)."""
 
     path: Literal["a", "b"]
     frames: int
