@@ -7,7 +7,12 @@ what is measured):
 * ``fit_sequences.py``: ``seq_fps``, ``seq_mm``, ``seq_jitter_ratio`` (CMU motion on held-out bodies) and
   the independent per-frame peer (``seq_peer_fps``, ``seq_peer_mm``).
 * ``fit_scans.py``: ``scan_clean_mm``, ``scan_corrupt_mm`` (scan-to-model), ``scan_registration_mm``
-  (against the ground-truth body), ``scan_s`` (seconds per 100k points), per corruption.
+  (against the ground-truth body), ``scan_s`` (seconds per 100k points), per corruption; ``scan_clutter_mm``.
+* ``fit_ccby.py``: ``ccby_fit_to_scan_mm``, ``ccby_fit_to_scan_max_mm`` (the CC BY bodies outside our
+  population, as raw points and as SMPL-topology meshes).
+* ``fit_confidence.py``: ``conf_auroc``, ``conf_recall_good``, ``confident_over_25mm``,
+  ``gross_failure_rate`` (the worse of ``gross_failure_rate_searched`` and ``gross_failure_rate_hinted``) on
+  a held-out matrix of 11 poses x 12 corruptions.
 
 Usage::
 
@@ -21,7 +26,9 @@ import platform
 import time
 from typing import Any
 
-import fit_markers  # benchmarks/ is on sys.path when this script runs
+import fit_ccby  # benchmarks/ is on sys.path when this script runs
+import fit_confidence
+import fit_markers
 import fit_registered
 import fit_scans
 import fit_sequences
@@ -37,6 +44,9 @@ def run(quick: bool) -> dict[str, Any]:
     out.update(fit_markers.run(quick))
     out.update(fit_sequences.run(quick))
     out.update(fit_scans.run(quick))
+    ccby = fit_ccby.run(quick)
+    out.update({k: ccby[k] for k in ("ccby_fit_to_scan_mm", "ccby_fit_to_scan_max_mm")})
+    out.update({k: v for k, v in fit_confidence.run(quick).items() if k != "gross_cells"})
     out["seconds"] = round(time.perf_counter() - start, 1)
     return out
 
