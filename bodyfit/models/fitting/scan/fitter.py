@@ -43,17 +43,24 @@ The user guide, with the accuracy and speed measured on the benchmark scans, is 
      carry two thirds of its vertices 2.5 mm apart, its trunk and limbs are 15-20 mm apart, and the subset
      keeps nearly every vertex of the latter. Counted alike, all the vertices would weight the model -> scan
      term towards the head and hands; the subset fits better, at a fraction of their cost.
-4. Non-rigid refinement (:mod:`~bodyfit.models.fitting.common.nonrigid`): per-vertex offsets for
+4. Loose clothing (:mod:`.clothing`, :class:`.config.ClothingConfig`): when the scan stands off the fitted
+   body outwards by more than 5 mm over more than 6% of its observed surface (the median offset of the
+   nearest few dozen cleaned points: noise, holes and a single view leave it near zero), the body is
+   fitted again inside the cloth with a one-sided loss (:func:`.losses.chamfer_term` with
+   ``cloth_sigma_mm``: cloth standing off the body pulls it out hardly at all, a body outside the scan is
+   pulled in), and the registration is refined on the scan points moved in by the clothing offset: it is
+   the body under the cloth, and the report's ``extra["clothing"]`` says how far the cloth stands off it.
+5. Non-rigid refinement (:mod:`~bodyfit.models.fitting.common.nonrigid`): per-vertex offsets for
    detail beyond the shape space.
-5. Branches (:data:`.config.DEFAULT_BRANCHES`): from the shape phase up to the valley phase, step 3
+6. Branches (:data:`.config.DEFAULT_BRANCHES`): from the shape phase up to the valley phase, step 3
    runs twice from the same state, at once on a thread each: once as above and once with the subset phases
    in the metric's variables too (more damped). The branch whose hypothesis scores best after the first
-   point-to-plane phase goes on alone to the valley phase and step 4. Each branch alone ends in a gross
+   point-to-plane phase goes on alone to the valley phase and steps 4 and 5. Each branch alone ends in a gross
    error (an arm folded over a hole, a head turned) on scans where the other does not, and the robust score
    tells which.
 
 A scan smaller than a body (under :attr:`.config.ScanFitConfig.partial_extent` along its principal
-axes: a head and shoulders) skips steps 3 and 5: the "upper" vertex set alone is fitted, two ways, by the
+axes: a head and shoulders) skips steps 3, 4 and 6: the "upper" vertex set alone is fitted, two ways, by the
 trunk's, neck's and scapulae's DOFs, then the shape (:data:`.config.UPPER_BODY_PHASES`); the rest of
 the body keeps the start pose, and the report says so and is never confident.
 
