@@ -313,22 +313,41 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
-def main(argv: list[str] | None = None) -> dict[str, Any]:
-    args = parse_args(argv)
-    settings = (
-        Settings(n_bodies=2, n_random=2, stride=6, seed=args.seed, quick=True)
-        if args.quick
-        else Settings(n_bodies=11, n_random=6, stride=2, seed=args.seed, quick=False)
-    )
-    body = BodyModel.load(args.assets)
-    if args.render is not None:
-        render_figure(body, args.render)
+def settings_for(quick: bool, seed: int = 0) -> Settings:
+    """The quick run's or the full run's sample."""
+    if quick:
+        return Settings(n_bodies=2, n_random=2, stride=6, seed=seed, quick=True)
+    return Settings(n_bodies=11, n_random=6, stride=2, seed=seed, quick=False)
+
+
+def measure(body: BodyModel, settings: Settings) -> dict[str, Any]:
+    """Every figure of the run (no printing): the outside fractions, the twist check, the time taken."""
     t0 = time.perf_counter()
     figures = measure_outside(body, settings)
     figures["twist"] = twist_diagnostic(body)
     figures.update(
         {"quick": settings.quick, "stride": settings.stride, "seconds": round(time.perf_counter() - t0, 1)}
     )
+    return figures
+
+
+def run(quick: bool) -> dict[str, Any]:
+    """``bones_outside_frac`` and its per-region and per-pose figures on the shipped assets, for
+    ``benchmarks/fit.py``."""
+    figures = measure(BodyModel.load(), settings_for(quick))
+    return {
+        "bones_outside_frac": figures["bones_outside_frac"],
+        "bones_outside_by_region": {k: r["outside_frac"] for k, r in figures["regions"].items()},
+    }
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    args = parse_args(argv)
+    settings = settings_for(args.quick, args.seed)
+    body = BodyModel.load(args.assets)
+    if args.render is not None:
+        render_figure(body, args.render)
+    figures = measure(body, settings)
     print(
         f"bones_outside_frac {figures['bones_outside_frac']:.4f} over {figures['n_bodies']} bodies x "
         f"{figures['n_poses_per_body']} poses (every {settings.stride}th bone vertex)"

@@ -10,6 +10,7 @@ what is measured):
   (against the ground-truth body), ``scan_s`` (seconds per 100k points), per corruption; ``scan_clutter_mm``.
 * ``fit_ccby.py``: ``ccby_fit_to_scan_mm``, ``ccby_fit_to_scan_max_mm`` (the CC BY bodies outside our
   population, as raw points and as SMPL-topology meshes).
+* ``bones.py``: ``bones_outside_frac`` (bone-mesh vertices outside the posed skin).
 * ``fit_confidence.py``: ``conf_auroc``, ``conf_recall_good``, ``confident_over_25mm``,
   ``gross_failure_rate`` (the worse of ``gross_failure_rate_searched`` and ``gross_failure_rate_hinted``) on
   a held-out matrix of 11 poses x 12 corruptions.
@@ -26,7 +27,8 @@ import platform
 import time
 from typing import Any
 
-import fit_ccby  # benchmarks/ is on sys.path when this script runs
+import bones  # benchmarks/ is on sys.path when this script runs
+import fit_ccby
 import fit_confidence
 import fit_markers
 import fit_registered
@@ -47,6 +49,7 @@ def run(quick: bool) -> dict[str, Any]:
     ccby = fit_ccby.run(quick)
     out.update({k: ccby[k] for k in ("ccby_fit_to_scan_mm", "ccby_fit_to_scan_max_mm")})
     out.update({k: v for k, v in fit_confidence.run(quick).items() if k != "gross_cells"})
+    out.update(bones.run(quick))
     out["seconds"] = round(time.perf_counter() - start, 1)
     return out
 
