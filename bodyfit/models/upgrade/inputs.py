@@ -72,8 +72,8 @@ def npz_poses_shape(source: bytes | Path) -> tuple[int, ...] | None:
             version = np.lib.format.read_magic(f)
             header = np.lib.format.read_array_header_1_0 if version == (1, 0) else None
             shape, _, _ = (header or np.lib.format.read_array_header_2_0)(f)
-    except (OSError, KeyError, ValueError, zipfile.BadZipFile):
-        return None
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile, RuntimeError, NotImplementedError):
+        return None  # unreadable here (encrypted, unknown compression...): the reader's own error stands
     return tuple(int(n) for n in shape)
 
 
