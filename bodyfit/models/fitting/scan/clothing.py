@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting.common.nearest import PointTree
 from bodyfit.models.fitting.common.surface import vertex_normals
 
@@ -48,6 +49,12 @@ class ClothingField:
         seen = self.area * self.observed
         total = float(seen.sum())
         return float(seen[self.offset > threshold].sum() / total) if total > 0 else 0.0
+
+    def bare_offset(self, bare: np.ndarray) -> float:
+        """The median offset (m) over the observed vertices of ``bare`` (V,) bool, the parts cloth leaves
+        bare (head, hands); 0 when none of them is observed."""
+        keep = bare & self.observed
+        return float(np.median(self.offset[keep])) if keep.any() else 0.0
 
     def summary(self, threshold: float) -> dict[str, float]:
         """The report's entries (mm, and the share of the observed surface clothed beyond ``threshold``)."""
@@ -78,6 +85,17 @@ def signed_offsets(
     distance, nearest = PointTree(vertices).query(points)
     signed = ((points - vertices[nearest]) * normals[nearest]).sum(1)
     return signed, distance, nearest
+
+
+BARE_BODIES = ("head", "hand")  # skeleton bodies (name prefixes) whose skin loose clothing leaves bare
+
+
+def bare_vertices(model: BodyModel) -> np.ndarray:
+    """(V,) bool: the template vertices whose skin loose clothing leaves bare, by the skeleton body that
+    weighs most on each (:data:`BARE_BODIES`)."""
+    owner = np.argmax(np.asarray(model.data["weights"]), axis=1)
+    bare = np.array([name.startswith(BARE_BODIES) for name in model.skeleton.body_names])
+    return bare[owner]
 
 
 def clothing_field(

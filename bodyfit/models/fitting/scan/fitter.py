@@ -103,7 +103,13 @@ from bodyfit.models.fitting.common.surface import (
     NormalOperators,
 )
 from bodyfit.models.fitting.registered.fitter import DataTerm, RegisteredFitter, State
-from bodyfit.models.fitting.scan.clothing import ClothingField, clothing_field, looks_clothed, under_cloth
+from bodyfit.models.fitting.scan.clothing import (
+    ClothingField,
+    bare_vertices,
+    clothing_field,
+    looks_clothed,
+    under_cloth,
+)
 from bodyfit.models.fitting.scan.config import (
     PART_NAMES,
     ScanBranch,
@@ -196,6 +202,7 @@ class ScanFitter:
         loop_float = np.float32 if self.fitter.config.dtype == torch.float32 else np.float64
         self._normals = NormalOperators.of(self.faces, model.n_vertices, loop_float)
         self.pelvis = [model.skeleton.dof_index(n) for n in PELVIS_ROTATIONS]
+        self._bare = bare_vertices(model)
         self.limbs = LimbSearch(self.fitter)
         self._steps = HypothesisSteps(model, self.fitter, self._normals)
         # the vertex sets a point-to-plane phase can fit, and their surfaces (faces, normal operators)
@@ -342,8 +349,17 @@ class ScanFitter:
         if not looks_clothed(field, cfg.threshold_mm / 1000.0, cfg.min_fraction):
             return 0, {}, None
         run.total += len(cfg.phases)
+        before = [t.detach().clone() for t in hyp.state]
         n_iter, losses = self._run_phases(hyp, cfg.phases, branch, run, "under the clothing: ", run.pool.map)
-        return n_iter, losses, self._clothing_field(hyp, run.cleaned)
+        under = self._clothing_field(hyp, run.cleaned)
+        if under.bare_offset(self._bare) > cfg.bare_mm / 1000.0:
+            # Cloth leaves the head and hands bare: a body pulled in under them as well is a bare body the
+            # shape space cannot match (a real person's belly, say), not one under clothing.
+            with torch.no_grad():
+                for tensor, kept in zip(hyp.state, before, strict=True):
+                    tensor.copy_(kept)
+            return n_iter, losses, None
+        return n_iter, losses, under
 
     def progress_steps(self, partial: bool = False) -> int:
         """How many steps :meth:`fit` reports on a whole body: one per phase, the branched ones once per
