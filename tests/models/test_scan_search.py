@@ -196,7 +196,9 @@ def test_orientation_phase_seats_a_body_with_its_legs_more_than_its_spine(model:
         found = {}
         for coordinates in ("core", "trunk"):
             phase = replace(orient, stage=replace(orient.stage, coordinates=coordinates))
-            fitter = ScanFitter(model, ScanFitConfig(phases=(phase,), nonrigid=None, single_view=False))
+            fitter = ScanFitter(
+                model, ScanFitConfig(phases=(phase,), nonrigid=None, single_view=False, clothing=None)
+            )
             fit = fitter.fit(points, orientation=np.eye(3))
             found[coordinates] = {n: np.degrees(fit.coordinates[skel.dof_index(n)]) for n in skel.dof_names}
         core, trunk = found["core"], found["trunk"]

@@ -126,7 +126,7 @@ def test_up_alone_keeps_the_search_about_that_axis(body_service: BodyService) ->
     assert point_to_surface(fit.vertices, body @ R.T, model.faces).mean() < 0.005
     up = fit.report.extra["hints"]["up"]
     assert up["used"] and "headings about this up axis" in up["how"]
-    assert any("orientation was searched" in r for r in fit.report.reasons)
+    assert any("orientation was searched" in r for r in fit.report.extra["observations"])
 
 
 def test_an_smpl_topology_mesh_answers_in_its_own_frame(body_service: BodyService) -> None:
@@ -145,7 +145,7 @@ def test_an_smpl_topology_mesh_answers_in_its_own_frame(body_service: BodyServic
         _mesh_of(body_service, moved, faces), hints=ScanHints.given(up="+z", facing="+x")
     )
     assert point_to_surface(turned.vertices, moved, faces).mean() < 0.005
-    assert turned.report.extra["hints"]["up"]["used"] is True and turned.report.confident
+    assert turned.report.extra["hints"]["up"]["used"] is True and turned.report.predicted_error_mm is not None
 
 
 def test_a_registered_mesh_records_the_hints_it_needs_not(body_service: BodyService) -> None:
