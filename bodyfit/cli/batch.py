@@ -1,14 +1,21 @@
-"""``bodyfit batch-upgrade``: a whole dataset tree through :func:`bodyfit.clients.batch.batch_upgrade`, on a
-server (the SDK), in this process or on Ray (:mod:`bodyfit.cli.backends`)."""
+"""``bodyfit batch-upgrade`` and ``bodyfit batch-fit``: a whole dataset tree of sequences or scans through
+:func:`bodyfit.clients.batch.batch_upgrade` / :func:`bodyfit.clients.batch_fit.batch_fit`, on a server (the
+SDK), in this process or on Ray (:mod:`bodyfit.cli.backends`)."""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from bodyfit.cli.common import fail
+from bodyfit.cli.common import fail, reported
+from bodyfit.wire.hints import FACING_HELP, HEIGHT_HELP, POSE_HELP, SEX_HELP, UP_HELP
+
+if TYPE_CHECKING:
+    from bodyfit.clients.batch import BatchReport
+
+BACKEND_HELP = "local, a server URL (http://host:8000), ray, or ray://host:10001."
 
 
 def batch_upgrade(
@@ -20,9 +27,7 @@ def batch_upgrade(
     ],
     out: Annotated[Path, typer.Argument(help="Output folder (the dataset's layout is kept).")],
     concurrency: Annotated[int, typer.Option(min=1, help="Sequences in flight at once.")] = 1,
-    backend: Annotated[
-        str, typer.Option(help="local, a server URL (http://host:8000), ray, or ray://host:10001.")
-    ] = "local",
+    backend: Annotated[str, typer.Option(help=BACKEND_HELP)] = "local",
     smpl_model: Annotated[
         Path | None,
         typer.Option(help="SMPL-family model file for local / ray (default $BODYFIT_SMPL_MODEL)."),
@@ -39,6 +44,49 @@ def batch_upgrade(
         report = run(dataset, out, concurrency, upgrader(backend, concurrency, smpl_model))
     except (BodyfitClientError, OSError, ValueError) as exc:
         fail(exc)
+    finish(report)
+
+
+def batch_fit(
+    scans: Annotated[
+        Path,
+        typer.Argument(
+            exists=True, file_okay=False, help="Folder of scans (ply, obj, stl, pcd, npz; recursive)."
+        ),
+    ],
+    out: Annotated[Path, typer.Argument(help="Output folder (the folder's layout is kept).")],
+    concurrency: Annotated[int, typer.Option(min=1, help="Scans in flight at once.")] = 1,
+    backend: Annotated[str, typer.Option(help=BACKEND_HELP)] = "local",
+    units: Annotated[str, typer.Option(help="Unit of every scan's coordinates: auto, m or mm.")] = "auto",
+    up: Annotated[str | None, typer.Option(help=f"Hint for every scan: {UP_HELP}.")] = None,
+    facing: Annotated[str | None, typer.Option(help=f"Hint for every scan: {FACING_HELP}.")] = None,
+    pose: Annotated[str | None, typer.Option(help=f"Hint for every scan: {POSE_HELP}.")] = None,
+    sex: Annotated[str | None, typer.Option(help=f"Hint for every scan: {SEX_HELP}.")] = None,
+    height_m: Annotated[float | None, typer.Option(help=f"Hint for every scan: {HEIGHT_HELP}.")] = None,
+) -> None:
+    """Fit every scan in a folder tree; resumes (finished scans are skipped) and reports failures at the end
+    without stopping. Writes <out>/<relative path>.npz (parameters, registration, joints, to_model), .ply
+    (the registration in the scan's frame) and .json (the fit report) per scan."""
+    from bodyfit.cli.backends import fitter
+    from bodyfit.clients.batch_fit import batch_fit as run
+    from bodyfit.clients.errors import BodyfitClientError
+
+    if units not in ("auto", "m", "mm"):
+        fail(f"--units must be auto, m or mm; got {units!r}")
+    with reported():
+        from bodyfit.service.hints import ScanHints
+
+        hints = ScanHints.given(up, facing, pose, sex, height_m)
+        worker = fitter(backend, concurrency, units, hints)
+    try:
+        report = run(scans, out, concurrency, worker)
+    except (BodyfitClientError, OSError, ValueError) as exc:
+        fail(exc)
+    finish(report)
+
+
+def finish(report: BatchReport) -> None:
+    """List the failures on standard error, print the summary, and exit with status 1 if any failed."""
     for path, why in sorted(report.failed.items()):
         typer.echo(f"FAILED {path}: {why}", err=True)
     typer.echo(report.summary())

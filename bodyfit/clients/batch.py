@@ -33,24 +33,31 @@ SKIPPED_NAMES = ("shape.npz",)
 ORDER = ("npz", "osim", "mot", "json")  # the JSON last: its presence marks a finished sequence
 
 
-class Upgrader(Protocol):
-    """Upgrades one sequence file to its output files (npz, json, osim, mot as bytes)."""
+class Worker(Protocol):
+    """Processes one input file into its output files (extension -> bytes; a ``json`` among them is written
+    last and marks the input finished)."""
 
     def __call__(self, path: Path) -> Files: ...
 
 
+Upgrader = Worker
+"""Upgrades one sequence file to its output files (npz, json, osim, mot as bytes)."""
+
+
 @dataclass
 class BatchReport:
-    """done / skipped: sequences (relative paths) upgraded now / found finished; failed: path -> why."""
+    """done / skipped: inputs (relative paths) processed now / found finished; failed: path -> why;
+    ``verb`` names what was done to each (upgraded, fitted) in :meth:`summary`."""
 
     done: list[str] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)
     failed: dict[str, str] = field(default_factory=dict)
     seconds: float = 0.0
+    verb: str = "upgraded"
 
     def summary(self) -> str:
         return (
-            f"{len(self.done)} upgraded, {len(self.skipped)} already done, {len(self.failed)} failed "
+            f"{len(self.done)} {self.verb}, {len(self.skipped)} already done, {len(self.failed)} failed "
             f"in {self.seconds:.1f} s"
         )
 
@@ -61,15 +68,22 @@ def find_sequences(dataset_dir: Path) -> list[Path]:
 
 
 def output_base(dataset_dir: Path, out_dir: Path, path: Path) -> Path:
+    """``out_dir`` / the input's relative path without its extension."""
     return out_dir / path.relative_to(dataset_dir).with_suffix("")
+
+
+def output_file(base: Path, ext: str) -> Path:
+    """``base`` with ``.ext`` appended (not :meth:`Path.with_suffix`, which would cut a stem that holds a
+    dot: walk.01 -> walk.json)."""
+    return base.with_name(f"{base.name}.{ext}")
 
 
 def write_outputs(base: Path, files: Files) -> None:
     """Write each file atomically (temporary name, then rename), the JSON last."""
     base.parent.mkdir(parents=True, exist_ok=True)
     for ext in sorted(files, key=lambda e: ORDER.index(e) if e in ORDER else -1):
-        target = base.with_suffix(f".{ext}")
-        tmp = target.with_suffix(f".{ext}.part")
+        target = output_file(base, ext)
+        tmp = output_file(base, f"{ext}.part")
         tmp.write_bytes(files[ext])
         os.replace(tmp, target)
 
@@ -89,11 +103,11 @@ def server_upgrader(url: str, timeout: float = 600.0, up: str | None = None) -> 
     return upgrade
 
 
-def _thread_upgrades(
-    paths: list[Path], upgrader: Upgrader, concurrency: int
+def _threads(
+    paths: list[Path], worker: Worker, concurrency: int
 ) -> Iterator[tuple[Path, Files | BaseException]]:
     with ThreadPoolExecutor(max(1, concurrency)) as pool:
-        futures = {pool.submit(upgrader, p): p for p in paths}
+        futures = {pool.submit(worker, p): p for p in paths}
         for future in as_completed(futures):
             try:
                 yield futures[future], future.result()
@@ -126,23 +140,39 @@ def batch_upgrade(
         ValueError: ``up`` with a back-end that cannot take it (give the server URL, or an
             :class:`Upgrader` that applies it).
     """
-    began = time.perf_counter()
-    root, out = Path(dataset_dir), Path(out_dir)
+    root = Path(dataset_dir)
     if not root.is_dir():
         raise FileNotFoundError(f"{root} is not a folder of .npz sequences")
-    report = BatchReport()
-    todo = []
-    for path in find_sequences(root):
-        rel = str(path.relative_to(root))
-        if output_base(root, out, path).with_suffix(".json").exists():
-            report.skipped.append(rel)
-        else:
-            todo.append(path)
     if up is not None and not (isinstance(backend, str) and backend.startswith(("http://", "https://"))):
         raise ValueError("batch_upgrade(up=...) needs a server URL back-end; an Upgrader applies its own")
     upgrader = _resolve(backend, concurrency, smpl_model, up) if isinstance(backend, str) else backend
-    bar: Any = tqdm(total=len(todo), unit="seq", disable=not progress)
-    for path, outcome in _thread_upgrades(todo, upgrader, concurrency):
+    return run_batch(root, Path(out_dir), find_sequences(root), upgrader, concurrency, progress, "seq")
+
+
+def run_batch(
+    root: Path,
+    out: Path,
+    inputs: list[Path],
+    worker: Worker,
+    concurrency: int = 1,
+    progress: bool = True,
+    unit: str = "seq",
+    verb: str = "upgraded",
+) -> BatchReport:
+    """Run ``worker`` on each of ``inputs`` (files under ``root``), ``concurrency`` at a time on threads,
+    and write each one's files to ``out/<relative path>.<ext>`` (:func:`write_outputs`). An input whose
+    ``.json`` exists is finished and skipped (resume); a failure is recorded with its message and the batch
+    goes on. ``progress``: a tqdm bar counting ``unit``."""
+    began = time.perf_counter()
+    report = BatchReport(verb=verb)
+    todo = []
+    for path in inputs:
+        if output_file(output_base(root, out, path), "json").exists():
+            report.skipped.append(str(path.relative_to(root)))
+        else:
+            todo.append(path)
+    bar: Any = tqdm(total=len(todo), unit=unit, disable=not progress)
+    for path, outcome in _threads(todo, worker, concurrency):
         rel = str(path.relative_to(root))
         if isinstance(outcome, BaseException):
             report.failed[rel] = _message(outcome)

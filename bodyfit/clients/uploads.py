@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 
 ScanInput = str | os.PathLike[str] | bytes | np.ndarray
+SCAN_FORMATS = ("ply", "obj", "stl", "pcd", "npz")
+"""The scan file formats a server reads (as :data:`bodyfit.io.scans.FORMATS`)."""
 
 
 def scan_upload(scan: ScanInput, format: str | None) -> tuple[str, bytes]:
