@@ -93,7 +93,7 @@ class Values(_message.Message):
     def __init__(self, values: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class SynthesizeRequest(_message.Message):
-    __slots__ = ("shape", "coordinates", "named_coordinates", "root", "skeleton", "format", "faces", "batch")
+    __slots__ = ("shape", "coordinates", "named_coordinates", "root", "skeleton", "format", "faces", "batch", "measurements", "sex")
     class NamedCoordinatesEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -101,6 +101,13 @@ class SynthesizeRequest(_message.Message):
         key: str
         value: Values
         def __init__(self, key: _Optional[str] = ..., value: _Optional[_Union[Values, _Mapping]] = ...) -> None: ...
+    class MeasurementsEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: float
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[float] = ...) -> None: ...
     SHAPE_FIELD_NUMBER: _ClassVar[int]
     COORDINATES_FIELD_NUMBER: _ClassVar[int]
     NAMED_COORDINATES_FIELD_NUMBER: _ClassVar[int]
@@ -109,6 +116,8 @@ class SynthesizeRequest(_message.Message):
     FORMAT_FIELD_NUMBER: _ClassVar[int]
     FACES_FIELD_NUMBER: _ClassVar[int]
     BATCH_FIELD_NUMBER: _ClassVar[int]
+    MEASUREMENTS_FIELD_NUMBER: _ClassVar[int]
+    SEX_FIELD_NUMBER: _ClassVar[int]
     shape: Array
     coordinates: Array
     named_coordinates: _containers.MessageMap[str, Values]
@@ -117,10 +126,12 @@ class SynthesizeRequest(_message.Message):
     format: Format
     faces: bool
     batch: int
-    def __init__(self, shape: _Optional[_Union[Array, _Mapping]] = ..., coordinates: _Optional[_Union[Array, _Mapping]] = ..., named_coordinates: _Optional[_Mapping[str, Values]] = ..., root: _Optional[_Union[Array, _Mapping]] = ..., skeleton: _Optional[bool] = ..., format: _Optional[_Union[Format, str]] = ..., faces: _Optional[bool] = ..., batch: _Optional[int] = ...) -> None: ...
+    measurements: _containers.ScalarMap[str, float]
+    sex: str
+    def __init__(self, shape: _Optional[_Union[Array, _Mapping]] = ..., coordinates: _Optional[_Union[Array, _Mapping]] = ..., named_coordinates: _Optional[_Mapping[str, Values]] = ..., root: _Optional[_Union[Array, _Mapping]] = ..., skeleton: _Optional[bool] = ..., format: _Optional[_Union[Format, str]] = ..., faces: _Optional[bool] = ..., batch: _Optional[int] = ..., measurements: _Optional[_Mapping[str, float]] = ..., sex: _Optional[str] = ...) -> None: ...
 
 class SynthesizeResponse(_message.Message):
-    __slots__ = ("data", "media_type", "vertices", "joints", "joint_names", "faces", "bones", "bone_faces")
+    __slots__ = ("data", "media_type", "vertices", "joints", "joint_names", "faces", "bones", "bone_faces", "built")
     DATA_FIELD_NUMBER: _ClassVar[int]
     MEDIA_TYPE_FIELD_NUMBER: _ClassVar[int]
     VERTICES_FIELD_NUMBER: _ClassVar[int]
@@ -129,6 +140,7 @@ class SynthesizeResponse(_message.Message):
     FACES_FIELD_NUMBER: _ClassVar[int]
     BONES_FIELD_NUMBER: _ClassVar[int]
     BONE_FACES_FIELD_NUMBER: _ClassVar[int]
+    BUILT_FIELD_NUMBER: _ClassVar[int]
     data: bytes
     media_type: str
     vertices: Array
@@ -137,7 +149,8 @@ class SynthesizeResponse(_message.Message):
     faces: Array
     bones: Array
     bone_faces: Array
-    def __init__(self, data: _Optional[bytes] = ..., media_type: _Optional[str] = ..., vertices: _Optional[_Union[Array, _Mapping]] = ..., joints: _Optional[_Union[Array, _Mapping]] = ..., joint_names: _Optional[_Iterable[str]] = ..., faces: _Optional[_Union[Array, _Mapping]] = ..., bones: _Optional[_Union[Array, _Mapping]] = ..., bone_faces: _Optional[_Union[Array, _Mapping]] = ...) -> None: ...
+    built: MeasureResponse
+    def __init__(self, data: _Optional[bytes] = ..., media_type: _Optional[str] = ..., vertices: _Optional[_Union[Array, _Mapping]] = ..., joints: _Optional[_Union[Array, _Mapping]] = ..., joint_names: _Optional[_Iterable[str]] = ..., faces: _Optional[_Union[Array, _Mapping]] = ..., bones: _Optional[_Union[Array, _Mapping]] = ..., bone_faces: _Optional[_Union[Array, _Mapping]] = ..., built: _Optional[_Union[MeasureResponse, _Mapping]] = ...) -> None: ...
 
 class Progress(_message.Message):
     __slots__ = ("stage", "done", "total", "message")
@@ -323,3 +336,86 @@ class UpgradeEvent(_message.Message):
     chunk: UpgradeChunk
     result: UpgradeSummary
     def __init__(self, progress: _Optional[_Union[Progress, _Mapping]] = ..., chunk: _Optional[_Union[UpgradeChunk, _Mapping]] = ..., result: _Optional[_Union[UpgradeSummary, _Mapping]] = ...) -> None: ...
+
+class MeasureRequest(_message.Message):
+    __slots__ = ("shape", "coordinates", "named_coordinates", "mesh", "mesh_format", "units", "measurements", "sex")
+    class NamedCoordinatesEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: Values
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[_Union[Values, _Mapping]] = ...) -> None: ...
+    class MeasurementsEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: float
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[float] = ...) -> None: ...
+    SHAPE_FIELD_NUMBER: _ClassVar[int]
+    COORDINATES_FIELD_NUMBER: _ClassVar[int]
+    NAMED_COORDINATES_FIELD_NUMBER: _ClassVar[int]
+    MESH_FIELD_NUMBER: _ClassVar[int]
+    MESH_FORMAT_FIELD_NUMBER: _ClassVar[int]
+    UNITS_FIELD_NUMBER: _ClassVar[int]
+    MEASUREMENTS_FIELD_NUMBER: _ClassVar[int]
+    SEX_FIELD_NUMBER: _ClassVar[int]
+    shape: Array
+    coordinates: Array
+    named_coordinates: _containers.MessageMap[str, Values]
+    mesh: bytes
+    mesh_format: str
+    units: str
+    measurements: _containers.ScalarMap[str, float]
+    sex: str
+    def __init__(self, shape: _Optional[_Union[Array, _Mapping]] = ..., coordinates: _Optional[_Union[Array, _Mapping]] = ..., named_coordinates: _Optional[_Mapping[str, Values]] = ..., mesh: _Optional[bytes] = ..., mesh_format: _Optional[str] = ..., units: _Optional[str] = ..., measurements: _Optional[_Mapping[str, float]] = ..., sex: _Optional[str] = ...) -> None: ...
+
+class MeasurementInfo(_message.Message):
+    __slots__ = ("name", "kind", "unit")
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    KIND_FIELD_NUMBER: _ClassVar[int]
+    UNIT_FIELD_NUMBER: _ClassVar[int]
+    name: str
+    kind: str
+    unit: str
+    def __init__(self, name: _Optional[str] = ..., kind: _Optional[str] = ..., unit: _Optional[str] = ...) -> None: ...
+
+class MeasureResponse(_message.Message):
+    __slots__ = ("measurements", "values", "shape", "requested", "residuals", "unmet", "flagged")
+    class ValuesEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: Values
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[_Union[Values, _Mapping]] = ...) -> None: ...
+    class RequestedEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: float
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[float] = ...) -> None: ...
+    class ResidualsEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: float
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[float] = ...) -> None: ...
+    MEASUREMENTS_FIELD_NUMBER: _ClassVar[int]
+    VALUES_FIELD_NUMBER: _ClassVar[int]
+    SHAPE_FIELD_NUMBER: _ClassVar[int]
+    REQUESTED_FIELD_NUMBER: _ClassVar[int]
+    RESIDUALS_FIELD_NUMBER: _ClassVar[int]
+    UNMET_FIELD_NUMBER: _ClassVar[int]
+    FLAGGED_FIELD_NUMBER: _ClassVar[int]
+    measurements: _containers.RepeatedCompositeFieldContainer[MeasurementInfo]
+    values: _containers.MessageMap[str, Values]
+    shape: Array
+    requested: _containers.ScalarMap[str, float]
+    residuals: _containers.ScalarMap[str, float]
+    unmet: _containers.RepeatedScalarFieldContainer[str]
+    flagged: bool
+    def __init__(self, measurements: _Optional[_Iterable[_Union[MeasurementInfo, _Mapping]]] = ..., values: _Optional[_Mapping[str, Values]] = ..., shape: _Optional[_Union[Array, _Mapping]] = ..., requested: _Optional[_Mapping[str, float]] = ..., residuals: _Optional[_Mapping[str, float]] = ..., unmet: _Optional[_Iterable[str]] = ..., flagged: _Optional[bool] = ...) -> None: ...

@@ -59,6 +59,11 @@ class BodyfitStub:
                 request_serializer=bodyfit__pb2.UpgradeRequest.SerializeToString,
                 response_deserializer=bodyfit__pb2.UpgradeEvent.FromString,
                 _registered_method=True)
+        self.Measure = channel.unary_unary(
+                '/bodyfit.v1.Bodyfit/Measure',
+                request_serializer=bodyfit__pb2.MeasureRequest.SerializeToString,
+                response_deserializer=bodyfit__pb2.MeasureResponse.FromString,
+                _registered_method=True)
 
 
 class BodyfitServicer:
@@ -99,6 +104,14 @@ class BodyfitServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def Measure(self, request, context):
+        """Anthropometric measurements (docs/anthropometry.md) of bodies given by their parameters or a mesh in
+        the model's topology, or the body built from measurements.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_BodyfitServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -126,6 +139,11 @@ def add_BodyfitServicer_to_server(servicer, server):
                     servicer.Upgrade,
                     request_deserializer=bodyfit__pb2.UpgradeRequest.FromString,
                     response_serializer=bodyfit__pb2.UpgradeEvent.SerializeToString,
+            ),
+            'Measure': grpc.unary_unary_rpc_method_handler(
+                    servicer.Measure,
+                    request_deserializer=bodyfit__pb2.MeasureRequest.FromString,
+                    response_serializer=bodyfit__pb2.MeasureResponse.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -263,6 +281,33 @@ class Bodyfit:
             '/bodyfit.v1.Bodyfit/Upgrade',
             bodyfit__pb2.UpgradeRequest.SerializeToString,
             bodyfit__pb2.UpgradeEvent.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def Measure(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/bodyfit.v1.Bodyfit/Measure',
+            bodyfit__pb2.MeasureRequest.SerializeToString,
+            bodyfit__pb2.MeasureResponse.FromString,
             options,
             channel_credentials,
             insecure,

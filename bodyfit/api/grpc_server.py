@@ -31,6 +31,7 @@ from bodyfit.api.grpc_wire import (
     FLOATS,
     WireError,
     from_proto,
+    measure_message,
     mesh_fit_message,
     model_message,
     optional,
@@ -72,6 +73,20 @@ def _set(request: Any, name: str) -> Any:
     return getattr(request, name) if request.HasField(name) else None
 
 
+def _coordinates(request: pb.SynthesizeRequest | pb.MeasureRequest) -> Any:
+    """The request's coordinates: the (B, n_dof) array or {DOF name: values}, None when neither is set.
+
+    Raises:
+        InvalidInputError: both are set.
+    """
+    coordinates: Any = optional(request, "coordinates", FLOATS)
+    if request.named_coordinates:
+        if coordinates is not None:
+            raise InvalidInputError("give coordinates or named_coordinates, not both", "coordinates")
+        coordinates = {k: np.asarray(v.values) for k, v in request.named_coordinates.items()}
+    return coordinates
+
+
 def _progress(p: Progress) -> pb.Progress:
     return progress_message(results.progress_event(p))
 
@@ -99,18 +114,22 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
     def _synthesize(self, request: pb.SynthesizeRequest) -> pb.SynthesizeResponse:
         if request.format not in (pb.ARRAYS, *FORMATS):
             raise InvalidInputError(f"unknown format {request.format}; use a Format value", "format")
-        coordinates: Any = optional(request, "coordinates", FLOATS)
-        if request.named_coordinates:
-            if coordinates is not None:
-                raise InvalidInputError("give coordinates or named_coordinates, not both", "coordinates")
-            coordinates = {k: np.asarray(v.values) for k, v in request.named_coordinates.items()}
         synth = SynthRequest(
             shape=optional(request, "shape", FLOATS),
-            coordinates=coordinates,
+            coordinates=_coordinates(request),
             root=optional(request, "root", FLOATS),
             skeleton=request.skeleton,
             batch=request.batch or None,
+            measurements=dict(request.measurements) if request.measurements else None,
+            sex=_set(request, "sex"),
         )
+        synth, built = self.service.with_built_shape(synth)
+        out = self._synthesized(request, synth)
+        if built is not None:  # as REST's header: kinds and units by name in docs/anthropometry.md
+            out.built.CopyFrom(measure_message(built.model_copy(update={"measurements": []})))
+        return out
+
+    def _synthesized(self, request: pb.SynthesizeRequest, synth: SynthRequest) -> pb.SynthesizeResponse:
         bodies = self.service.synthesize(synth)
         if request.format != pb.ARRAYS:
             fmt = FORMATS[request.format]
@@ -126,6 +145,37 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
             if request.faces:
                 out.bone_faces.CopyFrom(to_proto(bodies.bone_faces))
         return out
+
+    def Measure(self, request: pb.MeasureRequest, context: grpc.ServicerContext) -> pb.MeasureResponse:
+        return self._unary("Measure", context, lambda: self._measure(request))
+
+    def _measure(self, request: pb.MeasureRequest) -> pb.MeasureResponse:
+        """Exactly one of shape, mesh and measurements, as ``POST /v1/measure``."""
+        given = [
+            name
+            for name, present in (
+                ("shape", request.HasField("shape")),
+                ("mesh", bool(request.mesh)),
+                ("measurements", bool(request.measurements)),
+            )
+            if present
+        ]
+        if len(given) != 1:
+            raise InvalidInputError(
+                f"send exactly one of shape, mesh and measurements; got {', '.join(given) or 'none'}",
+                given[-1] if given else "shape",
+            )
+        service = self.service
+        if request.measurements:
+            answer = service.measure(measurements=dict(request.measurements), sex=_set(request, "sex"))
+        elif request.mesh:
+            fmt = request.mesh_format or "npz"
+            scan = service.read_scan(request.mesh, fmt, request.units or "m")
+            answer = service.measure(vertices=scan.points)
+        else:
+            synth = SynthRequest(shape=optional(request, "shape", FLOATS), coordinates=_coordinates(request))
+            answer = service.measure(synth)
+        return measure_message(answer)
 
     # -- streaming -------------------------------------------------------------------------------------
     def FitScan(self, request: pb.FitScanRequest, context: grpc.ServicerContext) -> Iterator[pb.FitScanEvent]:

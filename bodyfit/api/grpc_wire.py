@@ -13,6 +13,7 @@ import numpy as np
 from bodyfit import wire as w
 from bodyfit.api import bodyfit_pb2 as pb
 from bodyfit.wire.arrays import MAX_NDIM
+from bodyfit.wire.measure import Measurements
 
 DTYPES = w.DTYPES
 FLOATS = ("float32", "float64")
@@ -149,3 +150,38 @@ def upgrade_event(e: w.UpgradeChunkEvent | w.UpgradeResultEvent) -> pb.UpgradeEv
         **array_fields(e.arrays),
     )
     return pb.UpgradeEvent(result=summary)
+
+
+def measure_message(m: Measurements) -> pb.MeasureResponse:
+    """A :class:`~bodyfit.wire.measure.Measurements` document as ``MeasureResponse``."""
+    out = pb.MeasureResponse(
+        measurements=[pb.MeasurementInfo(name=i.name, kind=i.kind, unit=i.unit) for i in m.measurements],
+        requested=m.requested or {},
+        residuals=m.residuals or {},
+        unmet=m.unmet,
+        flagged=m.flagged,
+    )
+    for name, values in m.values.items():
+        out.values[name].values.extend(values)
+    if m.shape is not None:
+        out.shape.CopyFrom(to_proto(np.asarray(m.shape, np.float64)))
+    return out
+
+
+def measure_doc(msg: pb.MeasureResponse) -> dict[str, Any]:
+    """``MeasureResponse`` as the document of ``POST /v1/measure`` (a built body is the one with a shape:
+    its requested values and residuals; a measured one has neither).
+
+    Raises:
+        WireError: a malformed shape array.
+    """
+    built = msg.HasField("shape")
+    return {
+        "measurements": [{"name": i.name, "kind": i.kind, "unit": i.unit} for i in msg.measurements],
+        "values": {k: list(v.values) for k, v in msg.values.items()},
+        "shape": from_proto(msg.shape, "shape", FLOATS).tolist() if built else None,
+        "requested": dict(msg.requested) if built else None,
+        "residuals": dict(msg.residuals) if built else None,
+        "unmet": list(msg.unmet),
+        "flagged": msg.flagged,
+    }

@@ -21,7 +21,7 @@ from google.protobuf.message import Message
 
 from bodyfit.api import bodyfit_pb2 as pb
 from bodyfit.api import bodyfit_pb2_grpc as pb_grpc
-from bodyfit.api.grpc_wire import to_proto
+from bodyfit.api.grpc_wire import measure_doc, to_proto
 from bodyfit.clients.core import AsyncClientCore, Event, Operation, SyncClientCore, parse_retry_after
 from bodyfit.clients.core.base import retry_policy
 from bodyfit.clients.core.operations import Coordinates
@@ -40,6 +40,7 @@ RPCS = {
     "fit_scan": "FitScan",
     "fit_sequence": "FitSequence",
     "upgrade": "Upgrade",
+    "measure": "Measure",
 }
 C = TypeVar("C", grpc.Channel, grpc.aio.Channel)
 __all__ = ["AsyncGrpcClient", "Coordinates", "GrpcClient", "RetryPolicy", "client_error"]
@@ -65,6 +66,8 @@ def request_of(op: Operation[Any]) -> Message:
         return pb.ModelInfoRequest()
     if op.name in ("synthesize", "synthesize_file"):
         return synth_request(a, op.name == "synthesize_file")
+    if op.name == "measure":
+        return measure_request(a)
     if op.name == "fit_scan":
         return pb.FitScanRequest(data=a["data"], format=a["format"], units=a["units"], **a["hints"])
     if op.name == "fit_sequence":
@@ -77,14 +80,40 @@ def synth_request(a: dict[str, Any], file: bool) -> pb.SynthesizeRequest:
     req = pb.SynthesizeRequest(skeleton=a["skeleton"], faces=a["faces"], batch=a["batch"] or 0)
     if file:
         req.format = FORMATS[a["format"]]
-    for key in ("shape", "coordinates", "root"):
+    _set_arrays(req, a, ("shape", "coordinates", "root"))
+    if a["measurements"] is not None:
+        req.measurements.update(a["measurements"])
+    if a["sex"] is not None:
+        req.sex = a["sex"]
+    return req
+
+
+def measure_request(a: dict[str, Any]) -> pb.MeasureRequest:
+    """The Measure request of a measure operation's arguments (one of mesh, measurements, shape)."""
+    req = pb.MeasureRequest(units=a["units"])
+    if a["mesh"] is not None:
+        name, data = a["mesh"]
+        req.mesh, req.mesh_format = data, os.path.splitext(name)[1].lstrip(".").lower()
+    elif a["measurements"] is not None:
+        req.measurements.update(a["measurements"])
+        if a["sex"] is not None:
+            req.sex = a["sex"]
+    else:
+        _set_arrays(req, a, ("shape", "coordinates"))
+    return req
+
+
+def _set_arrays(
+    req: pb.SynthesizeRequest | pb.MeasureRequest, a: dict[str, Any], keys: tuple[str, ...]
+) -> None:
+    """Copy the arrays of ``a`` that are set into ``req`` (named coordinates into named_coordinates)."""
+    for key in keys:
         value = a[key]
         if isinstance(value, dict):
             for name, v in value.items():
                 req.named_coordinates[name].values.extend(np.atleast_1d(v).tolist())
         elif value is not None:
             getattr(req, key).CopyFrom(to_proto(value))
-    return req
 
 
 def message_doc(msg: Message) -> dict[str, Any]:
@@ -131,7 +160,16 @@ def model_doc(res: pb.ModelInfo) -> dict[str, Any]:
 
 def answer_event(op: Operation[Any], res: Any) -> Event:
     """The document of a unary answer."""
-    return model_doc(res) if op.name == "model_info" else _doc(res)
+    if op.name == "model_info":
+        return model_doc(res)
+    if op.name == "measure":
+        return measure_doc(res)
+    doc = _doc(res)
+    if op.name in ("synthesize", "synthesize_file"):
+        doc.pop("built", None)
+        if res.HasField("built"):
+            doc["built"] = measure_doc(res.built)
+    return doc
 
 
 def stream_event(event: Any) -> Event:

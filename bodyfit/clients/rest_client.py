@@ -33,6 +33,8 @@ from bodyfit.clients.results import synthesis_event
 DEFAULT_URL = "http://127.0.0.1:8000"
 DEFAULT_TIMEOUT = httpx.Timeout(30.0, read=600.0)
 NDJSON = "application/x-ndjson"
+BUILT_HEADER = "bodyfit-measurements"
+"""The synthesis answer's header with the measurements document of a body built from measurements."""
 H = TypeVar("H", httpx.Client, httpx.AsyncClient)
 
 
@@ -51,15 +53,34 @@ def synth_body(
 
 def _json_body(args: dict[str, Any]) -> dict[str, Any]:
     body: dict[str, Any] = {k: args[k] for k in ("skeleton", "format", "faces")}
-    for key in ("shape", "coordinates", "root"):
+    body.update(_arrays(args, ("shape", "coordinates", "root")))
+    for key in ("batch", "measurements", "sex"):
+        if args.get(key) is not None:
+            body[key] = args[key]
+    return body
+
+
+def _arrays(args: dict[str, Any], keys: tuple[str, ...]) -> dict[str, Any]:
+    """The arrays of ``args`` that are set, as nested lists (named coordinates as {name: list})."""
+    body: dict[str, Any] = {}
+    for key in keys:
         value = args[key]
         if isinstance(value, dict):
             body[key] = {name: v.tolist() for name, v in value.items()}
         elif value is not None:
             body[key] = value.tolist()
-    if args["batch"] is not None:
-        body["batch"] = args["batch"]
     return body
+
+
+def measure_request(a: dict[str, Any]) -> dict[str, Any]:
+    """The httpx keyword arguments of POST /v1/measure: a multipart mesh upload or a JSON body."""
+    if a["mesh"] is not None:
+        name, data = a["mesh"]
+        return {"files": {"file": (name, data)}, "data": {"units": a["units"]}}
+    if a["measurements"] is not None:
+        sex = {"sex": a["sex"]} if a["sex"] is not None else {}
+        return {"json": {"measurements": a["measurements"], **sex}}
+    return {"json": _arrays(a, ("shape", "coordinates"))}
 
 
 def hint_fields(sex: str | None, height_m: float | None, mass_kg: float | None) -> dict[str, str] | None:
@@ -78,13 +99,7 @@ def request_of(op: Operation[Any]) -> tuple[str, str, dict[str, Any]]:
     if op.name in ("synthesize", "synthesize_file"):
         return "POST", "/v1/synthesize", {"json": _json_body(a)}
     if op.name == "measure":
-        if "json" in a:
-            return "POST", "/v1/measure", {"json": a["json"]}
-        return (
-            "POST",
-            "/v1/measure",
-            {"files": {"file": (a["name"], a["data"])}, "data": {"units": a["units"]}},
-        )
+        return "POST", "/v1/measure", measure_request(a)
     stream: dict[str, Any] = {"headers": {"accept": NDJSON}}
     if op.name == "fit_scan":
         files = {"file": (a["name"], a["data"])}
@@ -98,12 +113,17 @@ def request_of(op: Operation[Any]) -> tuple[str, str, dict[str, Any]]:
     return "POST", f"/v1/upgrade?chunk={a['chunk']}", {"files": files, "data": hints, **stream}
 
 
-def answer_event(op: Operation[Any], content: bytes) -> Event:
-    """The document of a unary answer: the synthesis's npz arrays, a file's bytes, or the JSON body."""
+def answer_event(op: Operation[Any], response: httpx.Response) -> Event:
+    """The document of a unary answer: the synthesis's npz arrays, a file's bytes, or the JSON body; a
+    synthesis from measurements adds the build's measurements document (its response header) as
+    ``built``."""
+    content = response.content
+    built = response.headers.get(BUILT_HEADER)
+    extra = {} if built is None else {"built": built}
     if op.name == "synthesize":
-        return synthesis_event(content)
+        return synthesis_event(content) | extra
     if op.name == "synthesize_file":
-        return {"data": content}
+        return {"data": content, **extra}
     return content
 
 
@@ -170,7 +190,7 @@ class Client(_Rest[httpx.Client], SyncClientCore):
                 if not response.is_success or not op.stream:
                     response.read()
                     raise_for_problem(response)
-                    yield answer_event(op, response.content)
+                    yield answer_event(op, response)
                     return
                 for line in response.iter_lines():
                     if line.strip():
@@ -198,7 +218,7 @@ class AsyncClient(_Rest[httpx.AsyncClient], AsyncClientCore):
                 if not response.is_success or not op.stream:
                     await response.aread()
                     raise_for_problem(response)
-                    yield answer_event(op, response.content)
+                    yield answer_event(op, response)
                     return
                 async for line in response.aiter_lines():
                     if line.strip():

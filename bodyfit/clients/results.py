@@ -17,6 +17,7 @@ from bodyfit.clients.errors import ServerError, error_from_problem, error_from_v
 from bodyfit.io.errors import FileFormatError, FileLimitError
 from bodyfit.io.npz import FLOAT, INTEGER, TEXT, ArraySpec, Dim, read_npz
 from bodyfit.wire import ModelInfo  # the SDK's model info is the wire's
+from bodyfit.wire.measure import Measurements
 
 ProgressCallback = Callable[[dict[str, Any]], None]
 """Called with each progress event: ``{"stage", "done", "total", "message"}``."""
@@ -43,6 +44,7 @@ def reader(adapter: TypeAdapter[T], what: str) -> Callable[[Document], T]:
 
 
 read_model_info = reader(TypeAdapter(ModelInfo), "model info")
+read_measurements = reader(TypeAdapter(Measurements), "measurements")
 
 
 def decode_array(doc: w.WireArray | dict[str, Any] | np.ndarray) -> np.ndarray:
@@ -66,7 +68,9 @@ _read_array = reader(TypeAdapter(w.WireArray), "array")
 @dataclass(frozen=True)
 class Synthesis:
     """vertices (B, V, 3) and joints (B, J, 3) float32 metres; faces (F, 3) when asked for; bones
-    (B, Vb, 3) and bone_faces when the skeleton was asked for."""
+    (B, Vb, 3) and bone_faces when the skeleton was asked for; ``built``, for bodies built from
+    measurements, what was requested and achieved (its ``shape``, ``requested``, ``values``,
+    ``residuals``, ``unmet``)."""
 
     vertices: np.ndarray
     joints: np.ndarray
@@ -74,6 +78,7 @@ class Synthesis:
     faces: np.ndarray | None = None
     bones: np.ndarray | None = None
     bone_faces: np.ndarray | None = None
+    built: Measurements | None = None
 
     @classmethod
     def from_npz(cls, data: bytes) -> Synthesis:
@@ -86,17 +91,27 @@ class Synthesis:
 
     @classmethod
     def from_event(cls, doc: dict[str, Any]) -> Synthesis:
-        """From ``{"arrays": {vertices, joints[, faces, bones, bone_faces]}, "joint_names"}``, the arrays
-        numpy arrays or wire arrays.
+        """From ``{"arrays": {vertices, joints[, faces, bones, bone_faces]}, "joint_names"[, "built"]}``,
+        the arrays numpy arrays or wire arrays, ``built`` a measurements document (JSON text or values).
 
         Raises:
-            ServerError: vertices or joints missing, or an array that is not a wire array.
+            ServerError: vertices or joints missing, an array that is not a wire array, or a ``built``
+                that is not a measurements document.
         """
         a = {k: decode_array(v) for k, v in doc.get("arrays", {}).items()}
         if "vertices" not in a or "joints" not in a:
             raise ServerError(f"the server's synthesis holds {sorted(a)}, without vertices and joints")
         names = tuple(str(n) for n in doc.get("joint_names", ()))
-        return cls(a["vertices"], a["joints"], names, a.get("faces"), a.get("bones"), a.get("bone_faces"))
+        built = doc.get("built")
+        return cls(
+            a["vertices"],
+            a["joints"],
+            names,
+            a.get("faces"),
+            a.get("bones"),
+            a.get("bone_faces"),
+            None if built is None else read_measurements(built),
+        )
 
 
 def synthesis_event(data: bytes) -> dict[str, Any]:

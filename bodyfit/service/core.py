@@ -52,7 +52,7 @@ from bodyfit.service.formats import Bodies
 from bodyfit.service.hints import ScanHints, height_check, hint_use
 from bodyfit.service.jobs import Job
 from bodyfit.service.limits import Limits
-from bodyfit.service.synthesis import SynthRequest, synthesis_parameters
+from bodyfit.service.synthesis import SynthRequest, batch_of, synthesis_parameters
 from bodyfit.service.uploads import SEQUENCE_BYTES_PER_FRAME
 from bodyfit.service.validation import (
     check_finite_result,
@@ -260,9 +260,41 @@ class BodyService:
         pending = self.start_synthesis(request)
         return self.finish_synthesis(pending, *pending.future.result())
 
+    def with_built_shape(self, request: SynthRequest) -> tuple[SynthRequest, Measurements | None]:
+        """``request`` with the shape of the body built from its ``measurements`` (every one of its B
+        bodies has it), and the :meth:`measure` answer of that build (requested, achieved, residuals,
+        unmet); ``request`` itself and None when it asks for no measurements.
+
+        Raises:
+            InvalidInputError: both shape and measurements, sex without measurements, an unknown
+                measurement name (with the closest names) or an implausible value (with its range).
+        """
+        if request.measurements is None:
+            if request.sex is not None:
+                raise InvalidInputError("sex goes with measurements (a body built from them)", field="sex")
+            return request, None
+        if request.shape is not None:
+            raise InvalidInputError(
+                "give shape or measurements, not both: the body built from measurements has its own shape",
+                field="measurements",
+            )
+        batch = batch_of(request)
+        if batch > self.limits.max_batch:
+            raise LimitExceededError(
+                f"{batch} bodies asked for in one call; the limit is {self.limits.max_batch}: split it",
+                field="batch",
+            )
+        built = self.measure(measurements=dict(request.measurements), sex=request.sex)
+        assert built.shape is not None
+        shape = np.repeat(np.asarray(built.shape, np.float64), batch, 0)
+        return replace(request, shape=shape, measurements=None, sex=None), built
+
     def start_synthesis(self, request: SynthRequest) -> PendingSynthesis:
         """Validate ``request`` (raising as :meth:`synthesize`) and queue its model call; concurrent
-        requests share one call (:class:`SynthBatcher`). Await ``future`` then :meth:`finish_synthesis`."""
+        requests share one call (:class:`SynthBatcher`). Await ``future`` then :meth:`finish_synthesis`.
+        A request with measurements is built first (:meth:`with_built_shape`, whose report is dropped here).
+        """
+        request, _ = self.with_built_shape(request)
         q, root, shape = synthesis_parameters(request, self.model, self.limits.max_batch)
         return PendingSynthesis(request, shape, q, root, self._batcher.submit(shape, q, root))
 
@@ -327,6 +359,7 @@ class BodyService:
             measurements=[MeasurementInfo(name=k, kind=about[k].kind, unit=about[k].unit) for k in values],
             values={k: np.asarray(v, np.float64).tolist() for k, v in values.items()},
             shape=None if built is None else [built.shape.tolist()],
+            requested=None if built is None else built.requested,
             residuals=None if built is None else built.residuals,
             unmet=[] if built is None else built.unmet,
             flagged=built is not None and built.flagged,

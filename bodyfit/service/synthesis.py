@@ -22,13 +22,33 @@ Coordinates = np.ndarray | Mapping[str, float | Sequence[float] | np.ndarray] | 
 class SynthRequest:
     """shape (B, n_shape) or None (the mean body); coordinates (B, n_dof) in ``dof_names`` order, or a
     mapping DOF name -> value or (B,) values (missing DOFs are 0), or None (zero pose); root (B, 3) metres
-    or None; skeleton: also pose the bone mesh; batch: B when nothing else gives it."""
+    or None; skeleton: also pose the bone mesh; batch: B when nothing else gives it; measurements: instead
+    of shape, build the body from these ({name: value}, docs/anthropometry.md) for ``sex`` (male, female or
+    None), all B bodies with that shape (:meth:`bodyfit.service.core.BodyService.with_built_shape`)."""
 
     shape: np.ndarray | None = None
     coordinates: Coordinates = None
     root: np.ndarray | None = None
     skeleton: bool = False
     batch: int | None = None
+    measurements: Mapping[str, float] | None = None
+    sex: str | None = None
+
+
+def rows_array(value: Sequence[Sequence[float]] | None, field: str) -> np.ndarray | None:
+    """A (B, N) float64 matrix of nested lists (a JSON body's arrays); None stays None.
+
+    Raises:
+        InvalidInputError: rows of different lengths (naming ``field``).
+    """
+    if value is None:
+        return None
+    rows = {len(row) for row in value}
+    if len(rows) > 1:
+        raise InvalidInputError(
+            f"the rows of {field} have different lengths {sorted(rows)}; send a (B, N) matrix", field
+        )
+    return np.asarray(value, np.float64)
 
 
 def synthesis_parameters(

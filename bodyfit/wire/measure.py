@@ -74,9 +74,12 @@ class Measurements(WireModel):
     requested), ``unmet`` (the requested ones missed by more than their tolerance) and ``flagged`` (some
     are unmet: the set cannot all be met in the model's shape space; the body is the best compromise)."""
 
-    measurements: list[MeasurementInfo]
+    measurements: list[MeasurementInfo] = Field(
+        default_factory=list, description="Each name's kind and unit (left out of synthesize's header)."
+    )
     values: dict[str, list[float]]
     shape: list[list[float]] | None = None
+    requested: dict[str, float] | None = None
     residuals: dict[str, float] | None = None
     unmet: list[str] = Field(default_factory=list)
     flagged: bool = False

@@ -1,6 +1,6 @@
 """``Client.measure`` and ``AsyncClient.measure`` against the REST app served in process: parameters, a mesh
 and measurements in, the server's measurements read through :mod:`bodyfit.wire.measure`; refusals raised as
-typed errors; the gRPC clients say that the call is served over REST."""
+typed errors; the gRPC client answers the same."""
 
 from __future__ import annotations
 
@@ -17,7 +17,9 @@ import torch
 from fastapi.testclient import TestClient
 from typer.testing import CliRunner
 
+from bodyfit.api.grpc_server import create_grpc_server
 from bodyfit.api.rest.app import create_app
+from bodyfit.api.settings import ServiceSettings
 from bodyfit.cli import app as cli
 from bodyfit.clients.errors import InvalidRequestError
 from bodyfit.clients.grpc_client import GrpcClient
@@ -78,9 +80,28 @@ def test_refusals_are_typed_errors_naming_the_measurement(client: Client) -> Non
         client.measure(shape=np.zeros(32), measurements={"stature": 1.8})
 
 
-def test_the_grpc_client_says_measure_is_served_over_rest() -> None:
-    with GrpcClient("127.0.0.1:1") as c, pytest.raises(InvalidRequestError, match="REST only"):
-        c.measure(measurements={"stature": 1.8})
+def test_the_grpc_client_measures_as_the_rest_client(client: Client, body_service: BodyService) -> None:
+    server, port = create_grpc_server(body_service, "127.0.0.1:0", ServiceSettings())
+    server.start()
+    try:
+        with GrpcClient(f"127.0.0.1:{port}", retries=0) as g:
+            shape = np.zeros((2, 32))
+            shape[1, 3] = 1.0
+            assert g.measure(shape=shape) == client.measure(shape=shape)
+            posed = {"hip_flexion_r": [0.5, 1.0]}
+            assert g.measure(shape=shape, coordinates=posed) == client.measure(shape=shape, coordinates=posed)
+            vertices, _ = body_in_pose(body_service.model, torch.zeros(1, 32))
+            mesh = vertices[0].numpy()
+            assert g.measure(mesh=mesh) == client.measure(mesh=mesh)
+            asked = {"stature": 1.9, "mass": 95.0, "waist": 0.95}
+            built = g.measure(measurements=asked, sex="male")
+            assert built == client.measure(measurements=asked, sex="male")
+            assert built.requested == {"stature": 1.9, "weightkg": 95.0, "waistcircumference": 0.95}
+            with pytest.raises(InvalidRequestError, match="did you mean 'stature'") as info:
+                g.measure(measurements={"statur": 1.8})
+            assert info.value.field == "measurements"
+    finally:
+        server.stop(grace=1).wait()
 
 
 def test_the_command_line_asks_a_server(

@@ -629,7 +629,7 @@ def test_a_hint_that_names_no_allowed_value_is_refused_before_sending(
 def test_the_four_clients_have_the_same_methods_and_signatures() -> None:
     import inspect
 
-    names = ("model_info", "synthesize", "synthesize_file", "fit_scan", "fit_sequence", "upgrade")
+    names = ("model_info", "synthesize", "synthesize_file", "fit_scan", "fit_sequence", "upgrade", "measure")
     for name in names:
         signatures = {
             str(inspect.signature(getattr(cls, name)))
@@ -639,5 +639,7 @@ def test_the_four_clients_have_the_same_methods_and_signatures() -> None:
         assert inspect.iscoroutinefunction(getattr(AsyncClient, name))
         assert not inspect.iscoroutinefunction(getattr(Client, name))
     synthesize = inspect.signature(Client("http://t").synthesize)
-    assert list(synthesize.parameters) == ["shape", "coordinates", "root", "skeleton", "faces", "batch"]
+    assert list(synthesize.parameters) == [
+        "shape", "coordinates", "root", "skeleton", "faces", "batch", "measurements", "sex"
+    ]  # fmt: skip
     assert synthesize.return_annotation.__name__ == "Synthesis"

@@ -15,10 +15,10 @@ from pydantic import ValidationError
 from starlette.datastructures import UploadFile
 
 from bodyfit.api.rest.openapi import PROBLEMS
-from bodyfit.api.rest.routes_synth import _array
 from bodyfit.api.rest.state import Service
 from bodyfit.service.core import SynthRequest
 from bodyfit.service.errors import InvalidInputError
+from bodyfit.service.synthesis import rows_array
 from bodyfit.wire.measure import Measurements, MeasureRequest
 
 router = APIRouter(prefix="/v1", tags=["anthropometry"])
@@ -62,8 +62,8 @@ async def measure(request: Request, service: Service) -> Measurements:
         return await run_in_threadpool(service.measure, measurements=body.measurements, sex=body.sex)
     coords = body.coordinates
     synth = SynthRequest(
-        shape=_array(body.shape, "shape"),
-        coordinates=coords if isinstance(coords, dict) else _array(coords, "coordinates"),
+        shape=rows_array(body.shape, "shape"),
+        coordinates=coords if isinstance(coords, dict) else rows_array(coords, "coordinates"),
     )
     return await run_in_threadpool(service.measure, synth)
 

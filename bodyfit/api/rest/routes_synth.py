@@ -1,43 +1,69 @@
-"""POST /v1/synthesize: parameters -> posed mesh, joints and skeleton (ONNX Runtime)."""
+"""POST /v1/synthesize: parameters, or measurements to build the body from -> posed mesh, joints and
+skeleton (ONNX Runtime)."""
 
 from __future__ import annotations
 
 import asyncio
 
-import numpy as np
 from fastapi import APIRouter, Response
 from fastapi.concurrency import run_in_threadpool
+from pydantic import ConfigDict, Field
 
+from bodyfit.api import schemas
 from bodyfit.api.rest.openapi import PROBLEMS
 from bodyfit.api.rest.state import Service
-from bodyfit.api.schemas import SynthesizeRequest
 from bodyfit.service.core import SynthRequest
-from bodyfit.service.errors import InvalidInputError
 from bodyfit.service.formats import MEDIA_TYPES, encode_bodies
+from bodyfit.service.synthesis import rows_array
 from bodyfit.wire import SynthesisJSON
+from bodyfit.wire.measure import MeasureSex
 
 router = APIRouter(prefix="/v1", tags=["synthesis"])
 
+BUILT_HEADER = "Bodyfit-Measurements"
+"""The response header that carries, for a body built from measurements, its
+:class:`~bodyfit.wire.measure.Measurements` document (requested, achieved, residuals, unmet) as JSON,
+without the per-name descriptions (docs/anthropometry.md) so that it stays within 4 KB, the smallest
+response-header buffer of common proxies."""
 
-def _array(value: list[list[float]] | None, field: str) -> np.ndarray | None:
-    if value is None:
-        return None
-    rows = {len(row) for row in value}
-    if len(rows) > 1:
-        raise InvalidInputError(
-            f"the rows of {field} have different lengths {sorted(rows)}; send a (B, N) matrix", field
-        )
-    return np.asarray(value, np.float64)
+
+class SynthesizeRequest(schemas.SynthesizeRequest):
+    """Parameters of B bodies, or measurements to build the body from. Every field is optional: nothing
+    gives the mean body in the zero pose."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {"coordinates": {"knee_angle_r": 1.0, "hip_flexion_r": 0.5}, "format": "npz"},
+                {
+                    "measurements": {"stature": 1.8, "mass": 80.0, "waist": 0.9},
+                    "sex": "male",
+                    "format": "glb",
+                },
+            ]
+        },
+    )
+
+    measurements: dict[str, float] | None = Field(
+        default=None,
+        description="Instead of shape: build the body from these {name: value} in metres (kilograms for "
+        "the mass), ANSUR II names or aliases (stature, mass, waist, ...; docs/anthropometry.md), any "
+        "subset. The response header Bodyfit-Measurements holds what was requested and achieved.",
+    )
+    sex: MeasureSex | None = Field(
+        default=None, description="With measurements: the plausible ranges and the prior of the built body."
+    )
 
 
 @router.post(
     "/synthesize",
-    summary="Parameters -> posed skin (and skeleton) as npz, ply, obj, glb or json",
+    summary="Parameters or measurements -> posed skin (and skeleton) as npz, ply, obj, glb or json",
     response_class=Response,
     responses={
         200: {
             "model": SynthesisJSON,
-            "description": "The posed bodies in the format asked for (json: the schema below)",
+            "description": "The posed bodies in the format asked for (json: the schema below). A body built "
+            f"from measurements has the {BUILT_HEADER} header: its measurements document as JSON",
             "content": {t: {} for t in MEDIA_TYPES.values() if t != "application/json"},
         },
         **PROBLEMS,
@@ -46,12 +72,19 @@ def _array(value: list[list[float]] | None, field: str) -> np.ndarray | None:
 async def synthesize(body: SynthesizeRequest, service: Service) -> Response:
     coords = body.coordinates
     request = SynthRequest(
-        shape=_array(body.shape, "shape"),
-        coordinates=coords if isinstance(coords, dict) else _array(coords, "coordinates"),
-        root=_array(body.root, "root"),
+        shape=rows_array(body.shape, "shape"),
+        coordinates=coords if isinstance(coords, dict) else rows_array(coords, "coordinates"),
+        root=rows_array(body.root, "root"),
         skeleton=body.skeleton,
         batch=body.batch,
+        measurements=body.measurements,
+        sex=body.sex,
     )
+    headers = {}
+    if request.measurements is not None or request.sex is not None:
+        request, built = await run_in_threadpool(service.with_built_shape, request)
+        if built is not None:
+            headers[BUILT_HEADER] = built.model_dump_json(exclude={"measurements"})
     pending = service.start_synthesis(request)  # validates here; the model call joins the next batch
     vertices, joints = await asyncio.wrap_future(pending.future)
 
@@ -63,4 +96,4 @@ async def synthesize(body: SynthesizeRequest, service: Service) -> Response:
     # npz of a plain body takes a fraction of a millisecond; meshes, text and the skeleton go to a thread.
     light = body.format == "npz" and not body.skeleton and len(vertices) <= 8
     data = encode() if light else await run_in_threadpool(encode)
-    return Response(data, media_type=MEDIA_TYPES[body.format])
+    return Response(data, media_type=MEDIA_TYPES[body.format], headers=headers)

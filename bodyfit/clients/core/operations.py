@@ -17,7 +17,6 @@ from pathlib import Path
 from typing import Any, Generic, TypeVar
 
 import numpy as np
-from pydantic import TypeAdapter
 
 from bodyfit import wire as w
 from bodyfit.clients.results import (
@@ -28,6 +27,7 @@ from bodyfit.clients.results import (
     SequenceResult,
     Synthesis,
     UpgradeOutput,
+    read_measurements,
     read_model_info,
     reader,
 )
@@ -73,13 +73,18 @@ def synthesis_args(
     faces: bool,
     batch: int | None,
     fmt: str,
+    measurements: Mapping[str, float] | None = None,
+    sex: str | None = None,
 ) -> dict[str, Any]:
-    """The checked arguments of a synthesis: arrays as float64 rows, named coordinates as float64 arrays.
+    """The checked arguments of a synthesis: arrays as float64 rows, named coordinates as float64 arrays,
+    measurements as {str: float}.
 
     Raises:
-        ValueError: a format other than :data:`FORMATS`."""
+        ValueError: a format other than :data:`FORMATS`, or both shape and measurements."""
     if fmt not in FORMATS:
         raise ValueError(f"format must be one of {', '.join(FORMATS)}; got {fmt!r}")
+    if shape is not None and measurements is not None:
+        raise ValueError("give shape or measurements, not both: the body built from measurements has its own")
     named = isinstance(coordinates, Mapping)
     coords = (
         {str(k): np.asarray(v, np.float64) for k, v in coordinates.items()}
@@ -95,6 +100,8 @@ def synthesis_args(
         "faces": faces,
         "batch": batch,
         "format": fmt,
+        "measurements": None if measurements is None else {str(k): float(v) for k, v in measurements.items()},
+        "sex": sex,
     }
 
 
@@ -133,10 +140,16 @@ def synthesize(
     skeleton: bool = False,
     faces: bool = False,
     batch: int | None = None,
+    measurements: Mapping[str, float] | None = None,
+    sex: str | None = None,
 ) -> Operation[Synthesis]:
     """Posed bodies as arrays. shape (B, n_shape); coordinates (B, n_dof) or {name: value(s)}; root
-    (B, 3); see :meth:`synthesize_file` for npz / ply / obj / glb / json bytes."""
-    args = synthesis_args(shape, coordinates, root, skeleton, faces, batch, "npz")
+    (B, 3); see :meth:`synthesize_file` for npz / ply / obj / glb / json bytes.
+
+    Instead of shape, ``measurements`` ({name: value} in metres, kilograms for the mass: ANSUR II names or
+    aliases such as stature, mass, waist; any subset, docs/anthropometry.md) build the body, for ``sex``
+    (male, female or None); the result's ``built`` holds what was requested and achieved."""
+    args = synthesis_args(shape, coordinates, root, skeleton, faces, batch, "npz", measurements, sex)
     return Operation("synthesize", _synthesis, _result, args, idempotent=True)
 
 
@@ -146,16 +159,19 @@ def synthesize_file(
     coordinates: Coordinates = None,
     root: np.ndarray | None = None,
     skeleton: bool = False,
+    measurements: Mapping[str, float] | None = None,
+    sex: str | None = None,
 ) -> Operation[bytes]:
-    """Posed bodies encoded as ``format`` (npz, ply, obj, glb or json; faces included).
+    """Posed bodies encoded as ``format`` (npz, ply, obj, glb or json; faces included); ``measurements``
+    and ``sex`` as for :meth:`synthesize` (what the build achieved: :meth:`measure` with the same ones).
 
     Raises:
-        ValueError: another format (before anything is sent)."""
-    args = synthesis_args(shape, coordinates, root, skeleton, True, None, format)
+        ValueError: another format, or both shape and measurements (before anything is sent)."""
+    args = synthesis_args(shape, coordinates, root, skeleton, True, None, format, measurements, sex)
     return Operation("synthesize_file", _file, _result, args, idempotent=True)
 
 
-_measurements = reader(TypeAdapter(Measurements), "measurements")
+_measurements = read_measurements
 
 
 def measure(
@@ -176,7 +192,10 @@ def measure(
       mass, waist; any subset) for ``sex`` (male, female or None): the answer then holds its ``shape``,
       ``residuals`` and ``unmet`` (``flagged`` when the set cannot all be met).
 
-    Served over REST only (``POST /v1/measure``).
+    Served over REST (``POST /v1/measure``) and gRPC (``Measure``).
+
+    The operation's ``args``: ``mesh`` (file name, bytes) or None, ``units``, ``measurements`` and
+    ``sex``, and for shapes the :func:`synthesis_args`.
 
     Raises:
         ValueError: none or more than one of shape, mesh and measurements (before anything is sent).
@@ -186,22 +205,13 @@ def measure(
     ]
     if len(given) != 1:
         raise ValueError(f"give exactly one of shape, mesh and measurements; got {given or 'none'}")
-    args: dict[str, Any] = {}
+    args: dict[str, Any] = {"mesh": None, "units": units, "measurements": None, "sex": sex}
     if mesh is not None:
-        name, data = scan_upload(mesh, "npz" if isinstance(mesh, bytes | bytearray) else None)
-        args = {"name": name, "data": data, "units": units}
+        args["mesh"] = scan_upload(mesh, "npz" if isinstance(mesh, bytes | bytearray) else None)
     elif measurements is not None:
-        body: dict[str, Any] = {"measurements": {str(k): float(v) for k, v in measurements.items()}}
-        args = {"json": body | ({"sex": sex} if sex is not None else {})}
+        args["measurements"] = {str(k): float(v) for k, v in measurements.items()}
     else:
-        parts = synthesis_args(shape, coordinates, None, False, False, None, "npz")
-        coords = parts["coordinates"]
-        body = {"shape": parts["shape"].tolist()}
-        if isinstance(coords, dict):
-            body["coordinates"] = {k: v.tolist() for k, v in coords.items()}
-        elif coords is not None:
-            body["coordinates"] = coords.tolist()
-        args = {"json": body}
+        args |= synthesis_args(shape, coordinates, None, False, False, None, "npz")
     return Operation("measure", _measurements, _result, args, idempotent=True)
 
 

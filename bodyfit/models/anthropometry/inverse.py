@@ -40,6 +40,10 @@ _TOL = np.array([TOLERANCE[MEASUREMENTS[n].kind] for n in NAMES])
 _STEPS = 10
 _FD_STEP = 0.25
 _CHUNK = 32
+_HALVINGS = 4
+MAX_SD = 5.0
+"""Largest coefficient (in the model's standard deviations) a built body takes: beyond, anny's synthetic
+population has almost no bodies and the skin can fold through itself."""
 
 
 @dataclass(frozen=True)
@@ -49,6 +53,7 @@ class BodyFromMeasurements:
     Attributes:
         shape: (n_shape,) shape coefficients.
         achieved: every measurement of that body (name -> value).
+        requested: the values asked for, under their ANSUR II names (aliases resolved).
         residuals: achieved minus requested, for the measurements requested.
         unmet: the requested measurements missed by more than their tolerance (:data:`TOLERANCE`): the
             set could not all be met in the model's shape space.
@@ -56,6 +61,7 @@ class BodyFromMeasurements:
 
     shape: np.ndarray
     achieved: dict[str, float]
+    requested: dict[str, float]
     residuals: dict[str, float]
     unmet: list[str]
 
@@ -129,13 +135,29 @@ def fit_measurements(
         Jw = J * w[..., None]
         A = np.einsum("bmk,bml->bkl", Jw, Jw) + P
         g = np.einsum("bmk,bm->bk", Jw, (f - goal) * w) + np.einsum("kl,bl->bk", P, c - mu)
-        delta = -np.linalg.solve(A, g[..., None])[..., 0]
+        delta = _bounded(c, -np.linalg.solve(A, g[..., None])[..., 0])
         f_new = evaluate(model, c + delta)
+        for _ in range(_HALVINGS):  # a step into bodies the shape space does not close: take half of it
+            lost = ~np.isfinite(f_new).all(1)
+            if not lost.any():
+                break
+            delta[lost] *= 0.5
+            f_new[lost] = evaluate(model, c[lost] + delta[lost])
         # Broyden's rank-one update: J delta reproduces the change the step made.
         change = f_new - f - np.einsum("bmk,bk->bm", J, delta)
         J += change[..., None] * delta[:, None] / np.maximum((delta**2).sum(1), 1e-12)[:, None, None]
         c, f = c + delta, f_new
     return c, f
+
+
+def _bounded(c: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """``delta`` (B, K) shortened per body so that ``c + delta`` stays within :data:`MAX_SD` of the mean: the
+    linearisation of an extreme request can overshoot far beyond where the model has bodies."""
+    reach = np.abs(c + delta).max(1)
+    scale = np.where(
+        reach > MAX_SD, np.maximum(MAX_SD - np.abs(c).max(1), 0.0) / np.abs(delta).max(1).clip(1e-12), 1.0
+    )
+    return delta * np.minimum(scale, 1.0)[:, None]
 
 
 def gaussian_prior(shapes: np.ndarray, shrink: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
@@ -210,4 +232,4 @@ def shape_from_measurements(
     values = dict(zip(NAMES, achieved[0].tolist()))
     residuals = {n: values[n] - wanted[n] for n in wanted}
     unmet = [n for n, r in residuals.items() if abs(r) > TOLERANCE[MEASUREMENTS[n].kind]]
-    return BodyFromMeasurements(shape[0], values, residuals, unmet)
+    return BodyFromMeasurements(shape[0], values, dict(wanted), residuals, unmet)
