@@ -8,7 +8,7 @@ import sys
 
 import typer
 
-from bodyfit.cli import assets, batch, demo, measure, serve, synth, upgrade
+from bodyfit.cli import assets, batch, demo, measure, rig, serve, synth, upgrade
 from bodyfit.cli.fit.commands import app as fit_app
 
 app = typer.Typer(
@@ -25,6 +25,7 @@ app.command("measure")(measure.measure)
 app.command("upgrade")(upgrade.upgrade)
 app.command("batch-upgrade")(batch.batch_upgrade)
 app.command("batch-fit")(batch.batch_fit)
+app.command("rig")(rig.rig)
 app.command("serve")(serve.serve)
 app.command("demo")(demo.demo)
 app.command("build-assets")(assets.build_assets)

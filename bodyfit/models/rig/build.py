@@ -1,0 +1,170 @@
+"""Build one person's rig from several registered scans of them in different poses.
+
+The method follows P. Fechteler, A. Hilsmann and P. Eisert, "Example-based Body Model Optimization and
+Skinning", Eurographics 2016 Short Papers: the person's template vertices are solved by sparse least squares
+with a mesh-Laplacian term, alternating with the poses of all example scans, until the model resembles every
+scan. Here the
+template is our shape space's body for one shared coefficient vector plus per-vertex rest-pose offsets
+(:func:`bodyfit.models.fitting.sequence.offsets.fit_rest_offsets`, as in SMPL+D), so the skeleton stays
+the shape space's OpenSim-valid one:
+
+1. each scan is fitted alone (:class:`RegisteredFitter`, its own shape); scans whose body disagrees with
+   the others' beyond what one person's fits differ by are refused (:func:`same_person`);
+2. the joints the scans' poses leave undetermined are named (:func:`undetermined_joints`);
+3. one shape for all scans and a pose per scan are fitted; then, ``rounds`` times, the offsets are solved
+   against the residuals and the shape and poses refitted with them.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from bodyfit.models.body.model import BodyModel
+from bodyfit.models.errors import BodyfitError, ShapeError
+from bodyfit.models.fitting.registered.fitter import BodyFit, RegisteredFitter
+from bodyfit.models.fitting.sequence.offsets import OffsetConfig, fit_rest_offsets
+from bodyfit.models.rig.subject import Subject, model_fingerprint
+
+LIMB_JOINTS = (
+    "hip_r", "hip_l", "walker_knee_r", "walker_knee_l", "ankle_r", "ankle_l",
+    "acromial_r", "acromial_l", "elbow_r", "elbow_l",
+)  # fmt: skip
+"""The joints whose centres set the limbs' proportions: each must bend between the scans to be observed."""
+
+
+class RigError(BodyfitError):
+    """Scans that cannot make one person's rig: too few, of different people, or poses too alike."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class RigConfig:
+    """min_scans: scans needed; rounds: offset/pose alternations; offsets: their smoothness and stiffness;
+    same_person_mm: the largest mean distance (mm) between one scan's body (its own shape, bind pose) and
+    the median of all scans' bodies for a scan of the same person; min_motion_deg: how far a limb joint
+    must move between two scans to be observed; allow_undetermined: build anyway when some are not (their
+    centres then come from the shape space alone)."""
+
+    min_scans: int = 3
+    rounds: int = 4
+    offsets: OffsetConfig = field(default_factory=lambda: OffsetConfig(smoothness=0.3, stiffness=1e-3))
+    same_person_mm: float = 15.0
+    min_motion_deg: float = 15.0
+    allow_undetermined: bool = False
+
+
+@dataclass(frozen=True)
+class RigBuild:
+    """The subject, each scan's mean vertex error (mm) under the generic model (its own shape) and under the
+    rig, the undetermined joints (built anyway: ``allow_undetermined``), and the seconds it took."""
+
+    subject: Subject
+    generic_mm: np.ndarray
+    personal_mm: np.ndarray
+    undetermined: tuple[str, ...]
+    seconds: float
+
+
+def same_person(model: BodyModel, shapes: np.ndarray, limit_mm: float) -> list[int]:
+    """Indices of the scans whose body is not the others' person: the standing body (every coordinate zero)
+    of each shape (K, n_shape) lying farther than ``limit_mm`` (mean over vertices) from the per-vertex
+    median body."""
+    c = torch.as_tensor(shapes, dtype=torch.float64)
+    q = torch.zeros(len(c), model.skeleton.n_dof, dtype=torch.float64)
+    root = torch.zeros(len(c), 3, dtype=torch.float64)
+    with torch.no_grad():
+        bodies = model.decoder(torch.float64)(c, q, root)[0].numpy()
+    median = np.median(bodies, axis=0)
+    spread = np.linalg.norm(bodies - median, axis=-1).mean(axis=1) * 1000.0
+    return [k for k in range(len(shapes)) if spread[k] > limit_mm]
+
+
+def undetermined_joints(model: BodyModel, poses: np.ndarray, min_motion_deg: float) -> list[str]:
+    """The :data:`LIMB_JOINTS` none of whose coordinates spans ``min_motion_deg`` over poses (K, n_dof)."""
+    spans = np.degrees(poses.max(axis=0) - poses.min(axis=0))
+    names = model.dof_names
+    out = []
+    for joint in LIMB_JOINTS:
+        idx = [names.index(c.name) for c in model.skeleton.spec.coordinates if c.joint == joint]
+        if idx and spans[idx].max() < min_motion_deg:
+            out.append(joint)
+    return out
+
+
+def build_rig(
+    model: BodyModel,
+    registrations: np.ndarray,
+    names: Sequence[str] = (),
+    weights: np.ndarray | None = None,
+    config: RigConfig | None = None,
+) -> RigBuild:
+    """One person's rig from K registrations (K, V, 3) metres in our topology, any placement, with per-vertex
+    weights (K, V) (0 = unseen; default ones); ``names`` name the scans in messages and the subject file.
+
+    Raises:
+        ShapeError: wrong array shapes. RigError: fewer than ``min_scans`` scans, scans of different people
+        (named), or poses that leave limb joints undetermined (named, with how to fix it).
+    """
+    cfg = config or RigConfig()
+    began = time.perf_counter()
+    x = np.asarray(registrations, np.float64)
+    labels = list(names) or [f"scan {k}" for k in range(len(x))]
+    if x.ndim != 3 or len(labels) != len(x):
+        raise ShapeError(
+            f"registrations must be (K, V, 3) with one name each; got {x.shape}, {len(labels)} names"
+        )
+    if len(x) < cfg.min_scans:
+        raise RigError(
+            f"a rig needs at least {cfg.min_scans} scans of the person in different poses; got {len(x)}"
+        )
+    fitter = RegisteredFitter(model)
+    x, w = fitter.validate(x, weights)
+    alone = fitter.fit(x, w)
+    strangers = same_person(model, alone.shape, cfg.same_person_mm)
+    if strangers:
+        raise RigError(
+            f"{', '.join(labels[k] for k in strangers)} show(s) another person than the other scans (their "
+            f"bodies differ by more than {cfg.same_person_mm:g} mm): pass scans of one person only"
+        )
+    undetermined = undetermined_joints(model, alone.coordinates, cfg.min_motion_deg)
+    if undetermined and not cfg.allow_undetermined:
+        raise RigError(
+            f"the scans' poses leave these joints undetermined: {', '.join(undetermined)}; each needs two "
+            f"scans whose angles at it differ by {cfg.min_motion_deg:g} degrees or more (add scans with them "
+            "bent), or allow it (`--allow-undetermined`: their centres then come from the shape space alone)"
+        )
+    fit, offsets = _alternate(model, fitter, x, w, cfg)
+    generic = _mean_mm(alone.vertices, x, w)
+    personal = _mean_mm(fit.vertices, x, w)
+    report = {"generic_mm": float(generic.mean()), "personal_mm": float(personal.mean())}
+    subject = Subject(
+        fit.shape[0], offsets, model_fingerprint(model), fit.coordinates, fit.root, tuple(labels), report
+    )
+    return RigBuild(subject, generic, personal, tuple(undetermined), time.perf_counter() - began)
+
+
+def _alternate(
+    model: BodyModel, fitter: RegisteredFitter, x: np.ndarray, w: np.ndarray, cfg: RigConfig
+) -> tuple[BodyFit, np.ndarray]:
+    """One shape and K poses, then ``rounds`` of offsets against the residuals and a refit with them."""
+    fit = fitter.fit(x, w, shared_shape=True)
+    offsets = np.zeros((model.n_vertices, 3))
+    for _ in range(cfg.rounds):
+        decoder = model.decoder(torch.float64).with_offsets(offsets)
+        with torch.no_grad():
+            params = (torch.as_tensor(a, dtype=torch.float64) for a in (fit.shape, fit.coordinates, fit.root))
+            _, _, frames, _ = decoder(*params)
+        rotations = decoder.blended_rotations(frames)
+        offsets = offsets + fit_rest_offsets(rotations, x - fit.vertices, w, model.faces, cfg.offsets)
+        fit = fitter.with_offsets(offsets).fit(x, w, init=fit, shared_shape=True)
+    return fit, offsets
+
+
+def _mean_mm(fitted: np.ndarray, x: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Weighted mean vertex distance (K,) in mm."""
+    d = np.linalg.norm(fitted - x, axis=-1)
+    return np.asarray((d * w).sum(axis=1) / w.sum(axis=1) * 1000.0)

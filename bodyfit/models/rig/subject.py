@@ -1,0 +1,142 @@
+"""The portable subject file: one person's shape coefficients and rest-pose template offsets for one body
+model, saved as a single ``.npz`` and refused when it was built for another model or has been altered."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from bodyfit.models.body.model import BodyDecoder, BodyModel
+from bodyfit.models.errors import BodyfitError
+
+FORMAT = "bodyfit-subject-1"
+FINGERPRINT_ARRAYS = ("faces", "vertices_mean", "weights", "scale_mean", "scale_basis", "identity_basis")
+
+
+class SubjectError(BodyfitError):
+    """A subject file that cannot be used: unreadable, altered, or built for another body model."""
+
+
+def model_fingerprint(model: BodyModel) -> str:
+    """sha256 (hex) of the body model's topology, template, skinning weights and shape bases: a subject's
+    offsets and coefficients mean something only for the model with this fingerprint."""
+    h = hashlib.sha256()
+    for name in FINGERPRINT_ARRAYS:
+        a = np.ascontiguousarray(model.data[name])
+        h.update(name.encode() + str(a.dtype).encode() + str(a.shape).encode() + a.tobytes())
+    return h.hexdigest()
+
+
+@dataclass(frozen=True)
+class Subject:
+    """One person for one body model: ``shape`` (n_shape,) coefficients [bone, identity]; ``offsets`` (V, 3)
+    metres added to the template before skinning; ``model`` the body model's :func:`model_fingerprint`;
+    ``poses`` (K, n_dof) and ``roots`` (K, 3) of the scans it was built from, named by ``scans``;
+    ``report``: how well it fits them (mm)."""
+
+    shape: np.ndarray
+    offsets: np.ndarray
+    model: str
+    poses: np.ndarray
+    roots: np.ndarray
+    scans: tuple[str, ...] = ()
+    report: dict[str, float] = field(default_factory=dict)
+
+    def decoder(self, model: BodyModel, dtype: torch.dtype = torch.float32) -> BodyDecoder:
+        """``model``'s decoder carrying this person's template offsets (shape coefficients are still an
+        input: pass :attr:`shape`).
+
+        Raises:
+            SubjectError: the subject was built for another body model.
+        """
+        self.check_model(model)
+        return model.decoder(dtype).with_offsets(self.offsets)
+
+    def check_model(self, model: BodyModel) -> None:
+        """Raises SubjectError unless this subject was built for ``model``."""
+        if self.model != model_fingerprint(model):
+            raise SubjectError(
+                f"this subject was built for another body model (fingerprint {self.model[:12]}..., the "
+                f"loaded model's is {model_fingerprint(model)[:12]}...); rebuild it with `bodyfit rig` "
+                "against the model you serve"
+            )
+
+    def to_bytes(self) -> bytes:
+        """The ``.npz`` bytes, with a sha256 of the contents that :meth:`from_bytes` checks."""
+        arrays = self._arrays()
+        buffer = io.BytesIO()
+        np.savez_compressed(buffer, allow_pickle=False, sha256=np.array(_digest(arrays)), **arrays)
+        return buffer.getvalue()
+
+    def save(self, path: str | Path) -> Path:
+        target = Path(path)
+        target.write_bytes(self.to_bytes())
+        return target
+
+    @classmethod
+    def from_bytes(cls, data: bytes, model: BodyModel | None = None) -> Subject:
+        """Read a subject file; with ``model``, also check it was built for that model.
+
+        Raises:
+            SubjectError: not a subject file, altered contents (hash mismatch), or another body model.
+        """
+        try:
+            with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+                arrays = {k: npz[k] for k in npz.files}
+        except (OSError, ValueError, EOFError) as exc:
+            raise SubjectError(f"not a subject file (an .npz written by `bodyfit rig`): {exc}") from None
+        if str(arrays.pop("format", "")) != FORMAT:
+            raise SubjectError(
+                f"not a subject file: its format is not {FORMAT!r} (write one with `bodyfit rig`)"
+            )
+        stored = str(arrays.pop("sha256", ""))
+        if stored != _digest({"format": np.array(FORMAT), **arrays}):
+            raise SubjectError(
+                "the subject file's contents do not match its sha256: it was altered or damaged"
+            )
+        subject = cls(
+            shape=arrays["shape"],
+            offsets=arrays["offsets"],
+            model=str(arrays["model"]),
+            poses=arrays["poses"],
+            roots=arrays["roots"],
+            scans=tuple(str(s) for s in arrays["scans"]),
+            report=dict(
+                zip(map(str, arrays["report_keys"]), map(float, arrays["report_values"]), strict=True)
+            ),
+        )
+        if model is not None:
+            subject.check_model(model)
+            if subject.offsets.shape != (model.n_vertices, 3) or subject.shape.shape != (model.n_shape,):
+                raise SubjectError("the subject's arrays do not match the body model's sizes")
+        return subject
+
+    @classmethod
+    def load(cls, path: str | Path, model: BodyModel | None = None) -> Subject:
+        return cls.from_bytes(Path(path).read_bytes(), model)
+
+    def _arrays(self) -> dict[str, np.ndarray]:
+        return {
+            "format": np.array(FORMAT),
+            "shape": np.asarray(self.shape, np.float64),
+            "offsets": np.asarray(self.offsets, np.float64),
+            "model": np.array(self.model),
+            "poses": np.asarray(self.poses, np.float64),
+            "roots": np.asarray(self.roots, np.float64),
+            "scans": np.array(self.scans, dtype=str),
+            "report_keys": np.array(list(self.report), dtype=str),
+            "report_values": np.array(list(self.report.values()), np.float64),
+        }
+
+
+def _digest(arrays: dict[str, np.ndarray]) -> str:
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(name.encode() + str(a.dtype).encode() + str(a.shape).encode() + a.tobytes())
+    return h.hexdigest()
