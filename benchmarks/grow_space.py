@@ -1,0 +1,184 @@
+"""Growing a shape space from scans of a population it does not cover (BLiSS, issue 40 deliverable 3).
+
+What is measured
+----------------
+* Population: our own bodies (shape coefficients from N(0, 1)) carrying a population's soft tissue the
+  shipped space has never seen: ``N_FIELDS`` smooth offset fields along the skin's normal (each a sum of
+  Gaussian bumps of 6-14 cm radius and 1.5-3 cm height on the torso, hips and limbs, fixed for the
+  population, seed 1) with per-person amplitudes drawn from N(1, 0.35), plus a smaller per-person smooth
+  field of its own. Training scans and held-out bodies are drawn apart (seeds 2 and 3).
+* Scans: each body posed in the zero pose (standing, arms down) with its offsets skinned along. Quick: the
+  posed meshes themselves in our topology (registration-quality inputs, which the batch fit fits as
+  registrations: seconds each); full: raw scans made from them as in ``benchmarks/fit_scans.py`` (surface
+  points with 2 mm noise, 8 % holes; ``bodyfit batch-fit`` fits them as raw scans: about a minute each).
+* First round: ``bodyfit batch-fit`` (the SDK's batch engine, local back-end) fits every scan in the
+  shipped space; ``bodyfit grow-space``'s rounds then reuse each scan's pose and re-project its shape,
+  refine non-rigidly and accept (:mod:`bodyfit.models.spaces.grow`).
+* ``grow_v2v_mm_original`` / ``grow_v2v_mm_grown``: the held-out bodies' bind-pose meshes replaced by their
+  least-squares template in the shipped / grown space with the same coefficient count (the best any fit in
+  that space can do; BLiSS Table 2's "PCA only"), mean vertex distance; ``grow_ratio``: grown over
+  original (target <= 0.6). ``grow_v2p_mm_*``: the same, point to the reconstruction's tangent plane.
+  ``grow_v2v_mm_population``: the shipped space's own population (bodies drawn from it), in the grown
+  space: what growing costs the bodies the space already covered (0 for the shipped space).
+* ``grow_rounds``, ``grow_accepted``: rounds run and registrations accepted; ``grow_curve``: per round,
+  accepted (new, total), Chamfer distances and the held-out v2v / v2p (mm and BLiSS's cm).
+
+Usage::
+
+    python benchmarks/grow_space.py [--quick] [--json]
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+N_FIELDS = 3
+
+
+def offset_fields(rest: np.ndarray, normals: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
+    """``k`` smooth offset fields (k, V, 3) along the mean body's normals (V, 3): each a sum of 3 Gaussian
+    bumps (radius 6-14 cm, height 1.5-3 cm, either sign) centred on random vertices of the body (V, 3) below
+    the neck."""
+    below_neck = np.flatnonzero(rest[:, 1] < np.quantile(rest[:, 1], 0.82))
+    fields = np.zeros((k, *rest.shape))
+    for f in range(k):
+        for _ in range(3):
+            centre = rest[rng.choice(below_neck)]
+            radius, height = rng.uniform(0.06, 0.14), rng.uniform(0.015, 0.03) * rng.choice([-1.0, 1.0])
+            bump = height * np.exp(-np.sum((rest - centre) ** 2, axis=1) / (2 * radius**2))
+            fields[f] += bump[:, None] * normals
+    return fields
+
+
+def population(
+    model: Any, fields: np.ndarray, n: int, seed: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``n`` bodies of the offset population: shape coefficients (n, n_shape), rest-pose offsets (n, V, 3)
+    (the population's fields with N(1, 0.35) amplitudes plus a personal field at a third of the height) and
+    bind-pose meshes (n, V, 3)."""
+    from bodyfit.models.fitting.common.surface import vertex_normals
+    from bodyfit.models.spaces.population import rest_meshes
+
+    rng = np.random.default_rng(seed)
+    shape = rng.normal(size=(n, model.n_shape)) * 0.8
+    bind = rest_meshes(model.data, shape)
+    normals = vertex_normals(bind, model.faces)
+    offsets = np.empty_like(bind)
+    for i in range(n):
+        amplitude = rng.normal(1.0, 0.35, len(fields))
+        personal = offset_fields(bind[i], normals[i], 1, rng)[0] / 3.0
+        offsets[i] = np.einsum("k,kvc->vc", amplitude, fields) + personal
+    return shape, offsets, bind + offsets
+
+
+def write_scans(model: Any, shape: np.ndarray, offsets: np.ndarray, out: Path, raw: bool) -> None:
+    """One scan per body in the zero pose: the posed mesh in our topology (``raw`` False) or, as a raw scan,
+    its surface points with 2 mm noise and 8 % holes (binary PLY point cloud)."""
+    from benchmarks.corrupt import add_noise, remove_patches
+    from bodyfit.clients.batch_fit import ply_bytes
+
+    out.mkdir(parents=True, exist_ok=True)
+    decoder = model.decoder(torch.float64, "lbs")
+    q = torch.zeros(1, model.skeleton.n_dof, dtype=torch.float64)
+    rng = np.random.default_rng(4)
+    for i in range(len(shape)):
+        with torch.no_grad():
+            v = decoder.with_offsets(offsets[i])(torch.as_tensor(shape[i : i + 1]), q, torch.zeros(1, 3))[0]
+        v = v[0].double().numpy()
+        if raw:
+            points, _ = remove_patches(add_noise(_surface_points(v, model.faces, rng), 0.002, rng), 0.08, rng)
+            (out / f"body_{i:03d}.ply").write_bytes(ply_bytes(points, np.zeros((0, 3), np.int64)))
+        else:
+            (out / f"body_{i:03d}.ply").write_bytes(ply_bytes(v, model.faces))
+
+
+def _surface_points(v: np.ndarray, faces: np.ndarray, rng: np.random.Generator, n: int = 40000) -> np.ndarray:
+    """``n`` points (n, 3) uniform on the mesh (V, 3), (F, 3) by area."""
+    tri = v[faces]
+    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    pick = rng.choice(len(faces), n, p=area / area.sum())
+    a, b = rng.random((2, n, 1))
+    flip = (a + b) > 1
+    a, b = np.where(flip, 1 - a, a), np.where(flip, 1 - b, b)
+    t = tri[pick]
+    return np.asarray(t[:, 0] + a * (t[:, 1] - t[:, 0]) + b * (t[:, 2] - t[:, 0]))
+
+
+def run(quick: bool, work: Path | None = None) -> dict[str, Any]:
+    """Build the population, fit it through the batch engine, grow the space and measure it."""
+    from bodyfit.cli.backends import fitter
+    from bodyfit.clients.batch_fit import batch_fit
+    from bodyfit.models.body.model import BodyModel
+    from bodyfit.models.fitting.common.surface import vertex_normals
+    from bodyfit.models.spaces.grow import GrowConfig, grow_space
+    from bodyfit.models.spaces.population import parametric_errors, rest_meshes, sample_population
+    from bodyfit.models.spaces.register import read_fit
+
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
+    model = BodyModel.load()
+    mean = rest_meshes(model.data, np.zeros((1, model.n_shape)))[0]
+    fields = offset_fields(mean, vertex_normals(mean, model.faces), N_FIELDS, np.random.default_rng(1))
+    n_scans, n_held = (16, 12) if quick else (48, 24)
+    shape, offsets, _ = population(model, fields, n_scans, seed=2)
+    _, _, held = population(model, fields, n_held, seed=3)
+    covered = sample_population(model, 24, seed=5).meshes
+    work = work or Path(tempfile.mkdtemp(prefix="grow_space_"))
+    write_scans(model, shape, offsets, work / "scans", raw=not quick)
+    batch = batch_fit(work / "scans", work / "fits", backend=fitter("local"), progress=False)
+    names = sorted(Path(p).stem for p in batch.done + batch.skipped)
+    scans = [read_fit(work / "scans" / f"{p}.ply", work / "fits" / f"{p}.npz") for p in names]
+    fit_s = time.perf_counter() - t0
+
+    def evaluate(data: dict[str, np.ndarray]) -> dict[str, float]:
+        return parametric_errors(data, held, model.faces)
+
+    result = grow_space(model, scans, GrowConfig(rounds=4 if quick else 6), evaluate=evaluate, log=_err)
+    first, last = result.rounds[0], result.rounds[-1]
+    curve = [
+        {k: r[k] for k in ("round", "accepted", "accepted_total", "v2v_mm", "v2p_mm", "v2v_cm") if k in r}
+        for r in result.rounds
+    ]
+    return {
+        "grow_ratio": round(last["v2v_mm"] / first["v2v_mm"], 3),
+        "grow_rounds": len(result.rounds) - 1,
+        "grow_accepted": len(result.accepted),
+        "grow_scans": len(scans),
+        "grow_v2v_mm_original": first["v2v_mm"],
+        "grow_v2v_mm_grown": last["v2v_mm"],
+        "grow_v2p_mm_original": first["v2p_mm"],
+        "grow_v2p_mm_grown": last["v2p_mm"],
+        "grow_v2v_mm_population": parametric_errors(result.data, covered, model.faces)["v2v_mm"],
+        "grow_coefficients": model.n_shape,
+        "grow_fit_s": round(fit_s, 1),
+        "grow_s": round(time.perf_counter() - t0, 1),
+        "grow_curve": curve,
+    }
+
+
+def _err(line: str) -> None:
+    print(line, file=sys.stderr)
+
+
+def main(argv: list[str] | None = None) -> None:
+    from benchmarks.bench_cli import bench_main
+
+    bench_main(
+        run,
+        "Growing a shape space from scans of a population it does not cover (BLiSS).",
+        "16 registration-quality scans, 12 held-out bodies",
+        argv,
+    )
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(ROOT))
+    main()

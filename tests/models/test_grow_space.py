@@ -1,0 +1,196 @@
+"""Growing a shape space from scans (BLiSS): the acceptance rule, the recomputed space, a population outside
+the space explained better after a round, the written asset folder (loads, serves, refuses), the command."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import typer
+from typer.testing import CliRunner
+
+from bodyfit.models.body.model import BODY_ASSET, BodyModel
+from bodyfit.models.errors import AssetError
+from bodyfit.models.fitting.common.nonrigid import NonRigidConfig, NonRigidStage
+from bodyfit.models.fitting.common.surface import vertex_normals
+from bodyfit.models.spaces.grow import GrowConfig, accept, grow_space
+from bodyfit.models.spaces.population import (
+    Population,
+    parametric_errors,
+    recompute_space,
+    rest_meshes,
+    sample_population,
+    segment_scales,
+)
+from bodyfit.models.spaces.register import PosedScan, chamfer_mm, initial_shape
+from bodyfit.models.spaces.writer import check_destination, write_space
+
+FAST = NonRigidConfig(stages=(NonRigidStage(smoothness=2.0, max_distance=0.06, sigma=0.02, rounds=2),))
+
+
+@pytest.fixture(scope="module")
+def model() -> BodyModel:
+    torch.set_num_threads(1)
+    return BodyModel.load()
+
+
+def belly(model: BodyModel) -> np.ndarray:
+    """(V, 3) one smooth bump of soft tissue on the front of the torso (3 cm high, 10 cm radius) along the
+    mean body's normals: what a population outside the space shares."""
+    mean = rest_meshes(model.data, np.zeros((1, model.n_shape)))[0]
+    normals = vertex_normals(mean, model.faces)
+    front = np.flatnonzero(np.abs(mean[:, 1] - np.median(mean[:, 1]) - 0.1) < 0.05)
+    centre = mean[front[np.argmax(mean[front, 0])]]
+    bump = 0.03 * np.exp(-np.sum((mean - centre) ** 2, axis=1) / (2 * 0.1**2))
+    return np.asarray(bump[:, None] * normals)
+
+
+def outside_bodies(model: BodyModel, n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``n`` bodies with the bump at amplitudes from N(1, 0.3): shapes (n, n_shape), offsets, bind meshes."""
+    rng = np.random.default_rng(seed)
+    shape = rng.normal(size=(n, model.n_shape)) * 0.5
+    offsets = rng.normal(1.0, 0.3, (n, 1, 1)) * belly(model)[None]
+    return shape, offsets, rest_meshes(model.data, shape) + offsets
+
+
+def posed_scans(model: BodyModel, shape: np.ndarray, offsets: np.ndarray) -> list[PosedScan]:
+    """Each body in the zero pose as a scan of its vertices, with the shape a fit in the space would find
+    (the least-squares projection of its bind-pose mesh)."""
+    q = torch.zeros(1, model.skeleton.n_dof, dtype=torch.float64)
+    decoder = model.decoder(torch.float64, "lbs")
+    scans = []
+    for i in range(len(shape)):
+        with torch.no_grad():
+            v = decoder.with_offsets(offsets[i])(torch.as_tensor(shape[i : i + 1]), q, torch.zeros(1, 3))[0]
+        fitted = initial_shape(model.data, rest_meshes(model.data, shape[i : i + 1])[0] + offsets[i])
+        scans.append(PosedScan(f"s{i}", v[0].numpy(), np.zeros(model.skeleton.n_dof), np.zeros(3), fitted))
+    return scans
+
+
+def test_accept_keeps_the_closest_within_one_deviation_and_the_ceiling() -> None:
+    chamfer = np.array([1.0, 1.5, 2.0, 9.0])
+    limit = chamfer.min() + chamfer.std()
+    assert accept(chamfer, 100.0).tolist() == (chamfer <= limit).tolist()
+    assert accept(chamfer, 100.0)[0] and not accept(chamfer, 100.0)[3]
+    assert not accept(chamfer, 0.5).any()
+    assert accept(np.zeros(0), 1.0).shape == (0,)
+
+
+def test_chamfer_is_symmetric_and_zero_on_itself() -> None:
+    a = np.random.default_rng(0).normal(size=(50, 3))
+    assert chamfer_mm(a, a) == 0.0
+    b = a + np.array([0.001, 0.0, 0.0])
+    assert chamfer_mm(a, b) == pytest.approx(chamfer_mm(b, a))
+    assert 0.0 < chamfer_mm(a, b) <= 1.0 + 1e-9
+
+
+def test_space_recomputed_from_its_own_population_explains_it(model: BodyModel) -> None:
+    data = recompute_space(model, sample_population(model, 60, seed=1))
+    others = sample_population(model, 5, seed=2).meshes
+    assert parametric_errors(data, others, model.faces)["v2v_mm"] < 0.05
+    assert parametric_errors(model.data, others, model.faces)["v2v_mm"] < 0.05
+    # the bone part still places the skeleton: at the bind pose its joints are where the regressor, refitted
+    # on the population, puts them on the template
+    grown = BodyModel(model.skeleton, data)
+    c = np.random.default_rng(3).normal(size=(1, grown.n_shape))
+    with torch.no_grad():
+        joints = grown.decoder(torch.float64)(
+            torch.as_tensor(c), torch.as_tensor(grown.bind_coordinates[None]), torch.zeros(1, 3).double()
+        )[1]
+    regressed = np.asarray(data["joint_regressor"], np.float64) @ rest_meshes(data, c)[0]
+    assert np.abs(joints[0].numpy() - regressed).max() < 0.015
+
+
+def test_a_round_explains_a_population_outside_the_space(model: BodyModel) -> None:
+    shape, offsets, _ = outside_bodies(model, 4, seed=3)
+    held = outside_bodies(model, 3, seed=4)[2]
+
+    def evaluate(data: dict[str, np.ndarray]) -> dict[str, float]:
+        return parametric_errors(data, held, model.faces)
+
+    config = GrowConfig(rounds=1, n_population=40, nonrigid=FAST)
+    result = grow_space(
+        model, posed_scans(model, shape, offsets), config, evaluate=evaluate, log=lambda _: None
+    )
+    before, after = result.rounds[0], result.rounds[-1]
+    assert after["accepted"] >= 1
+    assert after["v2v_mm"] < 0.6 * before["v2v_mm"]
+    assert after["v2p_mm"] < before["v2p_mm"]
+    assert after["v2v_cm"] == pytest.approx(after["v2v_mm"] / 10, abs=1e-3)
+    report = result.report()
+    assert report["n_accepted"] == len(result.accepted) == after["accepted_total"]
+    assert json.loads(json.dumps(report)) == report
+
+
+def test_written_folder_loads_serves_and_refuses_tampering(model: BodyModel, tmp_path: Path) -> None:
+    from bodyfit.models.assets import assets_dir
+    from bodyfit.service.core import BodyService
+    from bodyfit.service.synthesis import SynthRequest
+
+    shape, _, bind = outside_bodies(model, 3, seed=5)
+    data = recompute_space(model, sample_population(model, 40, seed=1) + _population(model, shape, bind))
+    out = write_space(assets_dir(), tmp_path / "grown", model, data, {"n_accepted": 3, "n_rounds": 1})
+    grown = BodyModel.load(out)
+    assert np.allclose(grown.data["vertices_mean"], data["vertices_mean"])
+    assert (out / "skeleton.json").read_bytes() == (assets_dir() / "skeleton.json").read_bytes()
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["grown_from"]["accepted"] == 3
+    # served through ONNX Runtime as the torch model decodes it
+    service = BodyService.load(assets=out, fitters=False)
+    c = np.full((1, grown.n_shape), 0.5)
+    bodies = service.synthesize(SynthRequest(shape=c))
+    torch_v = grown.forward(c).vertices[0].numpy()
+    assert np.abs(np.asarray(bodies.vertices)[0] - torch_v).max() < 1e-4
+    # an altered body.npz is refused
+    (out / BODY_ASSET).write_bytes((out / BODY_ASSET).read_bytes()[:-10] + b"0123456789")
+    with pytest.raises(AssetError, match="corrupted or stale"):
+        BodyModel.load(out)
+
+
+def test_destination_must_not_be_the_source_or_foreign(tmp_path: Path) -> None:
+    from bodyfit.models.assets import assets_dir
+
+    with pytest.raises(AssetError, match="grows from"):
+        check_destination(assets_dir(), assets_dir())
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine")
+    with pytest.raises(AssetError, match="not empty"):
+        check_destination(assets_dir(), foreign)
+    check_destination(assets_dir(), tmp_path / "new")
+
+
+def _population(model: BodyModel, shape: np.ndarray, bind: np.ndarray) -> Population:
+    return Population(bind, segment_scales(model.data, shape))
+
+
+def test_command_grows_a_folder_of_scans(model: BodyModel, tmp_path: Path) -> None:
+    from bodyfit.cli import grow
+    from bodyfit.clients.batch_fit import ply_bytes
+
+    shape, offsets, _ = outside_bodies(model, 3, seed=6)
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    for s in posed_scans(model, shape, offsets):
+        (scans / f"{s.name}.ply").write_bytes(ply_bytes(s.points, model.faces))
+    app = typer.Typer()
+    app.command("grow-space")(grow.grow_space)
+    app.command("unused")(lambda: None)
+    out = tmp_path / "grown"
+    args = ["grow-space", str(scans), "--out", str(out), "--rounds", "1", "--population", "40"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout.strip().splitlines()[-1])
+    assert summary["n_accepted"] >= 1
+    assert BodyModel.load(out).n_shape == model.n_shape
+    report = json.loads((out / "grow_report.json").read_text())
+    assert report["rounds"][1]["candidates"] == 3
+    # a second run into a foreign folder is refused with a clear error
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "x").write_text("x")
+    refused = CliRunner().invoke(app, ["grow-space", str(scans), "--out", str(foreign)])
+    assert refused.exit_code == 2 and "not empty" in refused.output
