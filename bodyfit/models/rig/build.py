@@ -8,11 +8,11 @@ template is our shape space's body for one shared coefficient vector plus per-ve
 (:func:`bodyfit.models.fitting.sequence.offsets.fit_rest_offsets`, as in SMPL+D), so the skeleton stays
 the shape space's OpenSim-valid one:
 
-1. each scan is fitted alone (:class:`RegisteredFitter`, its own shape); scans whose body disagrees with
-   the others' beyond what one person's fits differ by are refused (:func:`same_person`);
+1. each scan is fitted alone (:class:`RegisteredFitter`, its own shape: the generic model's error);
 2. the joints the scans' poses leave undetermined are named (:func:`undetermined_joints`);
 3. one shape for all scans and a pose per scan are fitted; then, ``rounds`` times, the offsets are solved
-   against the residuals and the shape and poses refitted with them.
+   against the residuals and the shape and poses refitted with them;
+4. a scan the rig explains far worse than the others is of another person (:func:`strangers`): refused.
 """
 
 from __future__ import annotations
@@ -44,15 +44,16 @@ class RigError(BodyfitError):
 @dataclass(frozen=True, kw_only=True)
 class RigConfig:
     """min_scans: scans needed; rounds: offset/pose alternations; offsets: their smoothness and stiffness;
-    same_person_mm: the largest mean distance (mm) between one scan's body (its own shape, bind pose) and
-    the median of all scans' bodies for a scan of the same person; min_motion_deg: how far a limb joint
-    must move between two scans to be observed; allow_undetermined: build anyway when some are not (their
-    centres then come from the shape space alone)."""
+    stranger_mm, stranger_factor: a scan the rig misses by more than both ``stranger_mm`` and
+    ``stranger_factor`` times the median scan's error is of another person; min_motion_deg: how far a limb
+    joint must move between two scans to be observed; allow_undetermined: build anyway when some are not
+    (their centres then come from the shape space alone)."""
 
     min_scans: int = 3
     rounds: int = 4
     offsets: OffsetConfig = field(default_factory=lambda: OffsetConfig(smoothness=0.3, stiffness=1e-3))
-    same_person_mm: float = 15.0
+    stranger_mm: float = 3.0
+    stranger_factor: float = 2.5
     min_motion_deg: float = 15.0
     allow_undetermined: bool = False
 
@@ -69,18 +70,12 @@ class RigBuild:
     seconds: float
 
 
-def same_person(model: BodyModel, shapes: np.ndarray, limit_mm: float) -> list[int]:
-    """Indices of the scans whose body is not the others' person: the standing body (every coordinate zero)
-    of each shape (K, n_shape) lying farther than ``limit_mm`` (mean over vertices) from the per-vertex
-    median body."""
-    c = torch.as_tensor(shapes, dtype=torch.float64)
-    q = torch.zeros(len(c), model.skeleton.n_dof, dtype=torch.float64)
-    root = torch.zeros(len(c), 3, dtype=torch.float64)
-    with torch.no_grad():
-        bodies = model.decoder(torch.float64)(c, q, root)[0].numpy()
-    median = np.median(bodies, axis=0)
-    spread = np.linalg.norm(bodies - median, axis=-1).mean(axis=1) * 1000.0
-    return [k for k in range(len(shapes)) if spread[k] > limit_mm]
+def strangers(personal_mm: np.ndarray, floor_mm: float, factor: float) -> list[int]:
+    """Indices of the scans the rig explains worse than ``floor_mm`` and ``factor`` times the median scan:
+    one person's rig fits all their poses alike (its offsets are shared), so a scan it cannot follow shows
+    someone else (a body that differs beyond the fits' error)."""
+    limit = max(floor_mm, factor * float(np.median(personal_mm)))
+    return [k for k in range(len(personal_mm)) if personal_mm[k] > limit]
 
 
 def undetermined_joints(model: BodyModel, poses: np.ndarray, min_motion_deg: float) -> list[str]:
@@ -124,12 +119,6 @@ def build_rig(
     fitter = RegisteredFitter(model)
     x, w = fitter.validate(x, weights)
     alone = fitter.fit(x, w)
-    strangers = same_person(model, alone.shape, cfg.same_person_mm)
-    if strangers:
-        raise RigError(
-            f"{', '.join(labels[k] for k in strangers)} show(s) another person than the other scans (their "
-            f"bodies differ by more than {cfg.same_person_mm:g} mm): pass scans of one person only"
-        )
     undetermined = undetermined_joints(model, alone.coordinates, cfg.min_motion_deg)
     if undetermined and not cfg.allow_undetermined:
         raise RigError(
@@ -140,6 +129,13 @@ def build_rig(
     fit, offsets = _alternate(model, fitter, x, w, cfg)
     generic = _mean_mm(alone.vertices, x, w)
     personal = _mean_mm(fit.vertices, x, w)
+    others = strangers(personal, cfg.stranger_mm, cfg.stranger_factor)
+    if others:
+        missed = ", ".join(f"{labels[k]} ({personal[k]:.1f} mm)" for k in others)
+        raise RigError(
+            f"{missed}: another person than the other scans (the rig fits the rest to "
+            f"{np.median(personal):.1f} mm); pass scans of one person only"
+        )
     report = {"generic_mm": float(generic.mean()), "personal_mm": float(personal.mean())}
     subject = Subject(
         fit.shape[0], offsets, model_fingerprint(model), fit.coordinates, fit.root, tuple(labels), report

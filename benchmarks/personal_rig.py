@@ -1,0 +1,145 @@
+"""Personal rigs (issue: personal rigs and growing shape spaces): a person outside the shape space, six
+scans of them to build the rig from, six other poses held out.
+
+What is measured
+----------------
+* Subjects outside the population the shape space was learned from:
+  ``offsets``: our body (coefficients 0.8 SD, seeded) with 10 mm (mean) of smooth random soft tissue
+  added to the template, posed by our skin; ``anny_*``: anny bodies at extreme phenotypes (old and heavy,
+  young and lean and short) posed by anny's own rig through our skeleton
+  (:mod:`bodyfit.models.body.anny_posed`), in our topology.
+* Poses: uniform within half of every coordinate's range about its middle, pelvis upright; 12 per subject
+  (seeded), the first 6 build the rig (:func:`bodyfit.models.rig.build.build_rig`), the last 6 are held
+  out. The inputs are registered meshes (our topology, exact correspondence), so the registration of each
+  route is its parametric fit.
+* ``generic_mm``: mean vertex error on the held-out poses of the generic model fitted to each alone (its
+  own shape and pose, :class:`RegisteredFitter`); ``personal_mm``: the rig fitted to them (pose only,
+  :func:`bodyfit.models.rig.fit.fit_registered`); ``ratio`` the second over the first.
+* Keys: ``rig_ratio`` and ``rig_param_mm`` the worst subject's; ``rig_build_s`` the slowest build (wall
+  clock, one torch thread).
+
+Usage::
+
+    python benchmarks/personal_rig.py [--quick] [--json]
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spl
+import torch
+
+from bodyfit.models.body.model import BodyModel
+from bodyfit.models.fitting.common.surface import laplacian
+from bodyfit.models.fitting.registered.fitter import RegisteredFitter
+from bodyfit.models.rig.build import build_rig
+from bodyfit.models.rig.fit import fit_registered
+
+N_BUILD, N_HELD = 6, 6
+SPREAD = 0.5
+EXTREMES = {
+    "anny_old_heavy": (dict(gender=0.0, age=1.0, muscle=0.1, weight=1.0, height=0.8, proportions=0.9), 85.0),
+    "anny_lean_short": (
+        dict(gender=1.0, age=0.55, muscle=0.9, weight=0.0, height=0.1, proportions=0.1),
+        25.0,
+    ),
+}
+"""anny phenotype sliders (0..1) and age in years of each extreme subject."""
+
+
+def soft_tissue(model: BodyModel, seed: int, mean_mm: float = 10.0) -> np.ndarray:
+    """(V, 3) smooth random rest-pose offsets of mean length ``mean_mm`` (white noise diffused by the mesh
+    Laplacian)."""
+    V = model.n_vertices
+    L = laplacian(model.faces, V)
+    solve = spl.factorized((sp.identity(V) + 30.0 * (L.T @ L)).tocsc())
+    noise = np.random.default_rng(seed).normal(size=(V, 3))
+    D = np.stack([solve(noise[:, i]) for i in range(3)], axis=1)
+    return D * (mean_mm / 1000.0) / np.linalg.norm(D, axis=1).mean()
+
+
+def poses(model: BodyModel, n: int, seed: int) -> np.ndarray:
+    from bodyfit.models.body.anny_posed import random_poses
+
+    return random_poses(model.skeleton, n, np.random.default_rng(seed), SPREAD)
+
+
+def offsets_subject(model: BodyModel, seed: int) -> np.ndarray:
+    """(12, V, 3) our body with smooth soft tissue, posed by our skin."""
+    shape = np.random.default_rng(seed).normal(size=(1, model.n_shape)) * 0.8
+    decoder = model.decoder(torch.float64).with_offsets(soft_tissue(model, seed))
+    q = poses(model, N_BUILD + N_HELD, 100 + seed)
+    with torch.no_grad():
+        c = torch.as_tensor(np.repeat(shape, len(q), 0))
+        return decoder(c, torch.as_tensor(q), torch.zeros(len(q), 3, dtype=torch.float64))[0].numpy()
+
+
+def anny_subject(model: BodyModel, name: str, seed: int) -> np.ndarray:
+    """(12, V, 3) one anny body at an extreme phenotype (:data:`EXTREMES`), posed by anny's rig."""
+    from bodyfit.models.body.anny_posed import pose_anny, template_landmarks
+    from bodyfit.models.body.anny_source import AnnySource, Population
+    from bodyfit.models.body.skeleton_fit import place_skeletons
+    from bodyfit.models.build_assets import default_cache_dir
+
+    phenotypes, age = EXTREMES[name]
+    src = AnnySource(default_cache_dir())
+    pop = Population({k: np.array([v]) for k, v in phenotypes.items()}, np.array([age]))
+    landmarks, _ = template_landmarks(src)
+    fit = place_skeletons(model.skeleton, src.rest(pop)["vertices"][:, landmarks], 150)
+    fk = model.skeleton.kinematics(torch.float64)
+    frames_a = fk(torch.as_tensor(fit.q), torch.as_tensor(fit.root), torch.as_tensor(fit.scales)).frames
+    q = poses(model, N_BUILD + N_HELD, 200 + seed)
+    ids = np.zeros(len(q), dtype=np.int64)
+    vertices, _ = pose_anny(src, pop, model.skeleton, fit, ids, q, frames_a)
+    return vertices
+
+
+def rig_case(model: BodyModel, bodies: np.ndarray) -> dict[str, float]:
+    """Build on the first :data:`N_BUILD` bodies, score on the rest (module docstring)."""
+    build, held = bodies[:N_BUILD], bodies[N_BUILD:]
+    began = time.perf_counter()
+    built = build_rig(model, build, [f"pose{k}" for k in range(N_BUILD)])
+    build_s = time.perf_counter() - began
+    generic = RegisteredFitter(model).fit(held)
+    personal = fit_registered(model, built.subject, held)
+    g = float(np.linalg.norm(generic.vertices - held, axis=-1).mean() * 1000.0)
+    p = float(np.linalg.norm(personal.vertices - held, axis=-1).mean() * 1000.0)
+    return {
+        "generic_mm": round(g, 3),
+        "personal_mm": round(p, 3),
+        "ratio": round(p / g, 4),
+        "build_fit_mm": round(float(built.personal_mm.mean()), 3),
+        "build_s": round(build_s, 2),
+    }
+
+
+def run(quick: bool) -> dict[str, Any]:
+    """The keys of the module docstring, and the per-subject table ``rig_cases``."""
+    torch.set_num_threads(1)
+    model = BodyModel.load()
+    cases: dict[str, np.ndarray] = {}
+    for seed in range(1 if quick else 3):
+        cases[f"offsets_{seed}"] = offsets_subject(model, seed)
+    for k, name in enumerate(list(EXTREMES)[: 1 if quick else None]):
+        cases[name] = anny_subject(model, name, k)
+    table = {name: rig_case(model, bodies) for name, bodies in cases.items()}
+    return {
+        "rig_ratio": max(r["ratio"] for r in table.values()),
+        "rig_param_mm": max(r["personal_mm"] for r in table.values()),
+        "rig_build_s": max(r["build_s"] for r in table.values()),
+        "rig_cases": table,
+    }
+
+
+if __name__ == "__main__":
+    from bench_cli import bench_main  # benchmarks/ is on sys.path
+
+    bench_main(
+        run,
+        "Personal rigs: subjects outside the shape space, six scans each.",
+        "one offsets subject, one anny",
+    )
