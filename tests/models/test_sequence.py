@@ -20,6 +20,8 @@ from bodyfit.models.errors import NonFiniteError, ShapeError
 from bodyfit.models.fitting.common.report import DistanceStats
 from bodyfit.models.fitting.registered.fitter import RegisteredFitter, Stage
 from bodyfit.models.fitting.retarget.fitter import Retargeted, retarget, wrap_pelvis
+from bodyfit.models.fitting.sequence.basins import BasinCheck, settle
+from bodyfit.models.fitting.sequence.config import FRAME_STAGES
 from bodyfit.models.fitting.sequence.fitter import (
     JitterSum,
     SequenceConfig,
@@ -31,6 +33,7 @@ from bodyfit.models.fitting.sequence.fitter import (
     jitter,
 )
 from bodyfit.models.fitting.sequence.frames import PelvisUnwrap
+from bodyfit.models.fitting.sequence.poses import FramePoses
 from bodyfit.models.threads import torch_threads
 
 CLIP = Path(__file__).resolve().parents[1] / "data" / "cmu_bvh" / "cmu_131_01_clip.bvh"
@@ -414,3 +417,57 @@ def test_bad_sequences_raise(model: BodyModel, seq_fitter: SequenceFitter) -> No
         )
     with pytest.raises(ValueError, match="at least 1"):
         SequenceFitter(model, SequenceConfig(stride=0))
+
+
+# -- one basin along time ------------------------------------------------------------------------------
+def _frame_problems(
+    model: BodyModel, seq_fitter: SequenceFitter, q: np.ndarray, root: np.ndarray
+) -> FramePoses:
+    """The pose problems of our mean body's skins at q (T, n_dof), root (T, 3), in the world frame."""
+    T = len(q)
+    x = model.forward(np.zeros((T, model.n_shape)), q, root, dtype=torch.float64).vertices.numpy()
+    frames = (x.astype(np.float32), np.ones(x.shape[:2]), np.repeat(np.eye(3)[None], T, 0), np.zeros((T, 3)))
+    return FramePoses(seq_fitter.pose_fitter, frames, np.zeros((1, model.n_shape)), FRAME_STAGES, 1)
+
+
+def test_frames_stuck_at_a_limit_are_re_solved_from_their_neighbours(
+    model: BodyModel, moved: Retargeted, seq_fitter: SequenceFitter
+) -> None:
+    """Frames whose fit starts at the elbow's upper limit stay there (the bounded mapping is flat at a
+    limit: 150 degrees against the input's 47), while the input moves by a degree a frame; re-solved from
+    their neighbours they follow the input again. The frames fitted well are not touched."""
+    skel = model.skeleton
+    T, stuck, elbow = 12, [5, 6, 7], skel.dof_index("elbow_flex_r")
+    q_true, root = moved.in_range(skel)[:T], moved.root[:T]
+    problems = _frame_problems(model, seq_fitter, q_true, root)
+    q0 = q_true.copy()
+    q0[stuck, elbow] = skel.ranges[elbow, 1]
+    q, r = problems.refit(np.arange(T), q0, root)
+    assert np.degrees(q[stuck, elbow]).min() > 145.0  # the fit alone stays at the limit
+    settled, r_settled, kept = settle(q, r, problems, BasinCheck(), np.arange(skel.n_dof))
+    assert kept == len(stuck)
+    assert np.degrees(np.abs(settled[:, elbow] - q_true[:, elbow])).max() < 3.0
+    assert problems.losses(np.arange(T), settled, r_settled).max() < 5.0  # mm^2
+    others = np.setdiff1d(np.arange(T), stuck)
+    np.testing.assert_array_equal(settled[others], q[others])
+
+
+def test_a_jump_the_input_makes_is_kept(
+    model: BodyModel, moved: Retargeted, seq_fitter: SequenceFitter
+) -> None:
+    """The input's own jump (the elbow bends 40 degrees between two frames) moves the skin with the input: it
+    is not questioned, and nothing is re-solved."""
+    skel = model.skeleton
+    T, elbow = 8, skel.dof_index("elbow_flex_r")
+    q_true, root = moved.in_range(skel)[:T].copy(), moved.root[:T]
+    q_true[4:, elbow] += np.radians(40.0)
+    problems = _frame_problems(model, seq_fitter, q_true, root)
+    q, r = problems.refit(np.arange(T), q_true, root)
+    settled, _, kept = settle(q, r, problems, BasinCheck(), np.arange(skel.n_dof))
+    assert kept == 0
+    np.testing.assert_array_equal(settled, q)
+    assert np.degrees(settled[4, elbow] - settled[3, elbow]) > 35.0
+    with pytest.raises(ValueError, match="jump"):
+        BasinCheck(jump=0.0)
+    with pytest.raises(ValueError, match="rounds"):
+        BasinCheck(rounds=-1)

@@ -5,12 +5,23 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from bodyfit.models.fitting.registered.stages import Stage, check_at_least
+from bodyfit.models.fitting.sequence.basins import BasinCheck
 from bodyfit.models.fitting.sequence.offsets import OffsetConfig
 
 KEY_STAGES = (Stage(name="key_pose", coordinates="all", shape="none", vertices="subset", iterations=40),)
 FRAME_STAGES = (Stage(name="pose", coordinates="all", shape="none", vertices="subset", iterations=24),)
 PELVIS_WEIGHT = 0.5  # skinning weight above which a vertex belongs to the pelvis, for the heading
+FRAME_BASINS = BasinCheck()
+# Pose keyframes are ``stride`` frames apart, over which real motion turns a joint by tens of degrees: only a
+# change beyond that is questioned.
+KEY_BASINS = BasinCheck(jump=float(np.radians(30.0)), rounds=2)
+# Coordinates the basin check leaves out: the distal ones (the forearm's twist, the wrist's, the foot's
+# subtalar and toe joints) move few vertices, so their fits wander by more than the check's jump from frame to
+# frame without a change of basin, and a basin change there moves little skin.
+BASIN_FREE = ("pro_sup_", "wrist_", "subtalar_", "mtp_")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -25,7 +36,10 @@ class SequenceConfig:
     no lag; a convex combination, so it stays within the limits; 0 turns it off;
     offsets: fit the person's rest-pose offsets (:mod:`.offsets`: surface detail
     beyond the shape space) on the shape keyframes and fit every pose with them; None: shape space only;
-    workers: threads a chunk's pose fits are split over (frames are independent problems).
+    workers: threads a chunk's pose fits are split over (frames are independent problems);
+    key_basins / basins: the check that neighbouring pose keyframes / frames sit in one basin of the pose fit
+    (:mod:`.basins`: a pair that jumps is re-solved, each frame from the other's pose); None turns it off;
+    basin_free: prefixes of the coordinates the check leaves out (:data:`BASIN_FREE`).
 
     Raises:
         ValueError: a count below one, a blend outside [0, 0.5), or a pose stage that fits the shape (the
@@ -41,6 +55,9 @@ class SequenceConfig:
     blend: float = 0.02
     offsets: OffsetConfig | None = None
     workers: int = 2
+    key_basins: BasinCheck | None = KEY_BASINS
+    basins: BasinCheck | None = FRAME_BASINS
+    basin_free: tuple[str, ...] = BASIN_FREE
 
     def __post_init__(self) -> None:
         for stage in (*self.key_stages, *self.frame_stages):

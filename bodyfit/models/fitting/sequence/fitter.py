@@ -11,13 +11,16 @@ How (:class:`SequenceFitter`):
    "BLSM: A Bone-Level Skinned Model of the Human Mesh", ECCV 2020, section 5.2), with one shape shared by
    ``keyframes`` frames spread over the sequence; the shape is then frozen for every frame.
 3. Pose keyframes every ``stride`` frames: the fitter's rigid start (per-body Kabsch and inverse kinematics)
-   and a pose-only fit with the frozen shape.
+   and a pose-only fit with the frozen shape. Neighbouring keyframes whose coordinates jump while the fitted
+   skin moves unlike the input are re-solved from each other's poses (:mod:`.basins`).
 4. Every frame starts from the linear interpolation of its two neighbouring keyframes (a warm start within
-   ``stride / 2`` frames of a fitted pose) and gets a short pose-only fit. Frames are independent problems
-   given the shape and the keyframes, so splitting them into chunks (memory) changes nothing: there are no
-   seams between chunks. :meth:`SequenceFitter.fit_frames` asks a :data:`FrameSource` for the frames chunk
-   by chunk, so a sequence never has to be held whole: memory stays bounded by the chunk size whatever
-   the length.
+   ``stride / 2`` frames of a fitted pose) and gets a short pose-only fit. The same check of one basin along
+   time (:mod:`.basins`) then re-solves, from its neighbour's pose, a frame that left its neighbours' basin
+   (a coordinate stuck at a limit): its coordinates jump while its input barely moves. Frames are independent
+   problems given the shape and the keyframes, except for that check, which reads the last frame of the
+   chunk before: there are no seams between chunks. :meth:`SequenceFitter.fit_frames` asks a
+   :data:`FrameSource` for the frames chunk by chunk, so a sequence never has to be held whole: memory stays
+   bounded by the chunk size whatever the length.
 5. The joint coordinates (all but the pelvis's) are blended with their two neighbours in time
    (:attr:`SequenceConfig.blend`, a centred three-frame blend: it adds no lag). Back in the world frame the
    pelvis angles are recomputed from the pelvis orientation and unwrapped over time, so ``pelvis_rotation``
@@ -52,10 +55,11 @@ from bodyfit.models.fitting.registered.fitter import (
     RegisteredFitter,
 )
 from bodyfit.models.fitting.retarget.fitter import wrap_pelvis
+from bodyfit.models.fitting.sequence.basins import BasinCheck, settle
 from bodyfit.models.fitting.sequence.config import FRAME_STAGES, KEY_STAGES, PELVIS_WEIGHT, SequenceConfig
 from bodyfit.models.fitting.sequence.frames import FrameArrays, Headings, blend_joints, to_world, turn, yaw
 from bodyfit.models.fitting.sequence.offsets import OffsetConfig, fit_rest_offsets
-from bodyfit.models.fitting.sequence.poses import fit_poses
+from bodyfit.models.fitting.sequence.poses import FramePoses
 from bodyfit.models.fitting.sequence.result import SequenceFit, SequenceFrames
 from bodyfit.models.fitting.sequence.stats import JitterSum, SequenceStats, jitter
 from bodyfit.models.skeleton.model import PELVIS_ROTATIONS
@@ -134,6 +138,8 @@ class SequenceFitter:
         skel = self.model.skeleton
         self.pelvis_dofs = [skel.dof_index(n) for n in PELVIS_ROTATIONS]
         self._joint_dofs = np.array([k for k, n in enumerate(skel.dof_names) if not n.startswith("pelvis_")])
+        free = self.config.basin_free
+        self._basin_dofs = np.array([k for k, n in enumerate(skel.dof_names) if not n.startswith(free)], int)
         self.headings = Headings(self.model)
 
     @property
@@ -284,9 +290,12 @@ class SequenceFitter:
             k = keys[lo : lo + cfg.chunk]
             x_k, w_k, G_k, o_k = self._frames(source, k)
             q0, r0 = self.fitter.bone_start(turn(x_k, G_k, o_k), w_k)
-            q_key[lo : lo + len(k)], r_key[lo : lo + len(k)] = fit_poses(
-                pose_fitter, x_k, w_k, G_k, o_k, c, q0, r0, cfg.key_stages, cfg.workers
-            )
+            problems = FramePoses(pose_fitter, (x_k, w_k, G_k, o_k), c, cfg.key_stages, cfg.workers)
+            rows = slice(lo, lo + len(k))
+            q_key[rows], r_key[rows] = problems.refit(np.arange(len(k)), q0, r0)
+            before = None if lo == 0 else (q_key[lo - 1], r_key[lo - 1])
+            settled = self._settle(problems, q_key[rows], r_key[rows], before, cfg.key_basins)
+            q_key[rows], r_key[rows] = settled
         q_init = np.stack([np.interp(np.arange(T), keys, q_key[:, j]) for j in range(n_dof)], 1)
         r_init = np.stack([np.interp(np.arange(T), keys, r_key[:, j]) for j in range(3)], 1)
         return q_init, r_init
@@ -301,23 +310,31 @@ class SequenceFitter:
             hi = min(T, lo + chunk)
             x, w, out.G[lo:hi], out.origin[lo:hi] = self._frames(run.source, np.arange(lo, hi))
             G, origin = out.G[lo:hi], out.origin[lo:hi]
-            out.q_c[lo:hi], out.root_c[lo:hi] = fit_poses(
-                run.fitter,
-                x,
-                w,
-                G,
-                origin,
-                run.shape,
-                q_init[lo:hi],
-                r_init[lo:hi],
-                stages,
-                self.config.workers,
-            )
+            problems = FramePoses(run.fitter, (x, w, G, origin), run.shape, stages, self.config.workers)
+            q, r = problems.refit(np.arange(hi - lo), q_init[lo:hi], r_init[lo:hi])
+            before = None if lo == 0 else (out.q_c[lo - 1], out.root_c[lo - 1])
+            out.q_c[lo:hi], out.root_c[lo:hi] = self._settle(problems, q, r, before, self.config.basins)
             if pending is not None:  # one chunk behind: its last frame's blend needs this chunk's first
                 self._finish(run, *pending)
             pending = (lo, hi, x, w)
         if pending is not None:
             self._finish(run, *pending)
+
+    def _settle(
+        self,
+        problems: FramePoses,
+        q: np.ndarray,
+        root: np.ndarray,
+        before: tuple[np.ndarray, np.ndarray] | None,
+        check: BasinCheck | None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Poses q (k, n_dof), root (k, 3) of ``problems``' frames (canonical frames) with neighbours that
+        jump re-solved from each other (:func:`.basins.settle`; ``before``: the final pose of the frame before
+        them, or None); unchanged when ``check`` is None."""
+        if check is None:
+            return q, root
+        q, root, _ = settle(q, root, problems, check, self._basin_dofs, before)
+        return q, root
 
     def _finish(self, run: _FramePass, lo: int, hi: int, x: np.ndarray, w: np.ndarray) -> None:
         """Nothing; blends, turns back to the world, unwraps, skins and measures frames lo:hi of ``run.out``

@@ -8,6 +8,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import torch
 
+from bodyfit.models.body.model import PosedSkin
 from bodyfit.models.fitting.registered.fitter import RegisteredFitter, Stage, vertex_term
 from bodyfit.models.fitting.sequence.frames import turn
 
@@ -46,3 +47,51 @@ def fit_poses(
     with ThreadPoolExecutor(len(runs)) as pool:
         done = list(pool.map(fit, runs))
     return np.concatenate([q for q, _ in done]), np.concatenate([root for _, root in done])
+
+
+class FramePoses:
+    """The pose problems of a block of frames (the arguments of :func:`fit_poses`: world frames x (B, V, 3),
+    weights w (B, V), canonical frames G (B, 3, 3) and origin (B, 3), frozen shape c (1, n_shape)), to be
+    solved again for some of the frames from other starts, and each frame's data term at a pose: the
+    :data:`.basins.Refit` and :data:`.basins.Losses` of :func:`.basins.settle`."""
+
+    def __init__(
+        self,
+        fitter: RegisteredFitter,
+        frames: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+        c: np.ndarray,
+        stages: tuple[Stage, ...],
+        workers: int,
+    ) -> None:
+        self.fitter = fitter
+        self.x, self.w, self.G, self.origin = frames
+        self.c, self.stages, self.workers = c, stages, workers
+        self._skin: PosedSkin | None = None
+
+    def refit(self, rows: np.ndarray, q0: np.ndarray, r0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Coordinates (k, n_dof) and roots (k, 3) of frames ``rows`` (k,) fitted from q0 (k, n_dof) and
+        r0 (k, 3) (k may repeat a frame: one fit per start)."""
+        workers = max(1, min(self.workers, len(rows) // 4))  # a few frames: one thread is quicker
+        every = len(rows) == len(self.x) and bool((rows == np.arange(len(rows))).all())
+        take: np.ndarray | slice = slice(None) if every else rows  # the whole block: no copy
+        x, w, G, o = self.x[take], self.w[take], self.G[take], self.origin[take]
+        return fit_poses(self.fitter, x, w, G, o, self.c, q0, r0, self.stages, workers)
+
+    def residuals(self, rows: np.ndarray, q: np.ndarray, root: np.ndarray) -> np.ndarray:
+        """(k, N, 3) the last stage's vertices fitted minus input (mm) of frames ``rows`` (k,) at coordinates
+        q (k, n_dof) and roots (k, 3) (canonical frames)."""
+        dtype = self.fitter.config.dtype
+        vertices = self.stages[-1].vertices
+        if self._skin is None:
+            self._skin = self.fitter.decoders[vertices].posed(torch.as_tensor(self.c, dtype=dtype))
+        x = turn(self.x[rows][:, self.fitter.index[vertices]], self.G[rows], self.origin[rows])
+        with torch.no_grad():
+            v = self._skin(torch.as_tensor(q, dtype=dtype), torch.as_tensor(root, dtype=dtype))
+        return np.asarray(v.double().numpy() * 1000.0 - x * 1000.0)
+
+    def losses(self, rows: np.ndarray, q: np.ndarray, root: np.ndarray) -> np.ndarray:
+        """(k,) the last stage's data term (weighted mean squared distance, mm^2, as :func:`vertex_term`) of
+        frames ``rows`` (k,) at coordinates q (k, n_dof) and roots (k, 3) (canonical frames)."""
+        w = self.w[rows]
+        wt = w[:, self.fitter.index[self.stages[-1].vertices]] / w.mean(axis=1, keepdims=True)
+        return np.asarray(((self.residuals(rows, q, root) ** 2).sum(-1) * wt).mean(1))
