@@ -22,6 +22,7 @@ OPERATIONS = [
     ("POST", "/v1/fit/sequence"),
     ("POST", "/v1/upgrade"),
     ("POST", "/v1/measure"),
+    ("POST", "/v1/subjects"),
     ("GET", "/healthz"),
     ("GET", "/readyz"),
 ]

@@ -17,6 +17,7 @@ from bodyfit.api.rest import (
     routes_measure,
     routes_model,
     routes_ops,
+    routes_subjects,
     routes_synth,
     routes_upgrade,
     routes_viewer,
@@ -69,6 +70,7 @@ def create_app(
         routes_synth.router,
         routes_fit.router,
         routes_upgrade.router,
+        routes_subjects.router,
         routes_ops.router,
     ):
         app.include_router(router)

@@ -9,6 +9,7 @@ from fastapi import FastAPI
 from pydantic import BaseModel, TypeAdapter
 
 from bodyfit import wire as w
+from bodyfit.wire.subjects import SUBJECT_EVENTS
 
 NDJSON = "application/x-ndjson"
 PROBLEM_MEDIA_TYPE = "application/problem+json"
@@ -17,6 +18,7 @@ STREAMS: dict[str, TypeAdapter[Any]] = {
     "ScanFitEvent": w.SCAN_EVENTS,
     "SequenceFitEvent": w.SEQUENCE_EVENTS,
     "UpgradeEvent": w.UPGRADE_EVENTS,
+    "SubjectEvent": SUBJECT_EVENTS,
     "Problem": TypeAdapter(w.Problem),
 }
 """The schemas no route declares as its response model, added to the document's components."""
