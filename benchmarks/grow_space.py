@@ -26,12 +26,16 @@ What is measured
 Usage::
 
     python benchmarks/grow_space.py [--quick] [--json]
+    python benchmarks/grow_space.py --render build/grow/full/grown docs/grow_space_components.png
+
+The grown space is written to ``build/grow/{quick,full}/grown`` (a complete asset folder); ``--render``
+draws a space's first identity components.
 """
 
 from __future__ import annotations
 
+import shutil
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -79,6 +83,32 @@ def population(
     return shape, offsets, bind + offsets
 
 
+def posed_meshes(model: Any, shape: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """The bodies (n, V, 3) of shapes (n, n_shape) with rest-pose offsets (n, V, 3), in the zero pose."""
+    decoder = model.decoder(torch.float64, "lbs")
+    q = torch.zeros(1, model.skeleton.n_dof, dtype=torch.float64)
+    out = []
+    for i in range(len(shape)):
+        with torch.no_grad():
+            v = decoder.with_offsets(offsets[i])(torch.as_tensor(shape[i : i + 1]), q, torch.zeros(1, 3))[0]
+        out.append(v[0].double().numpy())
+    return np.stack(out)
+
+
+def fitted_errors(model: Any, data: dict[str, np.ndarray], posed: np.ndarray) -> dict[str, float]:
+    """The held-out bodies (n, V, 3) fitted in the space ``data`` (pose and shape, the registered fitter):
+    mean vertex-to-vertex and vertex-to-plane distance of the fitted body to each (mm, and v2v in cm)."""
+    from bodyfit.models.body.model import BodyModel
+    from bodyfit.models.fitting.common.surface import vertex_normals
+    from bodyfit.models.fitting.registered.fitter import RegisteredFitter
+
+    fit = RegisteredFitter(BodyModel(model.skeleton, data)).fit(posed)
+    diff = posed - fit.vertices
+    v2v = float(np.linalg.norm(diff, axis=-1).mean()) * 1e3
+    v2p = float(np.abs((diff * vertex_normals(fit.vertices, model.faces)).sum(-1)).mean()) * 1e3
+    return {"fit_v2v_mm": round(v2v, 3), "fit_v2p_mm": round(v2p, 3), "fit_v2v_cm": round(v2v / 10, 4)}
+
+
 def write_scans(model: Any, shape: np.ndarray, offsets: np.ndarray, out: Path, raw: bool) -> None:
     """One scan per body in the zero pose: the posed mesh in our topology (``raw`` False) or, as a raw scan,
     its surface points with 2 mm noise and 8 % holes (binary PLY point cloud)."""
@@ -86,13 +116,8 @@ def write_scans(model: Any, shape: np.ndarray, offsets: np.ndarray, out: Path, r
     from bodyfit.clients.batch_fit import ply_bytes
 
     out.mkdir(parents=True, exist_ok=True)
-    decoder = model.decoder(torch.float64, "lbs")
-    q = torch.zeros(1, model.skeleton.n_dof, dtype=torch.float64)
     rng = np.random.default_rng(4)
-    for i in range(len(shape)):
-        with torch.no_grad():
-            v = decoder.with_offsets(offsets[i])(torch.as_tensor(shape[i : i + 1]), q, torch.zeros(1, 3))[0]
-        v = v[0].double().numpy()
+    for i, v in enumerate(posed_meshes(model, shape, offsets)):
         if raw:
             points, _ = remove_patches(add_noise(_surface_points(v, model.faces, rng), 0.002, rng), 0.08, rng)
             (out / f"body_{i:03d}.ply").write_bytes(ply_bytes(points, np.zeros((0, 3), np.int64)))
@@ -116,11 +141,13 @@ def run(quick: bool, work: Path | None = None) -> dict[str, Any]:
     """Build the population, fit it through the batch engine, grow the space and measure it."""
     from bodyfit.cli.backends import fitter
     from bodyfit.clients.batch_fit import batch_fit
+    from bodyfit.models.assets import assets_dir
     from bodyfit.models.body.model import BodyModel
     from bodyfit.models.fitting.common.surface import vertex_normals
     from bodyfit.models.spaces.grow import GrowConfig, grow_space
     from bodyfit.models.spaces.population import parametric_errors, rest_meshes, sample_population
     from bodyfit.models.spaces.register import read_fit
+    from bodyfit.models.spaces.writer import write_space
 
     torch.set_num_threads(1)
     t0 = time.perf_counter()
@@ -129,9 +156,10 @@ def run(quick: bool, work: Path | None = None) -> dict[str, Any]:
     fields = offset_fields(mean, vertex_normals(mean, model.faces), N_FIELDS, np.random.default_rng(1))
     n_scans, n_held = (16, 12) if quick else (48, 24)
     shape, offsets, _ = population(model, fields, n_scans, seed=2)
-    _, _, held = population(model, fields, n_held, seed=3)
+    held_shape, held_offsets, held = population(model, fields, n_held, seed=3)
+    held_posed = posed_meshes(model, held_shape, held_offsets)
     covered = sample_population(model, 24, seed=5).meshes
-    work = work or Path(tempfile.mkdtemp(prefix="grow_space_"))
+    work = work or ROOT / "build" / "grow" / ("quick" if quick else "full")
     write_scans(model, shape, offsets, work / "scans", raw=not quick)
     batch = batch_fit(work / "scans", work / "fits", backend=fitter("local"), progress=False)
     names = sorted(Path(p).stem for p in batch.done + batch.skipped)
@@ -139,23 +167,36 @@ def run(quick: bool, work: Path | None = None) -> dict[str, Any]:
     fit_s = time.perf_counter() - t0
 
     def evaluate(data: dict[str, np.ndarray]) -> dict[str, float]:
-        return parametric_errors(data, held, model.faces)
+        return {**parametric_errors(data, held, model.faces), **fitted_errors(model, data, held_posed)}
 
     result = grow_space(model, scans, GrowConfig(rounds=4 if quick else 6), evaluate=evaluate, log=_err)
+    grown = work / "grown"
+    shutil.rmtree(grown, ignore_errors=True)
+    write_space(assets_dir(), grown, model, result.data, result.report())
     first, last = result.rounds[0], result.rounds[-1]
-    curve = [
-        {k: r[k] for k in ("round", "accepted", "accepted_total", "v2v_mm", "v2p_mm", "v2v_cm") if k in r}
-        for r in result.rounds
-    ]
+    keys = (
+        "round",
+        "accepted",
+        "accepted_total",
+        "fit_v2v_mm",
+        "fit_v2p_mm",
+        "fit_v2v_cm",
+        "v2v_mm",
+        "v2p_mm",
+    )
+    curve = [{k: r[k] for k in keys if k in r} for r in result.rounds]
     return {
-        "grow_ratio": round(last["v2v_mm"] / first["v2v_mm"], 3),
+        "grow_ratio": round(last["fit_v2v_mm"] / first["fit_v2v_mm"], 3),
+        "grow_v2v_mm_original": first["fit_v2v_mm"],
+        "grow_v2v_mm_grown": last["fit_v2v_mm"],
+        "grow_v2p_mm_original": first["fit_v2p_mm"],
+        "grow_v2p_mm_grown": last["fit_v2p_mm"],
+        "grow_span_ratio": round(last["v2v_mm"] / first["v2v_mm"], 3),
         "grow_rounds": len(result.rounds) - 1,
         "grow_accepted": len(result.accepted),
         "grow_scans": len(scans),
-        "grow_v2v_mm_original": first["v2v_mm"],
-        "grow_v2v_mm_grown": last["v2v_mm"],
-        "grow_v2p_mm_original": first["v2p_mm"],
-        "grow_v2p_mm_grown": last["v2p_mm"],
+        "grow_span_v2v_mm_original": first["v2v_mm"],
+        "grow_span_v2v_mm_grown": last["v2v_mm"],
         "grow_v2v_mm_population": parametric_errors(result.data, covered, model.faces)["v2v_mm"],
         "grow_coefficients": model.n_shape,
         "grow_fit_s": round(fit_s, 1),
@@ -164,12 +205,41 @@ def run(quick: bool, work: Path | None = None) -> dict[str, Any]:
     }
 
 
+def render_components(folder: Path, out: Path, k: int = 4) -> None:
+    """The first ``k`` identity components of the space in asset folder ``folder``: the mean body in the bind
+    pose with the component at -3 and +3 standard deviations, from the front and the side, one row per
+    component (PNG ``out``)."""
+    from benchmarks.render import RenderMesh, label_grid, render, save_png, tile
+    from bodyfit.models.body.model import BodyModel
+    from bodyfit.models.spaces.population import rest_meshes
+
+    model = BodyModel.load(folder)
+    images, rows = [], []
+    skin = (0.85, 0.65, 0.55)
+    for i in range(k):
+        c = np.zeros((2, model.n_shape))
+        c[:, model.n_bone + i] = (-3.0, 3.0)
+        meshes = rest_meshes(model.data, c)
+        lo, hi = meshes.reshape(-1, 3).min(0) - 0.02, meshes.reshape(-1, 3).max(0) + 0.02
+        for view in ("front", "side"):
+            for v in meshes:
+                images.append(render([RenderMesh(v, model.faces, skin)], view, (240, 360), bounds=(lo, hi)))
+        rows.append(f"identity {i + 1}")
+    columns = [["front -3 sd", "front +3 sd", "side -3 sd", "side +3 sd"]]
+    save_png(label_grid(tile(images, 4), columns, rows), out)
+
+
 def _err(line: str) -> None:
     print(line, file=sys.stderr)
 
 
 def main(argv: list[str] | None = None) -> None:
     from benchmarks.bench_cli import bench_main
+
+    args = sys.argv[1:] if argv is None else argv
+    if args[:1] == ["--render"]:
+        render_components(Path(args[1]), Path(args[2]))
+        return
 
     bench_main(
         run,

@@ -18,15 +18,13 @@ from bodyfit.models.fitting.common.nonrigid import NonRigidConfig, NonRigidStage
 from bodyfit.models.fitting.common.surface import vertex_normals
 from bodyfit.models.spaces.grow import GrowConfig, accept, grow_space
 from bodyfit.models.spaces.population import (
-    Population,
     parametric_errors,
     recompute_space,
     rest_meshes,
     sample_population,
-    segment_scales,
 )
 from bodyfit.models.spaces.register import PosedScan, chamfer_mm, initial_shape
-from bodyfit.models.spaces.writer import check_destination, write_space
+from bodyfit.models.spaces.writer import check_destination
 
 FAST = NonRigidConfig(stages=(NonRigidStage(smoothness=2.0, max_distance=0.06, sigma=0.02, rounds=2),))
 
@@ -125,31 +123,6 @@ def test_a_round_explains_a_population_outside_the_space(model: BodyModel) -> No
     assert json.loads(json.dumps(report)) == report
 
 
-def test_written_folder_loads_serves_and_refuses_tampering(model: BodyModel, tmp_path: Path) -> None:
-    from bodyfit.models.assets import assets_dir
-    from bodyfit.service.core import BodyService
-    from bodyfit.service.synthesis import SynthRequest
-
-    shape, _, bind = outside_bodies(model, 3, seed=5)
-    data = recompute_space(model, sample_population(model, 40, seed=1) + _population(model, shape, bind))
-    out = write_space(assets_dir(), tmp_path / "grown", model, data, {"n_accepted": 3, "n_rounds": 1})
-    grown = BodyModel.load(out)
-    assert np.allclose(grown.data["vertices_mean"], data["vertices_mean"])
-    assert (out / "skeleton.json").read_bytes() == (assets_dir() / "skeleton.json").read_bytes()
-    manifest = json.loads((out / "manifest.json").read_text())
-    assert manifest["grown_from"]["accepted"] == 3
-    # served through ONNX Runtime as the torch model decodes it
-    service = BodyService.load(assets=out, fitters=False)
-    c = np.full((1, grown.n_shape), 0.5)
-    bodies = service.synthesize(SynthRequest(shape=c))
-    torch_v = grown.forward(c).vertices[0].numpy()
-    assert np.abs(np.asarray(bodies.vertices)[0] - torch_v).max() < 1e-4
-    # an altered body.npz is refused
-    (out / BODY_ASSET).write_bytes((out / BODY_ASSET).read_bytes()[:-10] + b"0123456789")
-    with pytest.raises(AssetError, match="corrupted or stale"):
-        BodyModel.load(out)
-
-
 def test_destination_must_not_be_the_source_or_foreign(tmp_path: Path) -> None:
     from bodyfit.models.assets import assets_dir
 
@@ -163,13 +136,16 @@ def test_destination_must_not_be_the_source_or_foreign(tmp_path: Path) -> None:
     check_destination(assets_dir(), tmp_path / "new")
 
 
-def _population(model: BodyModel, shape: np.ndarray, bind: np.ndarray) -> Population:
-    return Population(bind, segment_scales(model.data, shape))
-
-
-def test_command_grows_a_folder_of_scans(model: BodyModel, tmp_path: Path) -> None:
+def test_command_grows_a_folder_that_loads_serves_and_refuses_tampering(
+    model: BodyModel, tmp_path: Path
+) -> None:
+    """The scans are fitted through the batch engine (local back-end), grown for a round, and written as an
+    asset folder that BodyModel.load and the service (ONNX Runtime) read."""
     from bodyfit.cli import grow
     from bodyfit.clients.batch_fit import ply_bytes
+    from bodyfit.models.assets import assets_dir
+    from bodyfit.service.core import BodyService
+    from bodyfit.service.synthesis import SynthRequest
 
     shape, offsets, _ = outside_bodies(model, 3, seed=6)
     scans = tmp_path / "scans"
@@ -185,9 +161,24 @@ def test_command_grows_a_folder_of_scans(model: BodyModel, tmp_path: Path) -> No
     assert result.exit_code == 0, result.output
     summary = json.loads(result.stdout.strip().splitlines()[-1])
     assert summary["n_accepted"] >= 1
-    assert BodyModel.load(out).n_shape == model.n_shape
     report = json.loads((out / "grow_report.json").read_text())
     assert report["rounds"][1]["candidates"] == 3
+    assert (tmp_path / "grown.fits" / "scans" / "s0.json").is_file()  # the batch engine's outputs
+    grown = BodyModel.load(out)
+    assert grown.n_shape == model.n_shape
+    assert not np.allclose(grown.data["identity_basis"], model.data["identity_basis"])
+    assert (out / "skeleton.json").read_bytes() == (assets_dir() / "skeleton.json").read_bytes()
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["grown_from"]["accepted"] == summary["n_accepted"]
+    # served through ONNX Runtime as the torch model decodes it
+    service = BodyService.load(assets=out, fitters=False)
+    c = np.full((1, grown.n_shape), 0.5)
+    served = np.asarray(service.synthesize(SynthRequest(shape=c)).vertices)[0]
+    assert np.abs(served - grown.forward(c).vertices[0].numpy()).max() < 1e-4
+    # an altered body.npz is refused
+    (out / BODY_ASSET).write_bytes((out / BODY_ASSET).read_bytes()[:-10] + b"0123456789")
+    with pytest.raises(AssetError, match="corrupted or stale"):
+        BodyModel.load(out)
     # a second run into a foreign folder is refused with a clear error
     foreign = tmp_path / "foreign"
     foreign.mkdir()

@@ -125,6 +125,7 @@ def grow_space(
         model = BodyModel(model.skeleton, recompute_space(model, population), "lbs")
     result = GrowResult(dict(model.data))
     result.rounds.append({"round": 0, "accepted": 0, "accepted_total": 0, **_score(evaluate, model.data)})
+    log(_round_line(result.rounds[0]))
     # scan name -> its last bind-pose registration, where the next projection starts; before the first, the
     # template of the scan's own fit
     last = {s.name: rest_meshes(original.data, s.shape[None])[0] for s in scans}
@@ -168,10 +169,9 @@ def _score(evaluate: Evaluate | None, data: dict[str, np.ndarray]) -> dict[str, 
 
 
 def _round_line(entry: dict[str, Any]) -> str:
-    line = f"round {entry['round']}: {entry['accepted']} of {entry['candidates']} accepted"
+    line = f"round {entry['round']}: {entry['accepted']} of {entry.get('candidates', 0)} accepted"
     line += f" ({entry['accepted_total']} in all)"
     if "chamfer_mm" in entry:
         line += f", Chamfer {entry['chamfer_mm']['min']:.2f}-{entry['chamfer_mm']['max']:.2f} mm"
-    if "v2v_mm" in entry:
-        line += f", held-out v2v {entry['v2v_mm']:.2f} mm"
+    line += "".join(f", held-out {k} {entry[k]:.2f}" for k in ("v2v_mm", "fit_v2v_mm") if k in entry)
     return line
