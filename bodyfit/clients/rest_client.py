@@ -18,7 +18,8 @@ import httpx
 import numpy as np
 
 from bodyfit.clients.core import AsyncClientCore, Event, Operation, SyncClientCore, parse_retry_after
-from bodyfit.clients.core.base import retry_policy
+from bodyfit.clients.core import operations as ops
+from bodyfit.clients.core.base import async_method, retry_policy, sync_method
 from bodyfit.clients.core.operations import Coordinates, frames_npz, synthesis_args, upgrade_upload
 from bodyfit.clients.core.retry import DEFAULT_RETRIES, RetryPolicy
 from bodyfit.clients.errors import (
@@ -108,6 +109,9 @@ def request_of(op: Operation[Any]) -> tuple[str, str, dict[str, Any]]:
     if op.name == "fit_sequence":
         files = {"file": ("frames.npz", frames_npz(a["frames"], a["weights"]))}
         return "POST", f"/v1/fit/sequence?chunk={a['chunk']}", {"files": files, **stream}
+    if op.name == "build_subject":
+        parts = [("files", item) for item in a["files"]]
+        return "POST", "/v1/subjects", {"files": parts, "data": a["fields"], **stream}
     hints = {k: str(v) for k, v in a["hints"].items()} or None
     files = {"file": (a["name"], a["data"])}
     return "POST", f"/v1/upgrade?chunk={a['chunk']}", {"files": files, "data": hints, **stream}
@@ -177,6 +181,9 @@ class Client(_Rest[httpx.Client], SyncClientCore):
         retry: the retry policy (default :class:`RetryPolicy`: a 20 s budget); ``retries`` caps its count.
     """
 
+    # a rig from several scans (REST only: ``POST /v1/subjects``)
+    build_subject = sync_method(ops.build_subject)
+
     def _new_http(self, **kwargs: Any) -> httpx.Client:
         return httpx.Client(**kwargs)
 
@@ -201,6 +208,8 @@ class Client(_Rest[httpx.Client], SyncClientCore):
 
 class AsyncClient(_Rest[httpx.AsyncClient], AsyncClientCore):
     """Asynchronous REST client; the same methods as :class:`Client`, awaited."""
+
+    build_subject = async_method(ops.build_subject)
 
     def _new_http(self, **kwargs: Any) -> httpx.AsyncClient:
         return httpx.AsyncClient(**kwargs)

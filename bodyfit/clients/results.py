@@ -18,6 +18,7 @@ from bodyfit.io.errors import FileFormatError, FileLimitError
 from bodyfit.io.npz import FLOAT, INTEGER, TEXT, ArraySpec, Dim, read_npz
 from bodyfit.wire import ModelInfo  # the SDK's model info is the wire's
 from bodyfit.wire.measure import Measurements
+from bodyfit.wire.subjects import SubjectResult
 
 ProgressCallback = Callable[[dict[str, Any]], None]
 """Called with each progress event: ``{"stage", "done", "total", "message"}``."""
@@ -325,4 +326,30 @@ class UpgradeOutput:
             summary=result.summary.model_dump(mode="json"),
             files=dict(result.files),
             **arrays,
+        )
+
+
+@dataclass(frozen=True)
+class SubjectOutput:
+    """One person's rig (``POST /v1/subjects``): the scans it was built from, each one's mean vertex error
+    (mm) under the generic model and under the rig, the limb joints the poses left undetermined, the build's
+    seconds, and ``subject``: the subject file's bytes (:meth:`save` writes it)."""
+
+    scans: tuple[str, ...]
+    generic_mm: tuple[float, ...]
+    personal_mm: tuple[float, ...]
+    undetermined_joints: tuple[str, ...]
+    seconds: float
+    subject: bytes
+
+    def save(self, path: str | Path) -> Path:
+        """Write the subject file (an ``.npz``) to ``path``; returns it."""
+        target = Path(path)
+        target.write_bytes(self.subject)
+        return target
+
+    @classmethod
+    def from_event(cls, doc: SubjectResult) -> SubjectOutput:
+        return cls(
+            doc.scans, doc.generic_mm, doc.personal_mm, doc.undetermined_joints, doc.seconds, doc.subject
         )

@@ -64,3 +64,19 @@ def test_undetermined_joints_and_too_few_scans_say_why(client: TestClient, body_
     assert r.status_code == 422 and "at least 3 scans" in r.json()["detail"]
     r = client.post("/v1/subjects", files=files, data={"up": "sideways"})
     assert r.status_code == 422 and "up" in r.json()["detail"]
+
+
+def test_the_sdk_builds_a_subject(client: TestClient, body_service: BodyService, tmp_path: Any) -> None:
+    """`Client.build_subject` over the same app: progress events, then the result; the saved file loads."""
+    from bodyfit.clients import Client
+
+    seen: list[dict[str, Any]] = []
+    points = [np.load(io.BytesIO(part[1][1]))["points"] for part in uploads(body_service, 3)]
+    with Client("http://testserver", http_client=client) as sdk:
+        out = sdk.build_subject(points, progress=seen.append, allow_undetermined=True)
+    assert out.scans == ("scan0.npz", "scan1.npz", "scan2.npz") and max(out.personal_mm) < 2.0
+    assert seen and seen[0]["stage"] == "rig"
+    subject = Subject.load(out.save(tmp_path / "me.npz"), body_service.model)
+    assert subject.scans == out.scans
+    with pytest.raises(ValueError, match="up"):
+        sdk.build_subject(points, up="sideways")

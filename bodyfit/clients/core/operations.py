@@ -25,6 +25,7 @@ from bodyfit.clients.results import (
     ModelInfo,
     ProgressCallback,
     SequenceResult,
+    SubjectOutput,
     Synthesis,
     UpgradeOutput,
     read_measurements,
@@ -34,6 +35,7 @@ from bodyfit.clients.results import (
 from bodyfit.clients.uploads import ScanInput, scan_upload
 from bodyfit.wire.hints import axis_name, pose_class
 from bodyfit.wire.measure import Measurements
+from bodyfit.wire.subjects import SUBJECT_EVENTS, SubjectResult
 
 R = TypeVar("R")
 Event = Document
@@ -126,6 +128,11 @@ def _mesh_fit(_: list[Any], result: w.MeshFit) -> MeshFitResult:
 _scan_events = reader(w.SCAN_EVENTS, "scan fit event")
 _sequence_events = reader(w.SEQUENCE_EVENTS, "sequence fit event")
 _upgrade_events = reader(w.UPGRADE_EVENTS, "upgrade event")
+_subject_events = reader(SUBJECT_EVENTS, "subject event")
+
+
+def _subject(_: list[Any], result: SubjectResult) -> SubjectOutput:
+    return SubjectOutput.from_event(result)
 
 
 def model_info() -> Operation[ModelInfo]:
@@ -326,3 +333,32 @@ def frames_npz(frames: np.ndarray, weights: np.ndarray | None) -> bytes:
         arrays["weights"] = np.asarray(weights, np.float32)
     np.savez(buf, allow_pickle=False, **arrays)
     return buf.getvalue()
+
+
+def build_subject(
+    scans: Sequence[ScanInput],
+    units: str = "auto",
+    progress: ProgressCallback | None = None,
+    up: str | None = None,
+    facing: str | None = None,
+    pose: str | None = None,
+    allow_undetermined: bool = False,
+) -> Operation[SubjectOutput]:
+    """One person's rig from three or more scans of them in different poses (paths, or (N, 3) point
+    arrays; any topology): the subject file and each scan's error under the generic model and the rig.
+    ``up``, ``facing`` and ``pose`` go with every raw scan's fit (see :meth:`fit_scan`);
+    ``allow_undetermined``: build even when the poses leave limb joints undetermined.
+
+    Raises:
+        ValueError: a hint naming none of the allowed values (before anything is sent).
+    """
+    uploads = [scan_upload(scan, None) for scan in scans]
+    # arrays of points are all sent as scan.npz: number them so that the report tells them apart
+    names = [f"scan{k}.npz" if name == "scan.npz" else name for k, (name, _) in enumerate(uploads)]
+    given = {"up": up and axis_name(up, "up"), "facing": facing and axis_name(facing, "facing")}
+    fields = {k: v for k, v in given.items() if v} | ({"pose": pose_class(pose)} if pose else {})
+    args = {
+        "files": [(n, data) for n, (_, data) in zip(names, uploads, strict=True)],
+        "fields": {"units": units, "allow_undetermined": str(allow_undetermined).lower(), **fields},
+    }
+    return Operation("build_subject", _subject_events, _subject, args, stream=True, progress=progress)

@@ -27,6 +27,7 @@ import torch
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.errors import BodyfitError, ShapeError
 from bodyfit.models.fitting.registered.fitter import BodyFit, RegisteredFitter
+from bodyfit.models.fitting.registered.stages import DEFAULT_STAGES, RegisteredFitConfig
 from bodyfit.models.fitting.sequence.offsets import OffsetConfig, fit_rest_offsets
 from bodyfit.models.rig.subject import Subject, model_fingerprint
 
@@ -35,6 +36,8 @@ LIMB_JOINTS = (
     "acromial_r", "acromial_l", "elbow_r", "elbow_l",
 )  # fmt: skip
 """The joints whose centres set the limbs' proportions: each must bend between the scans to be observed."""
+REFIT_STAGES = tuple(stage for stage in DEFAULT_STAGES if stage.shape == "all")
+"""The registered fitter's whole-body stages: the refits after each offset solve start from the last fit."""
 
 
 class RigError(BodyfitError):
@@ -149,6 +152,7 @@ def _alternate(
     """One shape and K poses, then ``rounds`` of offsets against the residuals and a refit with them."""
     fit = fitter.fit(x, w, shared_shape=True)
     offsets = np.zeros((model.n_vertices, 3))
+    refitter = RegisteredFitter(model, RegisteredFitConfig(stages=REFIT_STAGES))
     for _ in range(cfg.rounds):
         decoder = model.decoder(torch.float64).with_offsets(offsets)
         with torch.no_grad():
@@ -156,7 +160,7 @@ def _alternate(
             _, _, frames, _ = decoder(*params)
         rotations = decoder.blended_rotations(frames)
         offsets = offsets + fit_rest_offsets(rotations, x - fit.vertices, w, model.faces, cfg.offsets)
-        fit = fitter.with_offsets(offsets).fit(x, w, init=fit, shared_shape=True)
+        fit = refitter.with_offsets(offsets).fit(x, w, init=fit, shared_shape=True)
     return fit, offsets
 
 
