@@ -19,13 +19,17 @@ What is measured
   weight; its volume against the subject's weight (the density that would make the median error zero).
 * ``measure_ms_b1``: one body synthesized and measured (median of 20 runs, one thread).
 * ``ks_{stature,mass,bmi,waist,hip}_{male,female}``: two-sample Kolmogorov-Smirnov statistic between the
-  measurements of standard-normal shape draws of the model (seed 0) and NHANES adults of each sex; waist
-  is NHANES's (at the iliac crest), hip the buttock circumference.
+  measurements of bodies drawn from the NHANES population
+  (:func:`bodyfit.models.anthropometry.population.sample`, seed 0; 2,000 per sex, 4,000 in a full run) and
+  NHANES adults of each sex; waist is NHANES's (at the iliac crest), hip the buttock circumference.
+  ``ks_anny_*`` the same for the model's standard-normal draws (both sexes against each).
 
 Usage::
 
     python benchmarks/anthropometry.py [--quick] [--json]
     python benchmarks/anthropometry.py figure docs/anthropometry_tapes.png
+    python benchmarks/anthropometry.py calibrate     # print the definitions' offsets (calibration.py)
+    python benchmarks/anthropometry.py populations   # rebuild bodyfit/models/anthropometry/populations.npz
 """
 
 from __future__ import annotations
@@ -38,6 +42,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from bodyfit.models.anthropometry.calibration import learn_offsets
 from bodyfit.models.anthropometry.definitions import MEASUREMENTS
 from bodyfit.models.anthropometry.inverse import (
     NAMES,
@@ -47,6 +52,7 @@ from bodyfit.models.anthropometry.inverse import (
     sex_prior_mean,
 )
 from bodyfit.models.anthropometry.measure import DENSITY, measure
+from bodyfit.models.anthropometry.population import POPULATION_FILE, build_populations, sample
 from bodyfit.models.anthropometry.surveys import read_ansur, read_nhanes
 from bodyfit.models.body.model import BodyModel
 
@@ -179,22 +185,78 @@ def scores(
     return out
 
 
-def ks_scores(model: BodyModel, nhanes: dict[str, dict[str, np.ndarray]], n: int) -> dict[str, float]:
-    """KS statistics of standard-normal draws of the model against NHANES adults of each sex."""
+def _ks(model: BodyModel, shapes: np.ndarray, real: dict[str, np.ndarray], prefix: str) -> dict[str, float]:
+    """KS statistics of the bodies ``shapes`` (n, n_shape) against the survey columns ``real``."""
     from scipy.stats import ks_2samp
 
-    draws = np.random.default_rng(0).standard_normal((n, model.n_shape))
-    ours = evaluate(model, draws)
+    ours = evaluate(model, shapes)
     mine = {k: ours[:, NAMES.index(name)] for k, name in KS_KEYS.items()}
     mine["bmi"] = mine["mass"] / mine["stature"] ** 2
+    theirs = {k: real[name] for k, name in KS_KEYS.items()}
+    theirs["bmi"] = theirs["mass"] / theirs["stature"] ** 2
     out = {}
-    for s in SEXES:
-        real = {k: nhanes[s][name] for k, name in KS_KEYS.items()}
-        real["bmi"] = real["mass"] / real["stature"] ** 2
-        for key in ("stature", "mass", "bmi", "waist", "hip"):
-            x = real[key][np.isfinite(real[key])]
-            out[f"ks_{key}_{s}"] = round(float(ks_2samp(mine[key], x).statistic), 3)
+    for key in ("stature", "mass", "bmi", "waist", "hip"):
+        x = theirs[key][np.isfinite(theirs[key])]
+        out[f"{prefix}{key}"] = round(float(ks_2samp(mine[key], x).statistic), 3)
     return out
+
+
+def ks_scores(model: BodyModel, nhanes: dict[str, dict[str, np.ndarray]], n: int) -> dict[str, float]:
+    """KS statistics of ``n`` draws per sex of the NHANES population against NHANES adults of that sex, and
+    of ``n`` standard-normal draws against each sex (``ks_anny_*``)."""
+    anny = sample(model, n, population="anny", seed=0)
+    out: dict[str, float] = {}
+    for s in SEXES:
+        drawn = _ks(model, sample(model, n, sex=s, population="nhanes", seed=0), nhanes[s], "ks_")
+        out |= {f"{k}_{s}": v for k, v in drawn.items()}
+        out |= {f"{k}_{s}": v for k, v in _ks(model, anny, nhanes[s], "ks_anny_").items()}
+    return out
+
+
+def calibrate(per_sex: int = 200) -> None:
+    """Learn the definitions' offsets (bodyfit.models.anthropometry.calibration) on ``per_sex`` subjects
+    of each sex's training split, and print them as the source's table."""
+    torch.set_num_threads(1)
+    model = BodyModel.load()
+    ansur, _, _ = load_surveys()
+    rows = {}
+    for s in SEXES:
+        train, _ = split(len(ansur[s]["stature"]))
+        rows[s] = table(ansur[s], train[np.random.default_rng(SEED).permutation(len(train))[:per_sex]])
+    offsets = learn_offsets(model, rows, NAMES)
+    print("OFFSETS: dict[str, float] = {")
+    for name, value in offsets.items():
+        print(f'    "{name}": {value},')
+    print("}")
+
+
+def build(args: list[str]) -> None:
+    """Rebuild the stored populations from the full surveys in ../shared/data/anthropometry: 500 ANSUR II
+    subjects and 2,000 NHANES adults (with all five measurements) per sex, drawn with the seed.
+    ``--sex male|female --out PATH`` builds one sex into PATH (two processes; ``merge A B`` joins them)."""
+    torch.set_num_threads(1)
+    if args[:1] == ["merge"]:
+        arrays: dict[str, np.ndarray] = {}
+        for part in args[1:]:
+            with np.load(part) as f:
+                arrays |= {k: f[k] for k in f.files}
+        np.savez_compressed(POPULATION_FILE, allow_pickle=False, **arrays)
+        return
+    sexes = (args[args.index("--sex") + 1],) if "--sex" in args else SEXES
+    path = Path(args[args.index("--out") + 1]) if "--out" in args else POPULATION_FILE
+    model = BodyModel.load()
+    ansur, nhanes, source = load_surveys()
+    if source != "shared":
+        raise SystemExit(f"the full surveys are not in {SHARED}")
+    a, n = {}, {}
+    for s in sexes:
+        rng = np.random.default_rng(SEED)
+        rows = table(ansur[s], np.arange(len(ansur[s]["stature"])))
+        a[s] = rows[np.sort(rng.permutation(len(rows))[:500])]
+        rows = table(nhanes[s], np.arange(len(nhanes[s]["stature"])))
+        n[s] = rows[np.sort(rng.permutation(len(rows))[:2000])]
+    for key, p in build_populations(model, a, n, path).items():
+        print(f"{key}: {len(p.shapes)} people")
 
 
 def measure_ms(model: BodyModel) -> float:
@@ -216,7 +278,7 @@ def run(quick: bool) -> dict[str, Any]:
     out: dict[str, Any] = {"data": source}
     out.update(scores(model, ansur, 40 if quick else None, 60 if quick else 400))
     out["measure_ms_b1"] = measure_ms(model)
-    out.update(ks_scores(model, nhanes, 200 if quick else 1000))
+    out.update(ks_scores(model, nhanes, 2000 if quick else 4000))
     return {k: round(v, 3) if isinstance(v, float) else v for k, v in out.items()}
 
 
@@ -312,12 +374,18 @@ def figure(path: Path) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     args = sys.argv[1:] if argv is None else argv
+    if args[:1] == ["calibrate"]:
+        calibrate()
+        return
+    if args[:1] == ["populations"]:
+        build(args[1:])
+        return
     if args[:1] == ["figure"]:
         figure(Path(args[1]) if len(args) > 1 else REPO / "docs" / "anthropometry_tapes.png")
         return
     from bench_cli import bench_main
 
-    bench_main(run, __doc__.split("\n")[0], "40 test subjects per sex and 200 draws", args)
+    bench_main(run, __doc__.split("\n")[0], "40 test subjects per sex and 2,000 draws per sex", args)
 
 
 if __name__ == "__main__":

@@ -226,3 +226,74 @@ def test_benchmark_split_and_linear_baseline() -> None:
     pred = linear_baseline(x[:150], x[150:], male[:150], male[150:])
     column = NAMES.index("sittingheight")
     assert np.allclose(pred[:, column], x[150:, column], atol=1e-9)
+
+
+def test_population_draws_follow_the_survey_and_the_seed(body: BodyModel) -> None:
+    from bodyfit.models.anthropometry.inverse import evaluate
+    from bodyfit.models.anthropometry.population import sample
+
+    men = sample(body, 48, sex="male", population="nhanes", seed=3)
+    assert men.shape == (48, body.n_shape) and np.array_equal(men, sample(body, 48, "male", "nhanes", 3))
+    assert not np.array_equal(men, sample(body, 48, "male", "nhanes", 4))
+    values = evaluate(body, men)
+    nhanes = read_nhanes(DATA / "nhanes_adult_male_bmx_2020_500.csv")
+    for name, tol in (("stature", 0.03), ("weightkg", 8.0), ("waistcircumferenceiliaccrest", 0.05)):
+        assert np.mean(values[:, NAMES.index(name)]) == pytest.approx(np.nanmean(nhanes[name]), abs=tol), name
+    # The model's own population is lighter than US men: the point of drawing from the survey.
+    anny = evaluate(body, sample(body, 48, population="anny", seed=3))[:, NAMES.index("weightkg")]
+    assert np.mean(values[:, NAMES.index("weightkg")]) > np.mean(anny) + 8.0
+    both = sample(body, 10, population="ansur")
+    assert both.shape == (10, body.n_shape) and np.isfinite(both).all()
+
+
+def test_population_errors_name_the_choices(body: BodyModel, tmp_path: Path) -> None:
+    from bodyfit.models.anthropometry.population import (
+        PopulationError,
+        build_population,
+        load_populations,
+        sample,
+        shape_space_probe,
+    )
+
+    with pytest.raises(PopulationError, match="nhanes, ansur, anny"):
+        sample(body, 2, population="us")
+    with pytest.raises(PopulationError, match="sex must be"):
+        sample(body, 2, sex="other")
+    with pytest.raises(PopulationError, match="no population file"):
+        load_populations(body, tmp_path / "none.npz")
+    rows = np.full((3, len(NAMES)), np.nan)
+    rows[:, NAMES.index("stature")] = [1.6, 1.7, 1.8]
+    people = build_population(body, rows, "male")
+    assert measure(body, people.shapes)["stature"] == pytest.approx([1.6, 1.7, 1.8], abs=0.005)
+    assert people.weights == pytest.approx([1 / 3] * 3) and people.spread.shape == (body.n_shape,) * 2
+    path = tmp_path / "other.npz"
+    np.savez(path, probe=shape_space_probe(body) + 0.01, x_male_shapes=people.shapes,
+             x_male_weights=people.weights, x_male_spread=people.spread)  # fmt: skip
+    with pytest.raises(PopulationError, match="another shape space"):
+        load_populations(body, path)
+    rows[1, NAMES.index("weightkg")] = 70.0
+    with pytest.raises(PopulationError, match="the same measurements"):
+        build_population(body, rows, "male")
+
+
+def test_calibration_offsets_recover_a_known_shift(body: BodyModel) -> None:
+    from bodyfit.models.anthropometry.calibration import OFFSETS, learn_offsets
+    from bodyfit.models.anthropometry.inverse import evaluate
+
+    shapes = np.random.default_rng(8).normal(size=(6, body.n_shape)) * 0.7
+    truth = evaluate(body, shapes)
+    shift = {"cervicaleheight": -0.02, "neckcircumference": 0.03}
+    for name, value in shift.items():
+        truth[:, NAMES.index(name)] += value * truth[:, 0] / 1.7  # in proportion to the stature
+    keep = ["stature", "cervicaleheight", "acromialheight", "neckcircumference", "chestcircumference"]
+    rows = np.where(np.isin(NAMES, keep), truth, np.nan)
+    learned = learn_offsets(body, {"male": rows}, NAMES, rounds=3)
+    assert set(learned) == set(keep) - {"stature"}
+    moved = {name: learned[name] - OFFSETS.get(name, 0.0) for name in keep[1:]}
+    # The bodies absorb part of a shift their shape can make; the offsets take what is left, and the
+    # measurements not shifted keep theirs.
+    for name in keep[1:]:
+        if name in shift:
+            assert 0.3 * abs(shift[name]) < moved[name] * np.sign(shift[name]) < 1.1 * abs(shift[name]), name
+        else:
+            assert abs(moved[name]) < 0.008, name

@@ -41,9 +41,9 @@ _STEPS = 10
 _FD_STEP = 0.25
 _CHUNK = 32
 _HALVINGS = 4
-MAX_SD = 5.0
-"""Largest coefficient (in the model's standard deviations) a built body takes: beyond, anny's synthetic
-population has almost no bodies and the skin can fold through itself."""
+MAX_SD = 8.0
+"""Largest coefficient (in the model's standard deviations) a built body takes, within the service's
+plausible shapes (10): one in ten NHANES men (the heaviest) needs more than 5 to be built."""
 
 
 @dataclass(frozen=True)
@@ -143,6 +143,8 @@ def fit_measurements(
                 break
             delta[lost] *= 0.5
             f_new[lost] = evaluate(model, c[lost] + delta[lost])
+        stuck = ~np.isfinite(f_new).all(1)  # no step of this size closes the skin: stay
+        delta[stuck], f_new[stuck] = 0.0, f[stuck]
         # Broyden's rank-one update: J delta reproduces the change the step made.
         change = f_new - f - np.einsum("bmk,bk->bm", J, delta)
         J += change[..., None] * delta[:, None] / np.maximum((delta**2).sum(1), 1e-12)[:, None, None]

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from bodyfit.models.anthropometry.calibration import OFFSETS
 from bodyfit.models.anthropometry.definitions import MEASUREMENTS
 from bodyfit.models.anthropometry.regions import Topology, topology
 from bodyfit.models.anthropometry.sections import closed_volume
@@ -136,7 +137,8 @@ def measure_torch(
     name -> (B,) tensors, in :data:`MEASUREMENTS` order. With ``paths`` a dict, each tape's path (B, k, 3)
     is recorded there (for figures)."""
     p = _points(topo, vertices, joints)
-    cut = Cutter(topo, vertices, (p["top"] - p["floor"]) / REFERENCE_STATURE, paths)
+    size = (p["top"] - p["floor"]) / REFERENCE_STATURE
+    cut = Cutter(topo, vertices, size, paths)
     out: dict[str, torch.Tensor] = {}
     out.update(_heights(p))
     out.update(_lengths(topo, vertices, p))
@@ -145,7 +147,9 @@ def measure_torch(
     out.update(leg_tapes(cut, p))
     out.update(arm_tapes(cut, p))
     out["weightkg"] = closed_volume(vertices, topo.faces) * DENSITY
-    return {name: out[name] for name in MEASUREMENTS}
+    # Calibrated to ANSUR II's measurers (calibration.py): an offset per definition, in proportion to the
+    # body's size as every length is.
+    return {name: out[name] + OFFSETS[name] * size if name in OFFSETS else out[name] for name in MEASUREMENTS}
 
 
 def _points(topo: Topology, v: torch.Tensor, joints: torch.Tensor) -> dict[str, torch.Tensor]:
