@@ -4,7 +4,8 @@
     template V = V_mean + c_b P_bc + c_s P_s                (BLSM eq. 1, 7, 8; in the bind pose)
     frames   T(q, s)                                        (the skeleton's forward kinematics)
     bind     T(q_bind, s): fixed rotations, origins affine in c_b (no second forward kinematics)
-    skin     v = sum_j w_j T_j T_bind,j^-1 V                (LBS, BLSM eq. 12)
+    skin     v = sum_j w_j T_j T_bind,j^-1 V                (LBS, BLSM eq. 12; skinning="lbs")
+             v = sum_j w_j S_j DLB(W) V                     (swing-twist, paper 002; skinning="lbs_dq")
     joints   anatomical joint centres, fixed points of the skeleton's bodies
 
 Shape coefficients are ``c = [c_b, c_s]``, each in units of its population standard deviation (so a
@@ -18,6 +19,7 @@ Bone-Level Skinned Model of the Human Mesh", European Conference on Computer Vis
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,7 +30,17 @@ from torch import nn
 from bodyfit.models.assets import verified_asset
 from bodyfit.models.body.bone_geometry import apply_bone_geometry
 from bodyfit.models.body.lbs import blend_block, blend_blocks, blend_rows
-from bodyfit.models.errors import AssetError, ShapeError
+from bodyfit.models.body.swing_twist import (
+    SKINNING_MODES,
+    TwistRig,
+    blend_twist,
+    class_twists,
+    rigid_of_dual_quaternion,
+    swing_transforms,
+    twist_dual_quaternions,
+    twist_rig,
+)
+from bodyfit.models.errors import AssetError, BodyfitError, ShapeError
 from bodyfit.models.rotations import cm_matmul, cm_matvec
 from bodyfit.models.skeleton.bones import pose_bones
 from bodyfit.models.skeleton.model import Skeleton, check_finite
@@ -161,8 +173,66 @@ class SkinBlock(nn.Module):
         return blend_block(rest, self.weights_t, rotations[:, self.bodies], translations[:, self.bodies])
 
 
-def skin_blocks(basis: np.ndarray, weights: np.ndarray, dtype: torch.dtype) -> nn.ModuleList:
-    """The skin split into :class:`SkinBlock` s. basis (1 + K, 3, V); weights (V, n_body)."""
+class TwistBlock(nn.Module):
+    """One block of vertices, ``start:stop``, of a :class:`TwistSkin`: the bodies that carry them and their
+    weights on those bodies."""
+
+    bodies: torch.Tensor
+    weights_t: torch.Tensor
+
+    def __init__(self, start: int, stop: int, bodies: np.ndarray, weights_t: np.ndarray, dtype: torch.dtype):
+        """bodies (m,); weights_t (m, stop - start)."""
+        super().__init__()
+        self.start, self.stop = start, stop
+        self.register_buffer("bodies", torch.as_tensor(bodies, dtype=torch.long))
+        self.register_buffer("weights_t", torch.as_tensor(np.ascontiguousarray(weights_t)).to(dtype))
+
+    def forward(
+        self, twisted: torch.Tensor, rotations: torch.Tensor, translations: torch.Tensor
+    ) -> torch.Tensor:
+        """twisted (B, 3, V) the whole skin after its twist; rotations, translations: every body's swing
+        rows from :func:`blend_rows` -> (B, stop - start, 3)."""
+        rest = twisted[:, :, self.start : self.stop]
+        return blend_block(rest, self.weights_t, rotations[:, self.bodies], translations[:, self.bodies])
+
+
+class TwistSkin(nn.Module):
+    """The skin under swing-twist skinning: the template of every vertex, rest (B, 3, V) = [1, c] @ basis,
+    moved by the dual-quaternion blend of its twist classes' twists in one pass over the whole skin
+    (:func:`~bodyfit.models.body.swing_twist.blend_twist`), then blended linearly by the bodies' swings in
+    the blocks of :func:`blend_blocks`."""
+
+    basis: torch.Tensor
+    twist_t: torch.Tensor
+
+    def __init__(self, basis: np.ndarray, weights: np.ndarray, twist: np.ndarray, dtype: torch.dtype) -> None:
+        """basis (1 + K, 3, V); weights (V, n_body); twist (V, n_class) twist weights."""
+        super().__init__()
+        self.register_buffer("basis", torch.as_tensor(basis.reshape(len(basis), -1)).to(dtype))
+        self.register_buffer("twist_t", torch.as_tensor(np.ascontiguousarray(twist.T)).to(dtype))
+        blocks = blend_blocks(weights, max(1, round(weights.shape[0] / _BLOCK_VERTICES)))
+        self.blocks = nn.ModuleList(
+            TwistBlock(a, b, bodies, weights[a:b, bodies].T, dtype) for a, b, bodies in blocks
+        )
+
+    def forward(
+        self, coeffs: torch.Tensor, rotations: torch.Tensor, translations: torch.Tensor, twists: torch.Tensor
+    ) -> torch.Tensor:
+        """coeffs (B, 1 + K); rotations, translations: every body's swing rows from :func:`blend_rows`;
+        twists (B 8, n_class): every class's twist dual quaternion, batch then component -> (B, V, 3)."""
+        B, V = coeffs.shape[0], self.twist_t.shape[1]
+        rest = (coeffs @ self.basis).reshape(B, 3, V)
+        twisted = blend_twist(rest, (twists @ self.twist_t).reshape(B, 8, V))
+        return torch.cat([block(twisted, rotations, translations) for block in self.blocks], dim=1)
+
+
+def skin_blocks(
+    basis: np.ndarray, weights: np.ndarray, dtype: torch.dtype, twist: np.ndarray | None = None
+) -> nn.Module:
+    """The skin split into :class:`SkinBlock` s (a ModuleList), or the :class:`TwistSkin` when twist weights
+    (V, n_class) are given. basis (1 + K, 3, V); weights (V, n_body)."""
+    if twist is not None:
+        return TwistSkin(basis, weights, twist, dtype)
     blocks = blend_blocks(weights, max(1, round(weights.shape[0] / _BLOCK_VERTICES)))
     return nn.ModuleList(
         SkinBlock(bodies, weights[a:b, bodies].T, basis[:, :, a:b], dtype) for a, b, bodies in blocks
@@ -172,7 +242,8 @@ def skin_blocks(basis: np.ndarray, weights: np.ndarray, dtype: torch.dtype) -> n
 class BodyDecoder(nn.Module):
     """Buffers-only torch module: (shape, coordinates, root) -> skin vertices, joints, frames, scales.
 
-    No validation (see :class:`BodyModel`); any batch size; dtype fixed at construction.
+    No validation (see :class:`BodyModel`); any batch size; dtype and skinning (``"lbs"`` or ``"lbs_dq"``,
+    :mod:`~bodyfit.models.body.swing_twist`) fixed at construction.
     """
 
     scale_mean: torch.Tensor
@@ -182,9 +253,21 @@ class BodyDecoder(nn.Module):
     joint_local: torch.Tensor
     joint_body: torch.Tensor
     joint_segment: torch.Tensor
+    # skinning "lbs_dq" only (see _init_twist)
+    twist_coordinate: torch.Tensor
+    twist_bind: torch.Tensor
+    twist_axis: torch.Tensor
+    twist_centre: torch.Tensor
+    twist_chain: torch.Tensor
+    body_class: torch.Tensor
 
-    def __init__(self, skeleton: Skeleton, data: dict[str, np.ndarray], dtype: torch.dtype) -> None:
+    def __init__(
+        self, skeleton: Skeleton, data: dict[str, np.ndarray], dtype: torch.dtype, skinning: str = "lbs"
+    ) -> None:
         super().__init__()
+        if skinning not in SKINNING_MODES:
+            raise BodyfitError(f"skinning must be one of {', '.join(SKINNING_MODES)}; got {skinning!r}")
+        self.skinning = skinning
         self.fk = skeleton.kinematics(dtype)
         self.n_bone = int(data["scale_basis"].shape[0])
         self.n_seg = n_seg = len(skeleton.segments)
@@ -202,7 +285,10 @@ class BodyDecoder(nn.Module):
         )
         self._basis = basis.transpose(0, 2, 1)
         self._weights = np.asarray(data["weights"], np.float64)
-        self.skin = skin_blocks(self._basis, self._weights, dtype)
+        self._twist: np.ndarray | None = None
+        if skinning == "lbs_dq":
+            self._init_twist(twist_rig(skeleton, data), buf)
+        self.skin = skin_blocks(self._basis, self._weights, dtype, self._twist)
         # inv(bind) = [Rb^T, -Rb^T tb]: Rb^T is fixed and Rb^T tb = [1, c_b] @ bind_shift.
         base, delta = bind_frames_affine(skeleton, data)
         rot_t = base[:, :3, :3].transpose(0, 2, 1)
@@ -213,13 +299,26 @@ class BodyDecoder(nn.Module):
         self.register_buffer("joint_body", torch.as_tensor(bodies, dtype=torch.long))
         self.register_buffer("joint_segment", torch.as_tensor(seg_of_body[bodies], dtype=torch.long))
 
+    def _init_twist(self, rig: TwistRig, buf: Callable[[str, np.ndarray], None]) -> None:
+        """Buffers of the twist joints and classes (:class:`~bodyfit.models.body.swing_twist.TwistRig`):
+        twist coordinates, their bind values, axes (3, K, 1), centres as [1, c_b] @ (1 + n_bone, 3 K) and the
+        classes' chains and bodies."""
+        self._twist = rig.class_weights(self._weights)
+        self.register_buffer("twist_coordinate", torch.as_tensor(rig.coordinate, dtype=torch.long))
+        buf("twist_bind", rig.bind)
+        buf("twist_axis", rig.axis.T[..., None])
+        buf("twist_centre", rig.centre.reshape(len(rig.centre), -1))
+        self.register_buffer("twist_chain", torch.as_tensor(rig.chain, dtype=torch.long))
+        self.register_buffer("body_class", torch.as_tensor(rig.body_class, dtype=torch.long))
+
     def restricted(self, vertices: np.ndarray) -> BodyDecoder:
         """A decoder that outputs only ``vertices`` (V',) template indices, sharing every other buffer.
         Fitting runs its early iterations on such a subset."""
         index = np.asarray(vertices, np.int64)
         sub = copy.copy(self)
         sub._modules = dict(self._modules)
-        sub.skin = skin_blocks(self._basis[:, :, index], self._weights[index], self.bind_rot_t.dtype)
+        twist = None if self._twist is None else self._twist[index]
+        sub.skin = skin_blocks(self._basis[:, :, index], self._weights[index], self.bind_rot_t.dtype, twist)
         return sub
 
     def with_offsets(self, offsets: np.ndarray) -> BodyDecoder:
@@ -233,15 +332,29 @@ class BodyDecoder(nn.Module):
         out._modules = dict(self._modules)
         out._basis = self._basis.copy()
         out._basis[0] += d.T
-        out.skin = skin_blocks(out._basis, self._weights, self.bind_rot_t.dtype)
+        out.skin = skin_blocks(out._basis, self._weights, self.bind_rot_t.dtype, self._twist)
         return out
 
-    def blended_rotations(self, frames: torch.Tensor) -> np.ndarray:
+    def blended_rotations(self, frames: torch.Tensor, q: torch.Tensor | None = None) -> np.ndarray:
         """Each vertex's blended linear skinning part, sum_j w_vj R_j R_bind,j^T: what a rest-pose offset is
-        multiplied by. frames (B, n_body, 4, 4) from :meth:`forward` -> (B, V, 3, 3) float64."""
+        multiplied by. frames (B, n_body, 4, 4) from :meth:`forward` -> (B, V, 3, 3) float64.
+
+        Under skinning "lbs_dq" the offset is first turned by the vertex's blended twist and then by the
+        blended swings, so the coordinates q (B, n_dof) that gave ``frames`` are needed too."""
         rot_bind_t = self.bind_rot_t[..., 0].permute(2, 0, 1).double().numpy()  # (n_body, 3, 3)
         M = frames[..., :3, :3].double().numpy() @ rot_bind_t
-        return np.einsum("vj,bjik->bvik", self._weights, M)
+        if self._twist is None:
+            return np.einsum("vj,bjik->bvik", self._weights, M)
+        if q is None:
+            raise BodyfitError('the skin\'s blended rotations under skinning "lbs_dq" need the coordinates q')
+        coeffs = torch.zeros(len(q), 1 + self.n_bone, dtype=self.twist_centre.dtype)
+        coeffs[:, 0] = 1.0  # the twists' rotations do not depend on the joint centres
+        twists = self.class_twists(q.to(coeffs.dtype), coeffs).double()
+        W = rigid_of_dual_quaternion(twists)[:, :3].permute(3, 2, 0, 1).numpy()  # (B, n_class, 3, 3)
+        swing = M @ W[:, self.body_class.numpy()].transpose(0, 1, 3, 2)
+        blend = torch.einsum("vc,kcb->kbv", torch.as_tensor(self._twist), twists)
+        turn = rigid_of_dual_quaternion(blend / blend[:4].norm(dim=0))[:, :3].permute(2, 3, 0, 1).numpy()
+        return np.einsum("vj,bjik->bvik", self._weights, swing) @ turn
 
     def forward(
         self, shape: torch.Tensor, q: torch.Tensor, root: torch.Tensor
@@ -253,11 +366,34 @@ class BodyDecoder(nn.Module):
         """
         scales, coeffs = self._shape_terms(shape)
         world = self.fk.frames_cm(q, root, scales)  # (4, 4, n_body, B)
-        transforms = self._transforms(world, self._bind_shift(coeffs))
-        rows = blend_rows(transforms)
-        vertices = torch.cat([block(coeffs, *rows) for block in self.skin], dim=1)
+        shift = self._bind_shift(coeffs)
+        if self._twist is None:
+            rows = blend_rows(self._transforms(world, shift))
+            assert isinstance(self.skin, nn.ModuleList)
+            vertices = torch.cat([block(coeffs, *rows) for block in self.skin], dim=1)
+        else:
+            vertices = self._twist_skin(world, coeffs, q, shift)
         frames = world.permute(3, 2, 0, 1).contiguous()
         return vertices, self.joints(frames, scales), frames, scales
+
+    def _twist_skin(
+        self, world: torch.Tensor, coeffs: torch.Tensor, q: torch.Tensor, shift: torch.Tensor
+    ) -> torch.Tensor:
+        """Swing-twist skin (B, V, 3) of world frames (4, 4, n_body, B), skin coefficients [1, c]
+        (B, 1 + n_shape), coordinates q (B, n_dof) and the bind shift of :meth:`_bind_shift`."""
+        twists = self.class_twists(q, coeffs)  # (8, n_class, B)
+        body_twists = rigid_of_dual_quaternion(twists)[:, :, self.body_class]
+        rows = blend_rows(swing_transforms(self._transforms(world, shift), body_twists))
+        flat = twists.permute(2, 0, 1).reshape(-1, twists.shape[1])  # (B 8, n_class)
+        return self.skin(coeffs, *rows, flat)
+
+    def class_twists(self, q: torch.Tensor, coeffs: torch.Tensor) -> torch.Tensor:
+        """The twist classes' unit dual quaternions (8, n_class, B) of coordinates q (B, n_dof) and skin
+        coefficients [1, c] (B, 1 + n_shape) (skinning "lbs_dq" only)."""
+        angle = (q[:, self.twist_coordinate] - self.twist_bind).T  # (K, B)
+        centre = coeffs[:, : 1 + self.n_bone] @ self.twist_centre
+        centre = centre.reshape(q.shape[0], -1, 3).permute(2, 1, 0)  # (3, K, B)
+        return class_twists(twist_dual_quaternions(angle, self.twist_axis, centre), self.twist_chain)
 
     def joints(self, frames: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
         """Anatomical joint centres (B, J, 3) of body frames (B, n_body, 4, 4) and segment scales
@@ -275,12 +411,12 @@ class BodyDecoder(nn.Module):
         (B, n_shape)."""
         scales = self.scale_mean + shape[:, : self.n_bone] @ self.scale_basis
         coeffs = torch.cat([torch.ones_like(shape[:, :1]), shape], dim=1)
-        return scales.reshape(len(shape), self.n_seg, 3), coeffs
+        return scales.reshape(shape.shape[0], self.n_seg, 3), coeffs
 
     def _bind_shift(self, coeffs: torch.Tensor) -> torch.Tensor:
         """Rb^T tb of every body for shapes [1, c] (B, 1 + n_shape): (3, n_body, B), component-major."""
         shift = coeffs[:, : 1 + self.n_bone] @ self.bind_shift
-        return shift.reshape(len(coeffs), self.bind_rot_t.shape[2], 3).permute(2, 1, 0)
+        return shift.reshape(coeffs.shape[0], self.bind_rot_t.shape[2], 3).permute(2, 1, 0)
 
     def _transforms(self, world: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
         """Skinning transforms T inv(T_bind) = [R Rb^T, t - R (Rb^T tb)] (3, 4, n_body, B) of the world frames
@@ -295,17 +431,19 @@ class PosedSkin:
     With the rest shape fixed, each block's skin is one GEMM, (3 B, 4 m) @ (4 m, V_k): the m bodies'
     transforms against the rest coordinates weighted by their skinning weights, [w x; w y; w z; w], computed
     here once. Pose fits with a frozen shape (a sequence's frames) so skip the (3, B, 3, V) products of
-    :func:`blend_block` and its backward: about a fifth of an evaluation.
+    :func:`blend_block` and its backward: about a fifth of an evaluation. Swing-twist skinning moves each
+    rest vertex by a pose-dependent twist first, so under it the skin is the decoder's own forward.
     """
 
     def __init__(self, decoder: BodyDecoder, shape: torch.Tensor) -> None:
         self.decoder = decoder
         with torch.no_grad():
             shape = shape.reshape(1, -1).to(decoder.scale_mean.dtype)
+            self.shape = shape
             self.scales, coeffs = decoder._shape_terms(shape)
             self.shift = decoder._bind_shift(coeffs)
             self.blocks: list[tuple[torch.Tensor, torch.Tensor]] = []  # each block's bodies and GEMM matrix
-            for block in decoder.skin:
+            for block in decoder.skin if isinstance(decoder.skin, nn.ModuleList) else ():
                 assert isinstance(block, SkinBlock)
                 rest, w = (coeffs @ block.basis).reshape(3, -1), block.weights_t
                 weighted = torch.cat([w[None] * rest[:, None], w[None]]).flatten(0, 1)
@@ -313,19 +451,22 @@ class PosedSkin:
 
     def __call__(self, q: torch.Tensor, root: torch.Tensor) -> torch.Tensor:
         """Vertices (B, V, 3) of coordinates q (B, n_dof) and roots (B, 3)."""
-        return self._skin(self._world(q, root))
+        return self._skin(self._world(q, root), q)
 
     def with_joints(self, q: torch.Tensor, root: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Vertices (B, V, 3) and anatomical joint centres (B, J, 3) of q (B, n_dof) and roots (B, 3)."""
         world = self._world(q, root)
         frames = world.permute(3, 2, 0, 1)
-        return self._skin(world), self.decoder.joints(frames, self.scales.expand(q.shape[0], -1, -1))
+        return self._skin(world, q), self.decoder.joints(frames, self.scales.expand(q.shape[0], -1, -1))
 
     def _world(self, q: torch.Tensor, root: torch.Tensor) -> torch.Tensor:
         return self.decoder.fk.frames_cm(q, root, self.scales.expand(q.shape[0], -1, -1))
 
-    def _skin(self, world: torch.Tensor) -> torch.Tensor:
+    def _skin(self, world: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
         B = world.shape[-1]
+        if self.decoder._twist is not None:
+            coeffs = torch.cat([torch.ones_like(self.shape[:, :1]), self.shape], dim=1).expand(B, -1)
+            return self.decoder._twist_skin(world, coeffs, q, self.shift)
         transforms = self.decoder._transforms(world, self.shift)
         parts = [
             (transforms[:, :, bodies].permute(0, 3, 1, 2).reshape(3 * B, -1) @ M).reshape(3, B, -1)
@@ -347,9 +488,17 @@ class BodyOutput:
 
 
 class BodyModel:
-    """The loaded body model: validated forward, names, faces; buffers live in :class:`BodyDecoder`."""
+    """The loaded body model: validated forward, names, faces; buffers live in :class:`BodyDecoder`.
 
-    def __init__(self, skeleton: Skeleton, data: dict[str, np.ndarray]) -> None:
+    ``skinning`` is the default of :meth:`decoder` and :meth:`forward`: ``"lbs"`` (linear blend skinning) or
+    ``"lbs_dq"`` (LBS for the swing, dual-quaternion blending for the twist about the limbs' axes;
+    :mod:`~bodyfit.models.body.swing_twist`).
+    """
+
+    def __init__(self, skeleton: Skeleton, data: dict[str, np.ndarray], skinning: str = "lbs") -> None:
+        if skinning not in SKINNING_MODES:
+            raise BodyfitError(f"skinning must be one of {', '.join(SKINNING_MODES)}; got {skinning!r}")
+        self.skinning = skinning
         self.skeleton = skeleton
         self.data = data
         self.faces = data["faces"].astype(np.int64)
@@ -357,12 +506,12 @@ class BodyModel:
         self.n_identity = int(data["identity_basis"].shape[0])
         self.joint_names = [name for name, _, _ in ANATOMICAL_JOINTS]
         self.landmark_names = [str(n) for n in data["landmark_names"]]
-        self._decoders: dict[torch.dtype, BodyDecoder] = {}
+        self._decoders: dict[tuple[torch.dtype, str], BodyDecoder] = {}
         self._bone_vertices: np.ndarray | None = None
 
     @classmethod
-    def load(cls, folder: Path | None = None) -> BodyModel:
-        """Load the built-in body model (hash-checked against the manifest)."""
+    def load(cls, folder: Path | None = None, skinning: str = "lbs") -> BodyModel:
+        """Load the built-in body model (hash-checked against the manifest) with its default skinning."""
         skeleton = Skeleton.load(folder)
         path = verified_asset(BODY_ASSET, folder)
         try:
@@ -370,7 +519,7 @@ class BodyModel:
                 data = {k: npz[k] for k in npz.files}
         except (OSError, ValueError) as exc:
             raise AssetError(f"cannot read {path}: {exc}; rebuild it with `bodyfit build-assets`") from exc
-        return cls(skeleton, data)
+        return cls(skeleton, data, skinning)
 
     @property
     def n_shape(self) -> int:
@@ -389,11 +538,12 @@ class BodyModel:
         """(n_dof,) coordinates of the bind pose, in which the template is stored."""
         return np.asarray(self.data["bind_q"], np.float64)
 
-    def decoder(self, dtype: torch.dtype = torch.float32) -> BodyDecoder:
-        """The torch module for ``dtype``; built once per dtype."""
-        if dtype not in self._decoders:
-            self._decoders[dtype] = BodyDecoder(self.skeleton, self.data, dtype)
-        return self._decoders[dtype]
+    def decoder(self, dtype: torch.dtype = torch.float32, skinning: str | None = None) -> BodyDecoder:
+        """The torch module for ``dtype`` and ``skinning`` (None: the model's); built once per pair."""
+        key = (dtype, self.skinning if skinning is None else skinning)
+        if key not in self._decoders:
+            self._decoders[key] = BodyDecoder(self.skeleton, self.data, *key)
+        return self._decoders[key]
 
     def validate_shape(
         self, shape: torch.Tensor | np.ndarray | None, batch: int, dtype: torch.dtype
@@ -418,6 +568,7 @@ class BodyModel:
         skeleton_mesh: bool = False,
         dtype: torch.dtype = torch.float32,
         offsets: np.ndarray | None = None,
+        skinning: str | None = None,
     ) -> BodyOutput:
         """Validated forward pass.
 
@@ -429,6 +580,7 @@ class BodyModel:
             skeleton_mesh: also pose the Rajagopal bone mesh scaled to the body.
             offsets: (V, 3) one person's rest-pose offsets in metres (from a sequence fit or an upgrade:
                 surface detail beyond the shape space), or None.
+            skinning: "lbs" or "lbs_dq", or None for the model's default.
 
         Raises:
             ShapeError: an array does not have the documented shape.
@@ -442,7 +594,7 @@ class BodyModel:
         B = q.shape[0]
         c = self.validate_shape(shape, B, dtype)
         r = torch.zeros(B, 3, dtype=dtype) if r is None else r
-        decoder = self.decoder(dtype)
+        decoder = self.decoder(dtype, skinning)
         if offsets is not None:
             check_finite("rest offsets", np.asarray(offsets, np.float64))
             decoder = decoder.with_offsets(offsets)
