@@ -31,7 +31,7 @@ Evaluate = Callable[[dict[str, np.ndarray]], dict[str, float]]
 """A space's arrays (``body.npz``) -> its errors on held-out bodies (``v2v_mm``, ``v2p_mm``, ``v2v_cm``)."""
 
 
-# The refinement's schedule while growing: the two finer levels of the scan fit's coarse-to-fine schedule. The
+# The refinement's schedule while growing: two levels like the finer ones of the scan fit's schedule. The
 # projection already brings the body within a few millimetres, which the coarse levels (built to move whole
 # misplaced parts) would only spend time on: a registration takes seconds instead of tens of seconds.
 GROW_NONRIGID = NonRigidConfig(
@@ -85,8 +85,15 @@ def accept(chamfer: np.ndarray, ceiling: float) -> np.ndarray:
 
 
 def _round_entry(
-    index: int, candidates: Sequence[Registration], taken: np.ndarray, total: int, seconds: float
+    index: int,
+    candidates: Sequence[Registration],
+    taken: np.ndarray,
+    total: int,
+    seconds: float,
+    ceiling: float,
 ) -> dict[str, Any]:
+    """A round's report entry: candidates, accepted (new, total, names), seconds and the Chamfer distances
+    (mm) with the acceptance threshold (min + one deviation, at most ``ceiling``)."""
     chamfer = np.array([r.chamfer_mm for r in candidates])
     entry: dict[str, Any] = {
         "round": index,
@@ -101,7 +108,7 @@ def _round_entry(
             "min": round(float(chamfer.min()), 3),
             "mean": round(float(chamfer.mean()), 3),
             "max": round(float(chamfer.max()), 3),
-            "threshold": round(float(min(chamfer.min() + chamfer.std(), 1e9)), 3),
+            "threshold": round(float(min(chamfer.min() + chamfer.std(), ceiling)), 3),
         }
     return entry
 
@@ -149,7 +156,8 @@ def grow_space(
         taken = accept(np.array([r.chamfer_mm for r in candidates]), cfg.max_chamfer_mm)
         new = [r for r, t in zip(candidates, taken, strict=True) if t]
         result.accepted.update({r.name: r for r in new})
-        entry = _round_entry(index, candidates, taken, len(result.accepted), time.perf_counter() - t0)
+        seconds = time.perf_counter() - t0
+        entry = _round_entry(index, candidates, taken, len(result.accepted), seconds, cfg.max_chamfer_mm)
         if new:
             population = population + Population(
                 np.stack([r.bind for r in new]), np.stack([r.scales for r in new])
