@@ -185,3 +185,20 @@ def test_command_grows_a_folder_that_loads_serves_and_refuses_tampering(
     (foreign / "x").write_text("x")
     refused = CliRunner().invoke(app, ["grow-space", str(scans), "--out", str(foreign)])
     assert refused.exit_code == 2 and "not empty" in refused.output
+
+
+def test_seed_registrations_unpose_to_their_bind_meshes_and_need_our_topology(model: BodyModel) -> None:
+    from bodyfit.models.errors import BodyfitError
+    from bodyfit.models.spaces.register import seed_registrations
+
+    shape, offsets, bind = outside_bodies(model, 2, seed=7)
+    meshes = [
+        PosedScan(s.name, s.points, s.coordinates, s.root, shape[i])
+        for i, s in enumerate(posed_scans(model, shape, offsets))
+    ]
+    seeds, scales = seed_registrations(model, meshes)
+    assert np.abs(seeds - bind).max() < 1e-6
+    assert scales.shape == (2, *model.data["scale_mean"].shape)
+    short = PosedScan("short", meshes[0].points[:-1], meshes[0].coordinates, meshes[0].root, shape[0])
+    with pytest.raises(BodyfitError, match="short"):
+        seed_registrations(model, [short])
