@@ -39,7 +39,10 @@ class SequenceConfig:
     workers: threads a chunk's pose fits are split over (frames are independent problems);
     key_basins / basins: the check that neighbouring pose keyframes / frames sit in one basin of the pose fit
     (:mod:`.basins`: a pair that jumps is re-solved, each frame from the other's pose); None turns it off;
-    basin_free: prefixes of the coordinates the check leaves out (:data:`BASIN_FREE`).
+    basin_free: prefixes of the coordinates the check leaves out (:data:`BASIN_FREE`);
+    start_margin: every pose fit starts at least this fraction of each coordinate's range inside its limits:
+    the bounded mapping is flat at a limit, so a fit started there stays there whatever the input says, while
+    from the margin a coordinate the input pushes to its limit still gets there.
 
     Raises:
         ValueError: a count below one, a blend outside [0, 0.5), or a pose stage that fits the shape (the
@@ -58,6 +61,7 @@ class SequenceConfig:
     key_basins: BasinCheck | None = KEY_BASINS
     basins: BasinCheck | None = FRAME_BASINS
     basin_free: tuple[str, ...] = BASIN_FREE
+    start_margin: float = 0.03
 
     def __post_init__(self) -> None:
         for stage in (*self.key_stages, *self.frame_stages):
@@ -70,3 +74,5 @@ class SequenceConfig:
             check_at_least("SequenceConfig", name, getattr(self, name), 1)
         if not 0.0 <= self.blend < 0.5:
             raise ValueError(f"SequenceConfig.blend must be in [0, 0.5); got {self.blend!r}")
+        if not 0.0 <= self.start_margin < 0.5:
+            raise ValueError(f"SequenceConfig.start_margin must be in [0, 0.5); got {self.start_margin!r}")

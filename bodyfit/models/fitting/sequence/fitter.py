@@ -290,6 +290,7 @@ class SequenceFitter:
             k = keys[lo : lo + cfg.chunk]
             x_k, w_k, G_k, o_k = self._frames(source, k)
             q0, r0 = self.fitter.bone_start(turn(x_k, G_k, o_k), w_k)
+            q0 = self.model.skeleton.inside(q0, cfg.start_margin)
             problems = FramePoses(pose_fitter, (x_k, w_k, G_k, o_k), c, cfg.key_stages, cfg.workers)
             rows = slice(lo, lo + len(k))
             q_key[rows], r_key[rows] = problems.refit(np.arange(len(k)), q0, r0)
@@ -311,7 +312,8 @@ class SequenceFitter:
             x, w, out.G[lo:hi], out.origin[lo:hi] = self._frames(run.source, np.arange(lo, hi))
             G, origin = out.G[lo:hi], out.origin[lo:hi]
             problems = FramePoses(run.fitter, (x, w, G, origin), run.shape, stages, self.config.workers)
-            q, r = problems.refit(np.arange(hi - lo), q_init[lo:hi], r_init[lo:hi])
+            q0 = self.model.skeleton.inside(q_init[lo:hi], self.config.start_margin)
+            q, r = problems.refit(np.arange(hi - lo), q0, r_init[lo:hi])
             before = None if lo == 0 else (out.q_c[lo - 1], out.root_c[lo - 1])
             out.q_c[lo:hi], out.root_c[lo:hi] = self._settle(problems, q, r, before, self.config.basins)
             if pending is not None:  # one chunk behind: its last frame's blend needs this chunk's first
