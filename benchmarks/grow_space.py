@@ -10,7 +10,10 @@ What is measured
 * Scans: each body posed in the zero pose (standing, arms down) with its offsets skinned along. Quick: the
   posed meshes themselves in our topology (registration-quality inputs, which the batch fit fits as
   registrations: seconds each); full: raw scans made from them as in ``benchmarks/fit_scans.py`` (surface
-  points with 2 mm noise, 8 % holes; ``bodyfit batch-fit`` fits them as raw scans: about a minute each).
+  points with 2 mm noise, 8 % holes, 40,000 points; ``bodyfit batch-fit`` fits them as raw scans: one to
+  three minutes each on 2 shared cores, and each round's registration about a minute more; the full run takes
+  hours there: run it in the background, or with ``--backend``-style parallel fits on a larger machine).
+  Quick: 16 scans, 12 held-out bodies, 4 rounds; full: 32 scans, 16 held-out bodies, 6 rounds.
 * First round: ``bodyfit batch-fit`` (the SDK's batch engine, local back-end) fits every scan in the
   shipped space; ``bodyfit grow-space``'s rounds then reuse each scan's pose and re-project its shape,
   refine non-rigidly and accept (:mod:`bodyfit.models.spaces.grow`).
@@ -154,7 +157,7 @@ def run(quick: bool, work: Path | None = None) -> dict[str, Any]:
     model = BodyModel.load()
     mean = rest_meshes(model.data, np.zeros((1, model.n_shape)))[0]
     fields = offset_fields(mean, vertex_normals(mean, model.faces), N_FIELDS, np.random.default_rng(1))
-    n_scans, n_held = (16, 12) if quick else (48, 24)
+    n_scans, n_held = (16, 12) if quick else (32, 16)
     shape, offsets, _ = population(model, fields, n_scans, seed=2)
     held_shape, held_offsets, held = population(model, fields, n_held, seed=3)
     held_posed = posed_meshes(model, held_shape, held_offsets)
