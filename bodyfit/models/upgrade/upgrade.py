@@ -67,6 +67,9 @@ largest coefficient 18.7 -> 1.9 SD, the shape's shift when one to ten frames are
 surface distance 4.7 -> 5.0 mm (the rest-pose offsets keep the detail)."""
 SHAPE_LIMIT_SD = 4.0
 """A fitted shape coefficient beyond this many standard deviations is reported: the data demanded it."""
+HAND_JOINTS = slice(22, 24)
+"""SMPL's two hand joints, which turn each hand's fingers as one block: only the SMPL layout (72 values)
+carries them (SMPL-H and SMPL-X hold the fingers' own joints there, which an SMPL model cannot pose)."""
 
 
 def upgrade_fitter(fitter: RegisteredFitter | BodyModel) -> SequenceFitter:
@@ -163,12 +166,14 @@ def upgrade_with_model(
     model = fitter.model
     tmap = topology or smpl_map()
     check_axis_angle(sequence)
+    sequence, hand_notes = flat_hands(sequence)
     sequence, axis = orient(sequence, smpl, up)
     # SMPL vertices -> points at ours, applied inside the forward pass
     fit, good = _fit_posed(sequence, smpl, fitter, tmap.matrix(SMPL_VERTICES), tmap.weight, progress)
     notes = [
         f"path (a): posed with the SMPL-family model {Path(smpl.source).name or '(given)'}",
         *axis.notes(),
+        *hand_notes,
     ]
     if fit.offsets is not None:
         largest = float(np.linalg.norm(fit.offsets, axis=1).max()) * 1000.0
@@ -207,6 +212,7 @@ def upgrade_from_rotations(
     fitter = fitter if isinstance(fitter, SequenceFitter) else upgrade_fitter(fitter)
     proxy = proxy or load_proxy()
     check_axis_angle(sequence)
+    sequence, hand_notes = flat_hands(sequence)
     phenotype, shape_notes = proxy.phenotype(hints, sequence.gender)
     posed, axis = orient(replace(sequence, betas=proxy.betas(phenotype)), proxy.model, up)
     weight = np.ones(len(proxy.model.v_template))
@@ -215,6 +221,7 @@ def upgrade_from_rotations(
         "path (b): no SMPL-family model file; the SMPL joint rotations posed a proxy body in SMPL's "
         "conventions (anny's SOMA rig), which our model was fitted to",
         *axis.notes(),
+        *hand_notes,
         "betas were not used (no SMPL shape directions)",
         *shape_notes,
     ]
@@ -223,6 +230,25 @@ def upgrade_from_rotations(
     proxy_mm = float(np.mean([r.distances.mean for r in fit.reports]))
     extra = {**result.extra, "proxy_fit_mm": round(proxy_mm, 3), **axis.summary()}
     return replace(result, offsets=fit.offsets, extra=extra)
+
+
+def flat_hands(sequence: SmplSequence) -> tuple[SmplSequence, list[str]]:
+    """The sequence with SMPL's hand joints (:data:`HAND_JOINTS`) at rest, and a note when they were not:
+    our skeleton has no fingers, so a block of curled fingers could only pull the wrist and forearm towards
+    it, and the same motion stored as 72, 156 or 165 values would give different body coordinates."""
+    poses = sequence.poses  # (T, 24, 3)
+    turned = np.linalg.norm(poses[:, HAND_JOINTS], axis=-1)
+    turned = turned[np.isfinite(turned)]
+    if not len(turned) or turned.max() < 1e-6:
+        return sequence, []
+    flat = poses.copy()
+    flat[:, HAND_JOINTS] = 0.0
+    note = (
+        f"SMPL's hand joints 22-23 (the fingers as one block, up to {np.degrees(turned.max()):.0f} degrees) "
+        "were set to rest: the skeleton has no fingers, and the body coordinates are then the same whether "
+        "the motion comes as SMPL (72 values), SMPL-H (156) or SMPL-X (165)"
+    )
+    return replace(sequence, poses=flat), [note]
 
 
 def _fit_posed(
@@ -289,6 +315,9 @@ def _result(
         )
     subject_notes, subject = _subject(model, shape, scales)
     notes.extend(subject_notes)
+    limit_notes, at_limits = _at_limits(skel.dof_names, in_range[~bad], skel.ranges)
+    notes.extend(limit_notes)
+    subject["at_limits"] = at_limits
     return UpgradeResult(
         path=path,
         coordinates=coordinates,
@@ -326,6 +355,33 @@ def _subject(model: BodyModel, shape: np.ndarray, scales: np.ndarray) -> tuple[l
             f"axis): {'; '.join(outliers)}"
         )
     return notes, {"shape_max_sd": round(largest, 3), "scale_outliers": outliers}
+
+
+AT_LIMIT_DEG = 1.0
+"""A coordinate within this many degrees of a limit sits at it."""
+AT_LIMIT_SHARE = 0.05
+"""Coordinates at a limit in more than this share of the frames are reported."""
+
+
+def _at_limits(
+    names: list[str] | tuple[str, ...], q: np.ndarray, ranges: np.ndarray
+) -> tuple[list[str], dict[str, float]]:
+    """A note and the summary field ``at_limits`` ({coordinate: share of the frames}) for the coordinates of
+    q (T, n_dof), in range, that sit at a limit of ``ranges`` (n_dof, 2) in more than :data:`AT_LIMIT_SHARE`
+    of the frames: the input may demand it, or the fit may have been unable to place the coordinate."""
+    if not len(q):
+        return [], {}
+    pad = np.radians(AT_LIMIT_DEG)
+    share = ((q < ranges[:, 0] + pad) | (q > ranges[:, 1] - pad)).mean(axis=0)
+    held = {names[k]: round(float(share[k]), 3) for k in np.flatnonzero(share > AT_LIMIT_SHARE)}
+    if not held:
+        return [], {}
+    listed = ", ".join(f"{n} {100 * f:.0f} %" for n, f in sorted(held.items(), key=lambda kv: -kv[1]))
+    return [
+        f"coordinates at a joint limit in more than {100 * AT_LIMIT_SHARE:.0f} % of the frames: {listed} "
+        "(summary 'at_limits'): the motion may demand it, or the body differs there from what the "
+        "skeleton can reach"
+    ], held
 
 
 @lru_cache(maxsize=4)
