@@ -86,7 +86,7 @@ def _session(data: bytes | str) -> Any:
     return ort.InferenceSession(data, options, providers=["CPUExecutionProvider"])
 
 
-def _inputs(n_shape: int, n_dof: int, batch: int, rng: np.random.Generator, n_bone: int) -> dict[str, Any]:
+def _inputs(n_shape: int, n_dof: int, batch: int, rng: np.random.Generator) -> dict[str, Any]:
     shape = rng.normal(size=(batch, n_shape)).clip(-2, 2).astype(np.float32)
     return {
         "shape": shape,
@@ -109,8 +109,8 @@ def _onnx(quick: bool) -> dict[str, float]:
     linear = _session(str(verified_asset(BODY_ONNX)))
     n_dof = model.body.skeleton.n_dof
     feeds = {
-        "spiral": _inputs(model.n_shape, n_dof, 1, rng, model.n_bone),
-        "linear": _inputs(model.body.n_shape, n_dof, 1, rng, model.n_bone),
+        "spiral": _inputs(model.n_shape, n_dof, 1, rng),
+        "linear": _inputs(model.body.n_shape, n_dof, 1, rng),
     }
     times: dict[str, list[float]] = {"spiral": [], "linear": []}
     for _ in range(50 if quick else 300):
@@ -120,7 +120,7 @@ def _onnx(quick: bool) -> dict[str, float]:
             times[name].append(time.perf_counter() - t0)
     parity = 0.0
     for _ in range(16):
-        f = _inputs(model.n_shape, n_dof, 1, rng, model.n_bone)
+        f = _inputs(model.n_shape, n_dof, 1, rng)
         f["coordinates"] = np.clip(f["coordinates"], clipped[:, 0], clipped[:, 1]).astype(np.float32)
         v, j = spiral.run(None, f)
         ref = model.forward(f["shape"], f["coordinates"], f["root"])

@@ -28,6 +28,7 @@ def train(
         Path | None, typer.Option(help="Cache of bodies and checkpoints (default build/decoders).")
     ] = None,
     save: Annotated[bool, typer.Option(help="Write spiral_d<d>.npz and its manifest entry.")] = True,
+    device: Annotated[str, typer.Option(help="torch device of the training run (cpu, cuda).")] = "cpu",
 ) -> None:
     """Train the spiral identity decoder of latent size d and print its comparison with the PCA (mm)."""
     from bodyfit.models.assets import assets_dir
@@ -35,7 +36,7 @@ def train(
     from bodyfit.models.decoders.pipeline import train_decoder
 
     with reported():
-        trained, hierarchy, metrics = train_decoder(d, minutes, work, assets, typer.echo)
+        trained, hierarchy, metrics = train_decoder(d, minutes, work, assets, typer.echo, device)
         if save:
             path = save_asset(trained, hierarchy, assets or assets_dir(), metrics)
             typer.echo(str(path))
@@ -48,8 +49,8 @@ def export(
     d: Annotated[int, typer.Option(min=1, max=64, help="Latent size of the shipped decoder.")] = 8,
     assets: Annotated[Path | None, typer.Option(help=ASSETS_HELP)] = None,
 ) -> None:
-    """Export the body decoder with the spiral identity term (inputs shape = [bone coefficients, identity
-    code], coordinates, root; outputs vertices, joints) to ONNX, float32, dynamic batch."""
+    """Export the body decoder with the spiral identity term to ONNX (float32, dynamic batch): inputs shape
+    (bone coefficients then identity code), coordinates and root; outputs vertices and joints."""
     from bodyfit.models.decoders.asset import SpiralBodyModel
     from bodyfit.models.decoders.export import export_spiral_onnx
 

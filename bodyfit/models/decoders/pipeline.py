@@ -85,6 +85,7 @@ def train_decoder(
     work: Path | None = None,
     folder: Path | None = None,
     log: Callable[[str], None] = print,
+    device: str = "cpu",
 ) -> tuple[Trained, Hierarchy, dict[str, Any]]:
     """Train the spiral decoder of latent size d on the population's training bodies and compare it with
     the PCA. Returns the decoder, its hierarchy and the metrics for the manifest."""
@@ -94,7 +95,7 @@ def train_decoder(
     h = hierarchy(model, work, folder)
     pop = sets["population"]
     config = replace(TrainConfig(), d=d, minutes=minutes)
-    trained = train_spiral(h, pop.offsets[~pop.held], config, work / f"spiral_d{d}.pt", log)
+    trained = train_spiral(h, pop.offsets[~pop.held], config, work / f"spiral_d{d}.pt", log, device)
     metrics: dict[str, Any] = {
         "train_bodies": int((~pop.held).sum()),
         "epochs": len(trained.history),

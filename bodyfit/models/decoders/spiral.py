@@ -84,7 +84,8 @@ class Gather(nn.Module):
 
     With ``sparse`` (the default) float32 inputs are multiplied by the sparse matrix (its backward is one
     more sparse product, far cheaper than scattering a gather's gradient); otherwise, and for ONNX export
-    (:func:`dense`), the equivalent gather and sum.
+    (:func:`dense`), K row gathers of x, weighted and added: contiguous rows, no reduction over an axis,
+    which ONNX Runtime runs slowly here.
     """
 
     index: torch.Tensor
@@ -95,17 +96,20 @@ class Gather(nn.Module):
         super().__init__()
         V, K = index.shape
         self.shape, self.n_rows, self.sparse = (V, K), n_rows, True
-        self.register_buffer("index", torch.as_tensor(index.reshape(-1), dtype=torch.long))
-        self.register_buffer("weight", torch.as_tensor(weight, dtype=torch.float32)[:, :, None])
+        self.unit = bool(np.all(weight == 1.0))
+        self.register_buffer("index", torch.as_tensor(np.ascontiguousarray(index.T), dtype=torch.long))
+        self.register_buffer(
+            "weight", torch.as_tensor(np.ascontiguousarray(weight.T), dtype=torch.float32)[..., None]
+        )
         self._matrix: torch.Tensor | None = None
 
     def matrix(self) -> torch.Tensor:
         """The (V, N) float32 CSR matrix, built on first use."""
         if self._matrix is None:
             V, K = self.shape
-            rows = torch.arange(V).repeat_interleave(K)
+            rows = torch.arange(V, device=self.index.device).repeat(K)
             coo = torch.sparse_coo_tensor(
-                torch.stack([rows, self.index]),
+                torch.stack([rows, self.index.reshape(-1)]),
                 self.weight.reshape(-1),
                 (V, self.n_rows),
                 check_invariants=True,
@@ -116,8 +120,11 @@ class Gather(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self.sparse and x.dtype == torch.float32:
             return self.matrix() @ x
-        g = x[self.index].reshape(*self.shape, x.shape[1])
-        return (g * self.weight.to(x.dtype)).sum(dim=1)
+        out = x.new_zeros(())
+        for k in range(self.shape[1]):
+            g = x.index_select(0, self.index[k])
+            out = out + (g if self.unit else g * self.weight[k].to(x.dtype))
+        return out
 
 
 def dense(module: nn.Module) -> nn.Module:
@@ -132,10 +139,13 @@ class SpiralConv(nn.Module):
     """y_v = W [x_s(v,1), ..., x_s(v,L)] + b over each vertex's spiral s(v, .) (Bouritsas et al. 2019).
 
     Computed as products then a gather, y_v = sum_l (x W_l)_s(v,l), the same sum: the gather then moves
-    c_out numbers per spiral entry, fewer than c_in where the channels narrow, on the finest levels, and the
-    L products come out stacked, (L, V, B, c_out), ready for it without a transpose.
+    c_out numbers per spiral entry, fewer than c_in where the channels narrow, on the finest levels.
+    Training stacks the L products, (L, V, B, c_out), for the sparse matrix of :class:`Gather`; inference
+    and ONNX (:func:`dense`) make them one GEMM, (V B, c_in) @ (c_in, L c_out), and gather its rows.
     Activations are vertex-major, (V, B, C).
     """
+
+    rows: torch.Tensor
 
     def __init__(self, spiral: np.ndarray, c_in: int, c_out: int) -> None:
         """spiral (V, L) vertex indices."""
@@ -146,13 +156,29 @@ class SpiralConv(nn.Module):
         # Row of (position l, vertex s(v, l)) in the stacked (L * V) products.
         flat = np.arange(L)[None] * V + spiral
         self.gather = Gather(flat, np.ones(flat.shape), V * L)
+        # Row of (vertex s(v, l), position l) in the dense path's (V * L) products.
+        rows = spiral * L + np.arange(L)[None]
+        self.register_buffer("rows", torch.as_tensor(np.ascontiguousarray(rows.T), dtype=torch.long))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x (V, B, c_in) -> (V, B, c_out)."""
         V, B, L = x.shape[0], x.shape[1], self.length
+        if not (self.gather.sparse and x.dtype == torch.float32):
+            return self._gathered(x)
         W = self.linear.weight.reshape(self.c_out, L, self.c_in).permute(1, 2, 0)  # (L, c_in, c_out)
         table = torch.matmul(x.reshape(1, V * B, self.c_in), W)  # (L, V * B, c_out)
         return self.gather(table.reshape(L * V, B * self.c_out)).reshape(V, B, self.c_out) + self.linear.bias
+
+    def _gathered(self, x: torch.Tensor) -> torch.Tensor:
+        """The dense path: products (V, L, B, c_out) from one GEMM, then L gathers of V fixed rows."""
+        V, B, L = x.shape[0], x.shape[1], self.length
+        W = self.linear.weight.reshape(self.c_out, L, self.c_in).permute(2, 1, 0).reshape(self.c_in, -1)
+        table = (x.reshape(V * B, self.c_in) @ W.to(x.dtype)).reshape(V, B, L, self.c_out)
+        table = table.transpose(1, 2).reshape(V * L, B * self.c_out)
+        out = self.linear.bias.to(x.dtype).repeat(B)
+        for k in range(L):
+            out = out + table.index_select(0, self.rows[k])
+        return out.reshape(V, B, self.c_out)
 
 
 class Upsample(nn.Module):
