@@ -8,7 +8,7 @@ import sys
 
 import typer
 
-from bodyfit.cli import assets, batch, demo, measure, rig, serve, synth, upgrade
+from bodyfit.cli import assets, batch, demo, grow, measure, rig, serve, synth, upgrade
 from bodyfit.cli.fit.commands import app as fit_app
 
 app = typer.Typer(
@@ -26,6 +26,7 @@ app.command("upgrade")(upgrade.upgrade)
 app.command("batch-upgrade")(batch.batch_upgrade)
 app.command("batch-fit")(batch.batch_fit)
 app.command("rig")(rig.rig)
+app.command("grow-space")(grow.grow_space)
 app.command("serve")(serve.serve)
 app.command("demo")(demo.demo)
 app.command("build-assets")(assets.build_assets)

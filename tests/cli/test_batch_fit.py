@@ -52,7 +52,7 @@ def test_batch_fit_in_this_process(tmp_path: Path) -> None:
     model = BodyModel.load()
     assert abs(data["coordinates"][model.dof_names.index("knee_angle_r")] - 0.9) < 0.1
     assert str(data["fitted_as"]) == "registered" and list(data["dof_names"]) == model.dof_names
-    mesh = trimesh.load(out / "a" / "m0.ply", process=False)
+    mesh = trimesh.load_mesh(out / "a" / "m0.ply", process=False)
     np.testing.assert_array_equal(mesh.faces, model.faces)
     assert np.linalg.norm(mesh.vertices - verts[0], axis=1).mean() < 0.003  # metres, in the scan's frame
     again = runner.invoke(app, ["batch-fit", str(root), str(out)])

@@ -44,7 +44,7 @@ def test_ply_bytes_reads_back(tmp_path: Path) -> None:
     vertices, faces = rng.normal(size=(7, 3)), rng.integers(0, 7, size=(5, 3))
     path = tmp_path / "m.ply"
     path.write_bytes(ply_bytes(vertices, faces))
-    mesh = trimesh.load(path, process=False)
+    mesh = trimesh.load_mesh(path, process=False)
     np.testing.assert_allclose(mesh.vertices, vertices.astype(np.float32))
     np.testing.assert_array_equal(mesh.faces, faces)
 
