@@ -4,13 +4,15 @@ change is kept.
 
 A body's pose fit has several local minima (an arm's flexion traded against its twist, a coordinate held at a
 limit that the data pulls past), and frames fitted independently can fall into different ones while the
-input barely moves: the coordinates then jump although the skin does not. Consecutive frames of real motion
-are close, so a jump larger than :attr:`BasinCheck.jump` between neighbours is a question, not an answer:
-each frame of such a pair is re-fitted from the other's pose (a warm start from the neighbour, as a tracker
-would), and the re-fitted pose replaces the frame's own when its data term is no worse, within
-:attr:`BasinCheck.tolerance`, and it is closer to the neighbour. A frame whose input did move far is left
-alone: started from its neighbour it cannot explain its own input as well. A run of frames in the wrong
-basin is walked back one frame from each end per round (:attr:`BasinCheck.rounds`).
+input barely moves: the coordinates jump, and the fitted skin moves unlike the input. So a change larger
+than :attr:`BasinCheck.jump` between neighbours whose fit residual changes by more than
+:attr:`BasinCheck.gap` somewhere is a question, not an answer (a jump that moves the skin with the input is
+the input's own motion and is not questioned): each frame of such a pair is re-fitted from the other's pose
+(a warm start from the neighbour, as a tracker would), and the re-fitted pose replaces the frame's own when
+its data term is no worse, within :attr:`BasinCheck.tolerance`, and it is closer to the neighbour. A frame
+whose input did move far is left alone: started from its neighbour it cannot explain its own input as well.
+A run of frames in the wrong basin is walked back one frame from each end per round
+(:attr:`BasinCheck.rounds`).
 
 This is the consistency check of model-based tracking: re-initialise from the previous frame's solution and
 keep the hypothesis of lower cost (C. Sminchisescu and B. Triggs, "Kinematic Jump Processes for Monocular 3D
