@@ -244,6 +244,9 @@ def test_outputs(upgraded: tuple[UpgradeResult, SmplSequence], model: BodyModel,
     assert result.offsets is not None and np.abs(saved["offsets"] - result.offsets).max() < 1e-6
     summary = json.loads(paths["json"].read_text())
     assert summary["path"] == "a" and summary["bad_frames"] == [BROKEN] and summary["limit_violations"] == 0
+    held = summary["at_limits"]  # coordinates held at a limit: the same in the summary and the npz
+    assert held == result.extra["at_limits"]
+    assert dict(zip(saved["at_limits"].tolist(), saved["at_limits_share"].tolist(), strict=True)) == held
 
 
 @pytest.mark.opensim

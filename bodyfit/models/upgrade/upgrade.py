@@ -410,8 +410,9 @@ def _joints(model: BodyModel, shape: np.ndarray, q: np.ndarray, root: np.ndarray
 def write_upgrade(
     result: UpgradeResult, model: BodyModel, out: Path, name: str = "upgrade", geometry: bool = True
 ) -> dict[str, Path]:
-    """Write ``name``.npz (every array with its names; ``offsets`` when fitted), ``name``.json (the
-    summary), ``name``.osim (our skeleton scaled to the subject; with ``geometry`` its bones beside it in
+    """Write ``name``.npz (every array with its names; ``offsets`` when fitted; ``at_limits`` and
+    ``at_limits_share``: the coordinates held at a joint limit and their share of the frames), ``name``.json
+    (the summary), ``name``.osim (our skeleton scaled to the subject; with ``geometry`` its bones beside it in
     Geometry/, else it names Rajagopal's .vtp files, which OpenSim's installation holds) and ``name``.mot
     (the coordinates; degrees, as OpenSim expects)."""
     out.mkdir(parents=True, exist_ok=True)
@@ -432,6 +433,9 @@ def write_upgrade(
     }
     if result.offsets is not None:
         arrays["offsets"] = result.offsets.astype(np.float32)
+    held = result.extra.get("at_limits") or {}
+    arrays["at_limits"] = np.array(list(held), dtype=str)  # coordinates held at a limit (summary's note)
+    arrays["at_limits_share"] = np.array(list(held.values()), dtype=np.float64)
     np.savez_compressed(paths["npz"], **arrays)  # type: ignore[arg-type]
     paths["json"].write_text(json.dumps(result.summary(), indent=1) + "\n")
     bones = model.skeleton.bone_mesh() if geometry else None
