@@ -84,12 +84,13 @@ class Gather(nn.Module):
 
     With ``sparse`` (the default) float32 inputs are multiplied by the sparse matrix (its backward is one
     more sparse product, far cheaper than scattering a gather's gradient); otherwise, and for ONNX export
-    (:func:`dense`), K row gathers of x, weighted and added: contiguous rows, no reduction over an axis,
-    which ONNX Runtime runs slowly here.
+    (:func:`dense`), one gather of the K V rows, weighted, and summed over k by a (1, K) GEMV: few graph
+    nodes, and no ReduceSum, which ONNX Runtime runs slowly on these shapes.
     """
 
     index: torch.Tensor
     weight: torch.Tensor
+    ones: torch.Tensor
 
     def __init__(self, index: np.ndarray, weight: np.ndarray, n_rows: int) -> None:
         """index, weight (V, K); n_rows the N of the x it takes."""
@@ -102,6 +103,7 @@ class Gather(nn.Module):
             "weight", torch.as_tensor(np.ascontiguousarray(weight.T), dtype=torch.float32)[..., None]
         )
         self._matrix: torch.Tensor | None = None
+        self.register_buffer("ones", torch.ones(1, K), persistent=False)
 
     def matrix(self) -> torch.Tensor:
         """The (V, N) float32 CSR matrix, built on first use."""
@@ -120,11 +122,10 @@ class Gather(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self.sparse and x.dtype == torch.float32:
             return self.matrix() @ x
-        out = x.new_zeros(())
-        for k in range(self.shape[1]):
-            g = x.index_select(0, self.index[k])
-            out = out + (g if self.unit else g * self.weight[k].to(x.dtype))
-        return out
+        V, K = self.shape
+        g = x.index_select(0, self.index.reshape(-1)).reshape(K, V, x.shape[1])
+        g = g if self.unit else g * self.weight.to(x.dtype)
+        return (self.ones.to(x.dtype) @ g.reshape(K, -1)).reshape(V, x.shape[1])
 
 
 def dense(module: nn.Module) -> nn.Module:
@@ -146,6 +147,7 @@ class SpiralConv(nn.Module):
     """
 
     rows: torch.Tensor
+    ones: torch.Tensor
 
     def __init__(self, spiral: np.ndarray, c_in: int, c_out: int) -> None:
         """spiral (V, L) vertex indices."""
@@ -159,6 +161,7 @@ class SpiralConv(nn.Module):
         # Row of (vertex s(v, l), position l) in the dense path's (V * L) products.
         rows = spiral * L + np.arange(L)[None]
         self.register_buffer("rows", torch.as_tensor(np.ascontiguousarray(rows.T), dtype=torch.long))
+        self.register_buffer("ones", torch.ones(1, L), persistent=False)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x (V, B, c_in) -> (V, B, c_out)."""
@@ -170,15 +173,15 @@ class SpiralConv(nn.Module):
         return self.gather(table.reshape(L * V, B * self.c_out)).reshape(V, B, self.c_out) + self.linear.bias
 
     def _gathered(self, x: torch.Tensor) -> torch.Tensor:
-        """The dense path: products (V, L, B, c_out) from one GEMM, then L gathers of V fixed rows."""
+        """The dense path: products (V, L, B, c_out) from one GEMM, one gather of L V fixed rows, summed
+        over l by a GEMV (as in :class:`Gather`)."""
         V, B, L = x.shape[0], x.shape[1], self.length
         W = self.linear.weight.reshape(self.c_out, L, self.c_in).permute(2, 1, 0).reshape(self.c_in, -1)
         table = (x.reshape(V * B, self.c_in) @ W.to(x.dtype)).reshape(V, B, L, self.c_out)
         table = table.transpose(1, 2).reshape(V * L, B * self.c_out)
-        out = self.linear.bias.to(x.dtype).repeat(B)
-        for k in range(L):
-            out = out + table.index_select(0, self.rows[k])
-        return out.reshape(V, B, self.c_out)
+        gathered = table.index_select(0, self.rows.reshape(-1)).reshape(L, V * B * self.c_out)
+        summed = self.ones.to(x.dtype) @ gathered
+        return summed.reshape(V, B, self.c_out) + self.linear.bias.to(x.dtype)
 
 
 class Upsample(nn.Module):
