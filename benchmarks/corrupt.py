@@ -204,24 +204,34 @@ def clothing_offset(
     max_offset: float = 0.03,
     n_centres: int = 6,
     length_scale: float = 0.2,
+    bare: np.ndarray | None = None,
+    cuff: float = 0.03,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Loose clothing: push vertices outward along their normals by a smooth non-negative field.
 
     The field is a sum of Gaussians (standard deviation ``length_scale`` metres, Euclidean distance) around
     ``n_centres`` random vertices with random weights in [0.3, 1], scaled so its maximum is ``max_offset``.
+    With ``bare`` (V,) bool, the skin the cloth leaves bare (a face, the hands): the centres lie on the
+    clothed vertices, and the field falls to zero at the bare skin over ``cuff`` metres (times
+    1 - exp(-d^2 / (2 cuff^2)), d a vertex's distance to the nearest bare vertex), as a collar or a cuff
+    closes on the skin.
 
     Args:
         vertices: (V, 3) metres; faces: (F, 3) counter-clockwise seen from outside.
     Returns:
-        displaced vertices (V, 3) and the offset (V,) in metres, in [0, max_offset].
+        displaced vertices (V, 3) and the offset (V,) in metres, in [0, max_offset] (0 on ``bare``).
     """
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64)
     normals = vertex_normals(v, f)
-    centres = v[rng.choice(len(v), size=n_centres)]
+    clothed = np.arange(len(v)) if bare is None else np.flatnonzero(~np.asarray(bare, bool))
+    centres = v[clothed[rng.choice(len(clothed), size=n_centres)]]
     weights = rng.uniform(0.3, 1.0, n_centres)
     d2 = ((v[:, None, :] - centres[None, :, :]) ** 2).sum(axis=2)  # (V, n_centres)
     field = np.exp(-0.5 * d2 / length_scale**2) @ weights
+    if bare is not None and np.any(bare):
+        to_bare = cKDTree(v[np.asarray(bare, bool)]).query(v)[0]
+        field = field * (1.0 - np.exp(-0.5 * (to_bare / cuff) ** 2))
     offset = max_offset * field / field.max()
     return v + offset[:, None] * normals, offset
 
