@@ -66,7 +66,10 @@ def synth(
         c = None if shape is None else np.array([[float(x) for x in shape.split(",")]])
         r = None if root is None else np.array([[float(x) for x in root.split(",")]])
     except ValueError as exc:
-        fail(f"{exc}; write coordinates and measurements as NAME=VALUE and arrays as comma-separated numbers")
+        fail(
+            f"{exc}; write coordinates as -c NAME=RADIANS, measurements as -m NAME=VALUE (metres, kilograms) "
+            "and arrays as comma-separated numbers"
+        )
     built = None
     if server is not None:
         data, built = _from_server(server, fmt, c, values, r, skeleton, wanted, sex)
