@@ -15,8 +15,11 @@ What is measured
 * ``generic_mm``: mean vertex error on the held-out poses of the generic model fitted to each alone (its
   own shape and pose, :class:`RegisteredFitter`); ``personal_mm``: the rig fitted to them (pose only,
   :func:`bodyfit.models.rig.fit.fit_registered`); ``ratio`` the second over the first.
-* Keys: ``rig_ratio`` and ``rig_param_mm`` the worst subject's; ``rig_build_s`` the slowest build (wall
-  clock, one torch thread).
+* ``raw_offsets_0`` (full run only): the rig of the first offsets subject built from raw scans instead,
+  20,000 points sampled on each of the six build meshes and fitted as raw scans by the service
+  (:func:`bodyfit.service.subjects.build_subject`); held-out poses scored as above.
+* Keys: ``rig_ratio`` and ``rig_param_mm`` the worst subject's; ``rig_build_s`` the slowest build from
+  registered meshes (wall clock, one torch thread).
 
 Usage::
 
@@ -34,12 +37,13 @@ import scipy.sparse.linalg as spl
 import torch
 
 from bodyfit.models.body.model import BodyModel
-from bodyfit.models.fitting.common.surface import laplacian
+from bodyfit.models.fitting.common.surface import laplacian, vertex_normals
 from bodyfit.models.fitting.registered.fitter import RegisteredFitter
-from bodyfit.models.rig.build import build_rig
+from bodyfit.models.rig.build import RigBuild, build_rig
 from bodyfit.models.rig.fit import fit_registered
 
 N_BUILD, N_HELD = 6, 6
+RAW_POINTS = 20_000
 SPREAD = 0.5
 EXTREMES = {
     "anny_old_heavy": (dict(gender=0.0, age=1.0, muscle=0.1, weight=1.0, height=0.8, proportions=0.9), 85.0),
@@ -52,14 +56,15 @@ EXTREMES = {
 
 
 def soft_tissue(model: BodyModel, seed: int, mean_mm: float = 10.0) -> np.ndarray:
-    """(V, 3) smooth random rest-pose offsets of mean length ``mean_mm`` (white noise diffused by the mesh
-    Laplacian)."""
+    """(V, 3) smooth random soft tissue of mean thickness ``mean_mm`` (in or out) along the mean body's
+    normals: white noise diffused by the mesh Laplacian. Along the normal only, as tissue is: an offset
+    along the surface would move no point of the skin, and no scan could see it."""
     V = model.n_vertices
     L = laplacian(model.faces, V)
     solve = spl.factorized((sp.identity(V) + 30.0 * (L.T @ L)).tocsc())
-    noise = np.random.default_rng(seed).normal(size=(V, 3))
-    D = np.stack([solve(noise[:, i]) for i in range(3)], axis=1)
-    return D * (mean_mm / 1000.0) / np.linalg.norm(D, axis=1).mean()
+    thickness = solve(np.random.default_rng(seed).normal(size=V))
+    normals = vertex_normals(model.data["vertices_mean"], model.faces)
+    return normals * (thickness * (mean_mm / 1000.0) / np.abs(thickness).mean())[:, None]
 
 
 def poses(model: BodyModel, n: int, seed: int) -> np.ndarray:
@@ -98,11 +103,26 @@ def anny_subject(model: BodyModel, name: str, seed: int) -> np.ndarray:
     return vertices
 
 
-def rig_case(model: BodyModel, bodies: np.ndarray) -> dict[str, float]:
-    """Build on the first :data:`N_BUILD` bodies, score on the rest (module docstring)."""
+def raw_build(model: BodyModel, build: np.ndarray) -> RigBuild:
+    """The rig of meshes (K, V, 3) given as raw scans: points sampled on each, fitted by the service."""
+    from bodyfit.io.scans import Scan, sample_surface
+    from bodyfit.service.core import BodyService
+    from bodyfit.service.subjects import build_subject
+
+    service = BodyService.load(fitters=False)
+    scans = [
+        Scan(sample_surface(v, model.faces, RAW_POINTS, seed=k)[0], None, None, "m", RAW_POINTS)
+        for k, v in enumerate(build)
+    ]
+    return build_subject(service, scans, [f"raw{k}" for k in range(len(build))])
+
+
+def rig_case(model: BodyModel, bodies: np.ndarray, raw: bool = False) -> dict[str, float]:
+    """Build on the first :data:`N_BUILD` bodies (from raw scans of them with ``raw``), score on the rest
+    (module docstring)."""
     build, held = bodies[:N_BUILD], bodies[N_BUILD:]
     began = time.perf_counter()
-    built = build_rig(model, build, [f"pose{k}" for k in range(N_BUILD)])
+    built = raw_build(model, build) if raw else build_rig(model, build, [f"pose{k}" for k in range(N_BUILD)])
     build_s = time.perf_counter() - began
     generic = RegisteredFitter(model).fit(held)
     personal = fit_registered(model, built.subject, held)
@@ -127,10 +147,13 @@ def run(quick: bool) -> dict[str, Any]:
     for k, name in enumerate(list(EXTREMES)[: 1 if quick else None]):
         cases[name] = anny_subject(model, name, k)
     table = {name: rig_case(model, bodies) for name, bodies in cases.items()}
+    build_s = max(r["build_s"] for r in table.values())
+    if not quick:
+        table["raw_offsets_0"] = rig_case(model, cases["offsets_0"], raw=True)
     return {
         "rig_ratio": max(r["ratio"] for r in table.values()),
         "rig_param_mm": max(r["personal_mm"] for r in table.values()),
-        "rig_build_s": max(r["build_s"] for r in table.values()),
+        "rig_build_s": build_s,
         "rig_cases": table,
     }
 

@@ -284,7 +284,9 @@ class UpgradeSummary(OpenDocument):
     per-frame distance to the input meshes (mm; null without input meshes), joint-limit violations, the
     largest frame-to-frame jump (degrees) and notes. Path (b) adds ``proxy_fit_mm``. Both add ``up_axis``
     (the input's up axis), ``up_given``, ``up_weak``, ``floor_found``, ``shape_max_sd`` (largest shape
-    coefficient, population SD) and ``scale_outliers`` (segments proportioned unlike the population)."""
+    coefficient, population SD), ``scale_outliers`` (segments proportioned unlike the population) and
+    ``at_limits`` ({coordinate: share of the frames} for coordinates within 1 degree of a joint limit in more
+    than 5 % of the frames)."""
 
     path: Literal["a", "b"]
     frames: int
