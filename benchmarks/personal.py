@@ -1,4 +1,6 @@
-"""Personal-model benchmark (issue 40): swing-twist skinning against plain LBS, one run.
+"""Personal-model benchmark (issue 40): swing-twist skinning against plain LBS, personal rigs
+(:mod:`benchmarks.personal_rig`: ``rig_ratio``, ``rig_param_mm``, ``rig_build_s``) and a shape space grown
+from scans (:mod:`benchmarks.grow_space`: ``grow_ratio``, ``grow_rounds``, ``grow_accepted``), one run.
 
 What is measured
 ----------------
@@ -269,9 +271,17 @@ def skinning_gallery(path: str = "docs/skinning_arm.png", size: tuple[int, int] 
 
 
 def run(quick: bool) -> dict[str, Any]:
-    """Every key group of the benchmark."""
+    """Every key group of the benchmark: swing-twist skinning, its ONNX speed, personal rigs
+    (:mod:`benchmarks.personal_rig`) and the grown shape space (:mod:`benchmarks.grow_space`)."""
+    from benchmarks import grow_space, personal_rig
+
     model = BodyModel.load()
-    return {**skinning_keys(model, quick), **onnx_keys(model, quick)}
+    return {
+        **skinning_keys(model, quick),
+        **onnx_keys(model, quick),
+        **personal_rig.run(quick),
+        **grow_space.run(quick),
+    }
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -280,8 +290,8 @@ def main(argv: list[str] | None = None) -> None:
 
     bench_main(
         run,
-        "Personal models: swing-twist skinning against LBS.",
-        "mean body, right side, fewer repeats",
+        "Personal models: swing-twist skinning against LBS, personal rigs, a grown shape space.",
+        "mean body, right side, fewer repeats; one rig subject of each kind; the small scan collection",
         argv,
     )
 
