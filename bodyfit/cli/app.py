@@ -9,6 +9,7 @@ import sys
 import typer
 
 from bodyfit.cli import assets, batch, demo, grow, measure, rig, serve, synth, upgrade
+from bodyfit.cli.decoders import app as decoders_app
 from bodyfit.cli.fit.commands import app as fit_app
 
 app = typer.Typer(
@@ -20,6 +21,7 @@ app = typer.Typer(
     "states each option's unit.",
 )
 app.add_typer(fit_app, name="fit")
+app.add_typer(decoders_app, name="decoders")
 app.command("synth")(synth.synth)
 app.command("measure")(measure.measure)
 app.command("upgrade")(upgrade.upgrade)
