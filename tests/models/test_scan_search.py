@@ -15,9 +15,19 @@ import torch
 
 from bodyfit.io.scans import sample_surface
 from bodyfit.models.body.model import BodyModel
+from bodyfit.models.fitting.scan import limb_search
 from bodyfit.models.fitting.scan.config import DEFAULT_BRANCHES, DEFAULT_PHASES, ScanFitConfig
 from bodyfit.models.fitting.scan.fitter import STRAIGHTENED, ScanFitter
-from bodyfit.models.fitting.scan.limb_search import Hypotheses, distinct
+from bodyfit.models.fitting.scan.hypotheses import ARM_STARTS
+from bodyfit.models.fitting.scan.limb_search import (
+    LIMB_SEARCH,
+    AsIsOrRaised,
+    Hypotheses,
+    LimbSearch,
+    as_is,
+    distinct,
+    search_grids,
+)
 from bodyfit.models.rotations import rotation_angle_between
 
 # grid values of DISTAL_SEARCH (10% in from each range's limits), in degrees
@@ -233,9 +243,10 @@ def test_the_last_phase_refines_both_limb_hypotheses_and_keeps_the_better(model:
 
     fitter._score = spy  # type: ignore[method-assign,assignment]
     fit = fitter.fit(points, orientation=np.eye(3))
-    # the pose phase runs its hypothesis and the straight-spine twin as two halves, a score each
+    # the orientation phase runs the frame's two arm starts, and the pose phase the better one and its
+    # straight-spine twin, as two halves, a score each
     later = [p.stage.name for p in DEFAULT_PHASES[2:]]
-    assert [name for name, _ in scored] == ["orient", "pose", "pose", *later]
+    assert [name for name, _ in scored] == ["orient", "orient", "pose", "pose", *later]
     by_name = dict(scored)
     # the scapula twin and its original, both refined; then the better one alone
     assert len(by_name["limbs"]) == len(by_name["fine"]) == 2
@@ -289,3 +300,84 @@ def test_limb_search_refines_an_arm_the_grid_cannot_hold(model: BodyModel) -> No
         grid = forearm_error()
     assert refined < 0.6 * grid, (grid, refined)  # 100 -> 52 mm
     assert refined < 60.0, (grid, refined)
+
+
+def test_search_grid_moves_a_tuple_of_dofs_in_step(model: BodyModel) -> None:
+    """A tuple key of a grid (the arm's shoulder girdle) is one axis: its DOFs take the same share of their
+    ranges together, 10% in from the limits, while the other DOFs run over every value."""
+    skel = model.skeleton
+    girdle = ("scapula_upward_rot_r", "scapula_elevation_r")
+    ((dofs, values),) = search_grids(skel, ((("humerus_r",), {"arm_flex_r": 3, girdle: 2}),))
+    assert [skel.dof_names[d] for d in dofs] == ["arm_flex_r", *girdle]
+    assert values.shape == (6, 3)
+    lo, hi = skel.ranges[dofs[1:], 0], skel.ranges[dofs[1:], 1]
+    share = (values[:, 1:] - lo - 0.1 * (hi - lo)) / (0.8 * (hi - lo))  # 0 low, 1 high
+    np.testing.assert_allclose(share[:, 0], share[:, 1], atol=1e-12)
+    assert set(np.round(share[:, 0], 9)) == {0.0, 1.0}
+    assert len({tuple(v) for v in values}) == 6
+    # the arm's girdle: as the hypothesis has it (NaN in the grid), or raised to the top of its ranges
+    ((dofs, values),) = search_grids(skel, ((("humerus_r",), {AsIsOrRaised(girdle): 2}),))
+    assert np.isnan(values[0]).all()
+    np.testing.assert_allclose(values[1], hi - 0.1 * (hi - lo))
+    np.testing.assert_array_equal(as_is(values, np.array([0.1, 0.2])), [[0.1, 0.2], values[1]])
+
+
+def _raised_arms(model: BodyModel) -> np.ndarray:
+    """The start pose with both arms raised overhead, the shoulder girdles raised with them."""
+    q = _start(model)
+    for side in ("r", "l"):
+        for name, deg in (("arm_add", -115), ("scapula_upward_rot", 50), ("scapula_elevation", 20)):
+            q[model.skeleton.dof_index(f"{name}_{side}")] = np.radians(deg)
+    return q
+
+
+def test_limb_search_raises_an_arm_overhead(model: BodyModel) -> None:
+    """Arms raised overhead (the girdles raised too), the trunk in place, the search started from the arms
+    hanging down: with the girdle in the arm's grid the arms are found overhead; without it (the glenohumeral
+    joint alone reaches about the horizontal) no candidate lies near them, and the search leaves them far
+    off."""
+    skel = model.skeleton
+    truth = _raised_arms(model)
+    body = model.forward(np.zeros((1, model.n_shape)), truth[None], np.zeros((1, 3)), dtype=torch.float64)
+    points, _ = sample_surface(body.vertices[0].numpy(), model.faces, 20_000, seed=6)
+    fitter = ScanFitter(model)
+    owner = np.argmax(model.data["weights"], axis=1)
+    arms = np.isin(owner, [skel.body_names.index(f"{b}_{s}") for b in ("humerus", "ulna") for s in "rl"])
+
+    def arm_error(search: LimbSearch) -> float:
+        hyp = _hypothesis(fitter, points, _start(model))
+        search(hyp)
+        verts = fitter._vertices(hyp.state)[0]
+        return float(np.linalg.norm(verts[arms] - body.vertices[0].numpy()[arms], axis=1).mean() * 1000)
+
+    with_girdle = arm_error(fitter.limbs)
+    with pytest.MonkeyPatch.context() as patch:
+        arm_only = tuple(
+            (bodies, {k: n for k, n in grid.items() if isinstance(k, str)}) for bodies, grid in LIMB_SEARCH
+        )
+        patch.setattr(limb_search, "LIMB_SEARCH", arm_only)
+        without = arm_error(LimbSearch(fitter.fitter))
+    assert with_girdle < 40.0, (with_girdle, without)
+    assert without > 2.0 * with_girdle, (with_girdle, without)
+
+
+def test_every_frame_starts_with_the_arms_down_and_raised(model: BodyModel) -> None:
+    """A whole body's orientation candidates each start with the arms as given and raised overhead
+    (adjacent rows of one frame); after the orientation phase (``one_per_frame``) the better of each frame
+    alone can go on, and a head and shoulders starts once per frame."""
+    fitter = ScanFitter(model)
+    body = model.forward(
+        np.zeros((1, model.n_shape)), _start(model)[None], np.zeros((1, 3)), dtype=torch.float64
+    )
+    points, _ = sample_surface(body.vertices[0].numpy(), model.faces, 5_000, seed=7)
+    hyp = fitter._candidates(points, None, None)
+    assert len(hyp.rotation) == 24 * len(ARM_STARTS)
+    np.testing.assert_array_equal(hyp.rotation[0], hyp.rotation[1])
+    q = fitter.fitter.parameters(hyp.state)[1].double().numpy()
+    add = model.skeleton.dof_index("arm_add_r")
+    assert np.degrees(q[1, add]) < -100.0 < np.degrees(q[0, add])
+    score = np.arange(len(q), dtype=np.float64)[::-1].copy()  # the raised start of the last frame is best
+    rows = fitter._steps.kept(hyp, DEFAULT_PHASES[0], score)
+    assert DEFAULT_PHASES[0].one_per_frame
+    np.testing.assert_array_equal(rows, [47, 45, 43][: DEFAULT_PHASES[0].keep])
+    assert len(fitter._candidates(points, np.eye(3)[None][0], None, "upper").rotation) == 1

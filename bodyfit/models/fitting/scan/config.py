@@ -36,7 +36,9 @@ class ScanPhase:
     metric taken again there; the searches run before the first round only);
     cloth_sigma_mm: when positive (a point-to-plane phase only), the loss is one-sided: pairs whose scan
     point lies outside the body take this smaller Geman-McClure scale, keeping the body inside loose
-    clothing (:func:`.losses.chamfer_term`).
+    clothing (:func:`.losses.chamfer_term`);
+    one_per_frame: after the phase, of the hypotheses that share a body frame (an orientation candidate's
+    arm starts, :data:`.hypotheses.ARM_STARTS`), only the best can go on.
 
     Raises:
         ValueError: a scale that is not positive, fewer than one hypothesis kept, scan point or round, or a
@@ -56,6 +58,7 @@ class ScanPhase:
     flipped_margin: float = 0.0
     rounds: int = 1
     cloth_sigma_mm: float = 0.0
+    one_per_frame: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.stage, Stage):
@@ -83,6 +86,7 @@ DEFAULT_PHASES = (
         sigma_mm=150.0,
         keep=3,
         scan_points=500,
+        one_per_frame=True,
     ),
     ScanPhase(
         stage=Stage(name="pose", coordinates="all", shape="bone", vertices="subset", iterations=30),

@@ -393,7 +393,7 @@ class ScanFitter:
                 n_iter, score = self._phase_step(hyp, phase, branch, run.tree, over)
             iterations += n_iter
             losses[phase.stage.name] = float(score.min())
-            if phase.keep < len(hyp.rotation):
+            if phase.keep < len(hyp.rotation) or phase.one_per_frame:
                 hyp.keep(self._steps.kept(hyp, phase, score))
             run.report(f"{label}{phase.stage.name}: robust score {score.min():.3f}")
         return iterations, losses

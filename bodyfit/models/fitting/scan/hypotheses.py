@@ -39,6 +39,22 @@ DISTAL_TRUNCATION_M = 0.02
 EXPLAINED_M = 0.02  # a scan point this close to the rest of the body is not a distal chain's to explain
 UNSUPPORTED = 0.8  # a distal chain whose best candidate's cost is this share of the truncation's has no data
 STRAIGHTENED = 1  # of the hypotheses (best first), those that get a straight-spine twin
+# The arms' start poses a whole body's every orientation candidate is fitted from (coordinates in degrees over
+# the start pose, both sides): as given, and raised overhead (the shoulder girdle raised with them). The
+# orientation phase fits the trunk and legs only: from arms hanging down, a scan with the arms raised bends
+# the spine 20-25 degrees sideways to bring a shoulder under them, and the limbs searched from that trunk no
+# longer reach the arms. The orientation phase keeps the better start of each orientation
+# (:attr:`.config.ScanPhase.one_per_frame`).
+ARM_STARTS: tuple[dict[str, float], ...] = (
+    {},
+    {
+        "arm_flex": 0.0,
+        "arm_add": -110.0,
+        "elbow_flex": 10.0,
+        "scapula_upward_rot": 50.0,
+        "scapula_elevation": 20.0,
+    },
+)
 # The orientation phase keeps 3 hypotheses and the best gets a twin: the pose phase runs 4, in halves of 2.
 # The final fit rarely comes from the orientation phase's third best and not from a fourth, and more
 # hypotheses (or twins) make the pose phase longer without making the fits better.
@@ -133,14 +149,17 @@ class HypothesisSteps:
         up: np.ndarray | None = None,
     ) -> Hypotheses:
         """The start hypotheses: each orientation (given, or :func:`orientation_candidates`, about ``up``
-        when that alone is known) with the start pose, and the surface of the vertex set ``part`` ("all" or
-        "upper") centred on the points' centroid."""
+        when that alone is known) with the start pose, a whole body's (``part`` "all") also with each other
+        arm start of :data:`ARM_STARTS` (orientation-major: the candidates of one frame are adjacent), and
+        the surface of the vertex set ``part`` ("all" or "upper") centred on the points' centroid."""
         given = None if orientation is None else np.asarray(orientation)[None]
         rotation = orientation_candidates(points, up) if given is None else given
-        H = len(rotation)
         model = self.model
-        q_start = model.bind_coordinates if start is None else np.asarray(start, np.float64)
-        q0 = np.repeat(model.skeleton.inside(q_start, 0.1)[None], H, axis=0)
+        q_start = model.skeleton.inside(model.bind_coordinates if start is None else np.asarray(start), 0.1)
+        poses = self.arm_starts(q_start) if part == "all" else q_start[None]
+        rotation = np.repeat(rotation, len(poses), axis=0)
+        H = len(rotation)
+        q0 = np.tile(poses, (H // len(poses), 1))
         inside = np.zeros(model.n_vertices, bool)
         inside[self.fitter.index[part]] = True
         tri = model.data["vertices_mean"][self.faces[inside[self.faces].all(1)]]
@@ -149,6 +168,17 @@ class HypothesisSteps:
         r0 = np.repeat(-centre_offset[None], H, axis=0)
         state = self.fitter.start_state(q0, r0, np.zeros((H, model.n_shape)))
         return Hypotheses(rotation, points.mean(0), np.zeros((H, 0, 3)), state, orientation is None)
+
+    def arm_starts(self, q: np.ndarray) -> np.ndarray:
+        """(len(ARM_STARTS), n_dof) the coordinates q (n_dof,) with each arm start of :data:`ARM_STARTS`
+        (moved inside the ranges)."""
+        skeleton = self.model.skeleton
+        out = np.repeat(q[None], len(ARM_STARTS), axis=0)
+        for row, arms in zip(out, ARM_STARTS, strict=True):
+            for name, degrees in arms.items():
+                for side in ("r", "l"):
+                    row[skeleton.dof_index(f"{name}_{side}")] = np.radians(degrees)
+        return skeleton.inside(out, 0.01)
 
     def vertices(self, state: State) -> np.ndarray:
         """(H, V, 3) model vertices (body frames, metres) of the current state."""
@@ -179,10 +209,15 @@ class HypothesisSteps:
         return np.einsum("hvi,hi->hv", normals, towards) > VISIBLE_COS
 
     def kept(self, hyp: Hypotheses, phase: ScanPhase, score: np.ndarray) -> np.ndarray:
-        """Rows of the hypotheses that go on after ``phase``: the best ``phase.keep`` by ``score`` (H,),
-        and the best one facing the other way from the best (see :class:`ScanPhase`'s ``flipped_margin``)
-        when it scores within the margin and none of those faces that way."""
+        """Rows of the hypotheses that go on after ``phase``: the best ``phase.keep`` by ``score`` (H,)
+        (with ``phase.one_per_frame``, of the best of each body frame), and the best one facing the other way
+        from the best (see :class:`ScanPhase`'s ``flipped_margin``) when it scores within the margin and none
+        of those faces that way."""
         order = np.argsort(score)
+        if phase.one_per_frame:
+            # the first (best) row of each frame, in the order of the scores
+            _, first = np.unique(hyp.rotation[order].reshape(len(order), -1), axis=0, return_index=True)
+            order = order[np.sort(first)]
         rows = order[: phase.keep]
         if phase.flipped_margin <= 0.0:
             return rows

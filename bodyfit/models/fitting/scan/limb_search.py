@@ -5,9 +5,10 @@ leaves unexplained (:class:`LimbSearch`); and the optimisation state the scan fi
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from itertools import pairwise
+from typing import Any
 
 import numpy as np
 import torch
@@ -20,11 +21,26 @@ from bodyfit.models.fitting.scan.view import Silhouette
 from bodyfit.models.skeleton.model import Skeleton
 
 Grids = list[tuple[list[int], np.ndarray]]  # per chain: the DOFs searched, their candidates (K_chain, n)
+
+
+class AsIsOrRaised(tuple[str, ...]):
+    """A grid key: DOFs that move in step between two values, each its hypothesis's own (NaN in the grid:
+    the candidate keeps the coordinate as it is) and 10% in from the top of its range."""
+
+
+# per chain: its bodies and its grid (per DOF name, or a tuple of DOF names moved in step: how many values)
+SearchTable = Sequence[tuple[Sequence[str], Mapping[Any, int]]]
 # how a function of a hypothesis's row is mapped over the rows: ``map``, or a thread pool's
 Mapper = Callable[[Callable[[int], list[np.ndarray]], Iterable[int]], Iterable[list[np.ndarray]]]
 
 # Limb chains searched on a grid before the continuous fit: the chain's bodies and the DOFs sampled (values
-# per DOF, spread over the range). A limb's candidates are scored by how close its vertices lie to the scan.
+# per DOF, spread over the range; a tuple of DOFs moves in step, each the same share along its range). A
+# limb's candidates are scored by how close its vertices lie to the scan. The arm's grid holds the shoulder
+# girdle (the scapula's upward rotation with its elevation) where the hypothesis has it and raised
+# (:class:`AsIsOrRaised`). The glenohumeral joint alone lifts the arm to about the horizontal, and an arm
+# raised overhead or flexed forward and up takes the girdle's range on top (at arm_add -99 degrees the hand
+# lies 0.37 m below the top of the head with the girdle low, 0.28 m above it with the girdle raised); a grid
+# without it has no candidate near such an arm, and the search folds the arm onto the chest or the head.
 LIMB_SEARCH = tuple(
     (bodies, grid)
     for s in ("r", "l")
@@ -35,7 +51,12 @@ LIMB_SEARCH = tuple(
         ),
         (
             (f"humerus_{s}", f"ulna_{s}", f"radius_{s}", f"hand_{s}"),
-            {f"arm_flex_{s}": 7, f"arm_add_{s}": 7, f"elbow_flex_{s}": 4},
+            {
+                f"arm_flex_{s}": 7,
+                f"arm_add_{s}": 7,
+                f"elbow_flex_{s}": 4,
+                AsIsOrRaised((f"scapula_upward_rot_{s}", f"scapula_elevation_{s}")): 2,
+            },
         ),
     )
 )
@@ -136,19 +157,34 @@ class Hypotheses:
             mine[H:] = twins
 
 
-def search_grids(skeleton: Skeleton, table: tuple[tuple[tuple[str, ...], dict[str, int]], ...]) -> Grids:
+def search_grids(skeleton: Skeleton, table: SearchTable) -> Grids:
     """Per chain of ``table`` (:data:`LIMB_SEARCH`, or the scan fit's ``DISTAL_SEARCH``): the DOFs searched
-    and their candidate values (K_chain, n), spread over each range (10% in from the limits)."""
+    and their candidate values (K_chain, n), spread over each range (10% in from the limits); the DOFs of a
+    tuple key move in step (one axis of the grid, each DOF the same share along its range); an
+    :class:`AsIsOrRaised` key's axis holds NaN (as it is) and the top of each range."""
     lo, hi = skeleton.ranges[:, 0], skeleton.ranges[:, 1]
     pad = 0.1 * (hi - lo)
     grids = []
     for _, grid in table:
-        dofs = [skeleton.dof_index(n) for n in grid]
-        axes = [
-            np.linspace(lo[d] + pad[d], hi[d] - pad[d], n) for d, n in zip(dofs, grid.values(), strict=True)
-        ]
-        grids.append((dofs, np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(dofs))))
+        dofs, axes = [], []
+        for key, n in grid.items():
+            step = [skeleton.dof_index(name) for name in ((key,) if isinstance(key, str) else key)]
+            dofs += step
+            if isinstance(key, AsIsOrRaised):
+                axes.append(np.stack([[np.nan] * len(step), hi[step] - pad[step]]))
+                continue
+            axes.append(np.stack([np.linspace(lo[d] + pad[d], hi[d] - pad[d], n) for d in step], 1))
+        # every combination of the axes' values: (K_chain, n) with each axis's DOFs side by side
+        mesh = np.meshgrid(*(np.arange(len(a)) for a in axes), indexing="ij")
+        index = np.stack(mesh, -1).reshape(-1, len(axes))
+        grids.append((dofs, np.concatenate([a[index[:, k]] for k, a in enumerate(axes)], axis=1)))
     return grids
+
+
+def as_is(values: np.ndarray, current: np.ndarray) -> np.ndarray:
+    """Grid ``values`` (any shape) with each NaN (a coordinate kept as it is, :class:`AsIsOrRaised`) replaced
+    by the ``current`` coordinate (broadcast to it)."""
+    return np.where(np.isnan(values), current, values)
 
 
 def grid_vertices(
@@ -160,7 +196,7 @@ def grid_vertices(
     K = max(len(g) for _, g in grids)
     Q = np.repeat(q[None], K + 1, axis=0)
     for dofs, values in grids:
-        Q[:K, dofs] = values[np.arange(K) % len(values)]
+        Q[:K, dofs] = as_is(values[np.arange(K) % len(values)], Q[:K, dofs])
     rows = (np.repeat(c[None], K + 1, 0), Q, np.repeat(root[None], K + 1, 0))
     with torch.no_grad():
         return decoder(*(torch.as_tensor(x, dtype=dtype) for x in rows))[0].double().numpy()
@@ -222,7 +258,8 @@ class LimbSearch:
         grids = self.grids
         K = max(len(g) for _, g in grids)
         far, trunc2 = LIMB_TRUNCATION_M, LIMB_TRUNCATION_M**2  # distances beyond are all alike
-        v = grid_vertices(decoder, grids, c[h], q[h], root[h], self.fitter.config.dtype)
+        own = q[h].copy()  # the coordinates the grid's candidates keep as they are (AsIsOrRaised)
+        v = grid_vertices(decoder, grids, c[h], own, root[h], self.fitter.config.dtype)
         # Scan points the rest of the body does not explain: limbs must reach them, not just touch the
         # scan (an arm folded onto the chest touches it everywhere).
         rest = PointTree(v[0, self.non_limb]).query(hyp.points[h], LIMB_TRUNCATION_M)[0]
@@ -245,10 +282,10 @@ class LimbSearch:
                         cost[L] += REACH_WEIGHT * np.minimum(reach[L][:, mine[L]] ** 2, trunc2).mean(1)
                 best = int(np.argmin(cost[L]))
                 placed[L] = v[best, limb]
-                q[h, dofs] = values[best]
+                q[h, dofs] = as_is(values[best], own[dofs])
         for L, ((dofs, values), limb) in enumerate(zip(grids, self.vertices, strict=True)):
             tops = distinct(v[: len(values), limb], cost[L], LIMB_STARTS, LIMB_APART_M)
-            starts[h][:, dofs] = values[tops]
+            starts[h][:, dofs] = as_is(values[tops], own[dofs])
         return [loose[m] for m in mine]
 
     def on_scan(self, hyp: Hypotheses, h: int, scan: PointTree, verts: np.ndarray) -> np.ndarray:
