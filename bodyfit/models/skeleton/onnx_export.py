@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import logging
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import torch
@@ -35,23 +39,40 @@ def export_module(
     opset: int = 18,
 ) -> bytes:
     """Export ``module`` with the dynamo exporter, axis 0 of every input a dynamic batch. Returns the model
-    bytes (also written to ``path`` when given)."""
+    bytes (also written to ``path`` when given). The exporter's notices (operators of packages we do not
+    use, its own deprecations) are kept off the user's terminal; its errors still raise."""
     batch = torch.export.Dim("batch", min=1)
-    program = torch.onnx.export(
-        module.eval(),
-        args,
-        input_names=list(inputs),
-        output_names=list(outputs),
-        dynamic_shapes=tuple({0: batch} for _ in args),
-        opset_version=opset,
-        dynamo=True,
-        verbose=False,
-    )
+    with _quiet_exporter():
+        program = torch.onnx.export(
+            module.eval(),
+            args,
+            input_names=list(inputs),
+            output_names=list(outputs),
+            dynamic_shapes=tuple({0: batch} for _ in args),
+            opset_version=opset,
+            dynamo=True,
+            verbose=False,
+        )
     assert program is not None
     data: bytes = program.model_proto.SerializeToString()
     if path is not None:
         Path(path).write_bytes(data)
     return data
+
+
+@contextmanager
+def _quiet_exporter() -> Iterator[None]:
+    """Silence the ONNX exporter's warnings and log lines below ERROR for the duration, then restore."""
+    logger = logging.getLogger("torch.onnx")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", category=UserWarning)
+            warnings.simplefilter("ignore", category=FutureWarning)
+            yield
+    finally:
+        logger.setLevel(level)
 
 
 def export_fk_onnx(fk: SkeletonKinematics, path: str | Path | None = None, opset: int = 18) -> bytes:
