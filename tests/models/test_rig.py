@@ -8,12 +8,10 @@ import io
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
-import scipy.sparse.linalg as spl
 import torch
 
+from benchmarks.personal_rig import soft_tissue
 from bodyfit.models.body.model import BodyModel
-from bodyfit.models.fitting.common.surface import laplacian, vertex_normals
 from bodyfit.models.fitting.registered.fitter import RegisteredFitter
 from bodyfit.models.rig.build import RigConfig, RigError, build_rig
 from bodyfit.models.rig.fit import fit_registered
@@ -23,18 +21,6 @@ from bodyfit.models.rig.subject import Subject, SubjectError
 @pytest.fixture(scope="module")
 def model() -> BodyModel:
     return BodyModel.load()
-
-
-def soft_tissue(model: BodyModel, seed: int, mean_mm: float = 10.0) -> np.ndarray:
-    """(V, 3) smooth random soft tissue of mean thickness ``mean_mm`` (in or out) along the mean body's
-    normals: white noise diffused by the mesh Laplacian. Along the normal only, as tissue is: an offset
-    along the surface would move no point of the skin, and no scan could see it."""
-    V = model.n_vertices
-    L = laplacian(model.faces, V)
-    solve = spl.factorized((sp.identity(V) + 30.0 * (L.T @ L)).tocsc())
-    thickness = solve(np.random.default_rng(seed).normal(size=V))
-    normals = vertex_normals(model.data["vertices_mean"], model.faces)
-    return normals * (thickness * (mean_mm / 1000.0) / np.abs(thickness).mean())[:, None]
 
 
 def poses(model: BodyModel, n: int, seed: int, spread: float = 0.5) -> np.ndarray:
