@@ -235,6 +235,7 @@ def test_population_draws_follow_the_survey_and_the_seed(body: BodyModel) -> Non
     men = sample(body, 48, sex="male", population="nhanes", seed=3)
     assert men.shape == (48, body.n_shape) and np.array_equal(men, sample(body, 48, "male", "nhanes", 3))
     assert not np.array_equal(men, sample(body, 48, "male", "nhanes", 4))
+    assert np.array_equal(men, body.sample(48, sex="male", seed=3))  # BodyModel.sample: the same draw
     values = evaluate(body, men)
     nhanes = read_nhanes(DATA / "nhanes_adult_male_bmx_2020_500.csv")
     for name, tol in (("stature", 0.03), ("weightkg", 8.0), ("waistcircumferenceiliaccrest", 0.05)):

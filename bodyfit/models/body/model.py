@@ -602,6 +602,18 @@ class BodyModel:
         bones = self.pose_bones(frames, scales) if skeleton_mesh else None
         return BodyOutput(vertices, joints, frames, scales, bones)
 
+    def sample(self, n: int, sex: str | None = None, population: str = "nhanes", seed: int = 0) -> np.ndarray:
+        """(n, n_shape) shape coefficients of bodies drawn from a real population ("nhanes", "ansur"; "anny":
+        the shape space's standard normal), as :func:`bodyfit.models.anthropometry.population.sample` draws
+        them.
+
+        Raises:
+            PopulationError: an unknown population or sex, or no population file for this shape space.
+        """
+        from bodyfit.models.anthropometry.population import sample  # the surveys load on first use
+
+        return sample(self, n, sex, population, seed)
+
     def bone_vertices(self) -> np.ndarray:
         """The bone mesh's vertices (V_bone, 3) in their body frames, after the asset's affine maps (per
         body, or per piece: one bone) that fit them inside the skin (:mod:`bone_geometry`); the skeleton's own
