@@ -28,7 +28,7 @@ from bodyfit.models.body.model import BodyModel
 from bodyfit.models.errors import BodyfitError, ShapeError
 from bodyfit.models.fitting.registered.fitter import BodyFit, RegisteredFitter
 from bodyfit.models.fitting.registered.stages import DEFAULT_STAGES, RegisteredFitConfig
-from bodyfit.models.fitting.sequence.offsets import OffsetConfig, fit_rest_offsets
+from bodyfit.models.fitting.sequence.offsets import OffsetConfig, offsets_of_fit
 from bodyfit.models.rig.subject import Subject, model_fingerprint
 
 LIMB_JOINTS = (
@@ -153,13 +153,9 @@ def _alternate(
     fit = fitter.fit(x, w, shared_shape=True)
     offsets = np.zeros((model.n_vertices, 3))
     refitter = RegisteredFitter(model, RegisteredFitConfig(stages=REFIT_STAGES))
+    decoder = model.decoder(torch.float64)
     for _ in range(cfg.rounds):
-        decoder = model.decoder(torch.float64).with_offsets(offsets)
-        with torch.no_grad():
-            params = (torch.as_tensor(a, dtype=torch.float64) for a in (fit.shape, fit.coordinates, fit.root))
-            _, _, frames, _ = decoder(*params)
-        rotations = decoder.blended_rotations(frames)
-        offsets = offsets + fit_rest_offsets(rotations, x - fit.vertices, w, model.faces, cfg.offsets)
+        offsets = offsets + offsets_of_fit(decoder, fit, x, w, model.faces, cfg.offsets)
         fit = refitter.with_offsets(offsets).fit(x, w, init=fit, shared_shape=True)
     return fit, offsets
 

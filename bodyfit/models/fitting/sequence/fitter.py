@@ -50,7 +50,6 @@ from bodyfit.models.errors import ShapeError
 from bodyfit.models.fitting.common.report import DistanceStats, FitReport
 from bodyfit.models.fitting.registered.fitter import (
     CONFIDENT_MEAN_MM,
-    BodyFit,
     RegisteredFitConfig,
     RegisteredFitter,
 )
@@ -58,7 +57,7 @@ from bodyfit.models.fitting.retarget.fitter import wrap_pelvis
 from bodyfit.models.fitting.sequence.basins import BasinCheck, settle
 from bodyfit.models.fitting.sequence.config import FRAME_STAGES, KEY_STAGES, PELVIS_WEIGHT, SequenceConfig
 from bodyfit.models.fitting.sequence.frames import FrameArrays, Headings, blend_joints, to_world, turn, yaw
-from bodyfit.models.fitting.sequence.offsets import OffsetConfig, fit_rest_offsets
+from bodyfit.models.fitting.sequence.offsets import offsets_of_fit
 from bodyfit.models.fitting.sequence.poses import FramePoses
 from bodyfit.models.fitting.sequence.result import SequenceFit, SequenceFrames
 from bodyfit.models.fitting.sequence.stats import JitterSum, SequenceStats, jitter
@@ -273,7 +272,9 @@ class SequenceFitter:
         c = shaped.shape[:1]
         offsets, pose_fitter = None, self.pose_fitter
         if self.config.offsets is not None:
-            offsets = self._offsets(shaped, x_c, w_s, self.config.offsets)
+            offsets = offsets_of_fit(
+                self.fitter.decoder, shaped, x_c, w_s, self.model.faces, self.config.offsets
+            )
             pose_fitter = pose_fitter.with_offsets(offsets)
         return c, offsets, pose_fitter
 
@@ -363,18 +364,6 @@ class SequenceFitter:
             run.on_frames(SequenceFrames(lo, hi, *block, errors))
         if run.progress is not None:
             run.progress(hi, len(out.q))
-
-    def _offsets(self, shaped: BodyFit, x: np.ndarray, w: np.ndarray, config: OffsetConfig) -> np.ndarray:
-        """Rest-pose offsets (V, 3) from the shape fit ``shaped`` of keyframes x (K, V, 3) (canonical frames)
-        with weights w (K, V) (:func:`.offsets.fit_rest_offsets`)."""
-        decoder = self.fitter.decoder
-        dtype = self.fitter.config.dtype
-        with torch.no_grad():
-            _, _, frames, _ = decoder(
-                *(torch.as_tensor(a, dtype=dtype) for a in (shaped.shape, shaped.coordinates, shaped.root))
-            )
-        rotations = decoder.blended_rotations(frames)
-        return fit_rest_offsets(rotations, x - shaped.vertices, w, self.model.faces, config)
 
     def _frames(
         self, source: FrameSource, idx: np.ndarray

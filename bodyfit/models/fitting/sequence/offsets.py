@@ -21,14 +21,20 @@ those of the shape coefficients.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
+import torch
 
 from bodyfit.models.errors import ShapeError
 from bodyfit.models.fitting.common.nonrigid import solve_offsets
 from bodyfit.models.fitting.common.surface import laplacian
 from bodyfit.models.fitting.registered.stages import check_at_least
+
+if TYPE_CHECKING:
+    from bodyfit.models.body.model import BodyDecoder
+    from bodyfit.models.fitting.registered.fitter import BodyFit
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -81,3 +87,23 @@ def fit_rest_offsets(
     L = laplacian(faces, V)
     regulariser = (cfg.smoothness * (L.T @ L) + cfg.stiffness * sp.identity(V)).tocsr()
     return solve_offsets(a, rhs, regulariser)
+
+
+def offsets_of_fit(
+    decoder: BodyDecoder,
+    fit: BodyFit,
+    targets: np.ndarray,
+    weights: np.ndarray,
+    faces: np.ndarray,
+    config: OffsetConfig | None = None,
+) -> np.ndarray:
+    """Rest-pose offsets (V, 3) for what ``fit`` (K poses of one person, made with ``decoder``) leaves of
+    ``targets`` (K, V, 3) with weights (K, V) (:func:`fit_rest_offsets`, with the skin's blended rotations
+    at the fitted poses). Offsets already in ``decoder`` do not change the rotations: the result adds to
+    them."""
+    dtype = decoder.bind_rot_t.dtype
+    with torch.no_grad():
+        shape, q, root = (torch.as_tensor(a, dtype=dtype) for a in (fit.shape, fit.coordinates, fit.root))
+        _, _, frames, _ = decoder(shape, q, root)
+    rotations = decoder.blended_rotations(frames, q)
+    return fit_rest_offsets(rotations, targets - fit.vertices, weights, faces, config)
