@@ -28,7 +28,8 @@ def registrations(
     service: BodyService, scans: Sequence[Scan], names: Sequence[str], job: Job, hints: ScanHints | None
 ) -> np.ndarray:
     """(K, V, 3) metres: each scan in our topology, as given when it is one already, else its fit's
-    registration (in the scan's frame). ``job`` gets one progress step per scan."""
+    registration (in the scan's frame). ``job`` gets one progress step per scan and each fit's own progress;
+    its cancellation and deadline reach into the fits."""
     out = []
     for k, (scan, name) in enumerate(zip(scans, names, strict=True)):
         job.check()
@@ -37,7 +38,7 @@ def registrations(
             service.check_scan(scan)
             out.append(scan.points)
         else:
-            out.append(service.fit_mesh(scan, Job(timeout_s=job.timeout_s), hints).vertices)
+            out.append(service.fit_mesh(scan, job, hints).vertices)
     return np.stack(out)
 
 
