@@ -130,8 +130,8 @@ def build_rig(
             "bent), or allow it (`--allow-undetermined`: their centres then come from the shape space alone)"
         )
     fit, offsets = _alternate(model, fitter, x, w, cfg)
-    generic = _mean_mm(alone.vertices, x, w)
-    personal = _mean_mm(fit.vertices, x, w)
+    generic = _mean_mm(alone)
+    personal = _mean_mm(fit)
     others = strangers(personal, cfg.stranger_mm, cfg.stranger_factor)
     if others:
         missed = ", ".join(f"{labels[k]} ({personal[k]:.1f} mm)" for k in others)
@@ -160,7 +160,6 @@ def _alternate(
     return fit, offsets
 
 
-def _mean_mm(fitted: np.ndarray, x: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Weighted mean vertex distance (K,) in mm."""
-    d = np.linalg.norm(fitted - x, axis=-1)
-    return np.asarray((d * w).sum(axis=1) / w.sum(axis=1) * 1000.0)
+def _mean_mm(fit: BodyFit) -> np.ndarray:
+    """Each mesh's mean vertex error (K,) in mm, over its vertices with weight, as the fit reports it."""
+    return np.array([report.distances.mean for report in fit.reports])
