@@ -335,6 +335,23 @@ class BodyDecoder(nn.Module):
         out.skin = skin_blocks(out._basis, self._weights, self.bind_rot_t.dtype, self._twist)
         return out
 
+    def with_weights(self, weights: np.ndarray) -> BodyDecoder:
+        """A decoder for one person skinned with their own weights (V, n_body) (rows non-negative, summing to
+        one), sharing every other buffer; template offsets already in this decoder are kept. Under skinning
+        "lbs_dq" the twist weights follow the new weights (each class's bodies' weights summed, as
+        :meth:`~bodyfit.models.body.swing_twist.TwistRig.class_weights` makes them). This decoder's own
+        weights give this decoder's output."""
+        w = np.asarray(weights, np.float64)
+        if w.shape != self._weights.shape:
+            raise ShapeError(f"skinning weights must have shape {self._weights.shape}; got {w.shape}")
+        out = copy.copy(self)
+        out._modules = dict(self._modules)
+        out._weights = w.copy()
+        if self._twist is not None:
+            out._twist = w @ np.eye(self._twist.shape[1])[self.body_class.numpy()]
+        out.skin = skin_blocks(self._basis, out._weights, self.bind_rot_t.dtype, out._twist)
+        return out
+
     def blended_rotations(self, frames: torch.Tensor, q: torch.Tensor | None = None) -> np.ndarray:
         """Each vertex's blended linear skinning part, sum_j w_vj R_j R_bind,j^T: what a rest-pose offset is
         multiplied by. frames (B, n_body, 4, 4) from :meth:`forward` -> (B, V, 3, 3) float64.
@@ -544,6 +561,24 @@ class BodyModel:
         if key not in self._decoders:
             self._decoders[key] = BodyDecoder(self.skeleton, self.data, *key)
         return self._decoders[key]
+
+    def scaled_decoder(
+        self, scale_offsets: np.ndarray, dtype: torch.dtype = torch.float32, skinning: str | None = None
+    ) -> BodyDecoder:
+        """A decoder (not cached) whose segment scales are the shape space's plus ``scale_offsets``
+        (n_seg, 3): one person's joint centres, moved against the skin. The template is unchanged, so the
+        skin of the bind pose stays where it was; every joint offset and body in a segment scales with it, as
+        OpenSim scales a model, so the skeleton stays this one's. Offsets of zero give :meth:`decoder`'s
+        output."""
+        d = np.asarray(scale_offsets, np.float64)
+        mean = np.asarray(self.data["scale_mean"], np.float64)
+        if d.shape != mean.shape:
+            raise ShapeError(f"segment scale offsets must have shape {mean.shape}; got {d.shape}")
+        check_finite("segment scale offsets", d)
+        if (mean + d <= 0).any():
+            raise ShapeError("segment scale offsets must leave every segment scale positive")
+        data = {**self.data, "scale_mean": mean + d}
+        return BodyDecoder(self.skeleton, data, dtype, self.skinning if skinning is None else skinning)
 
     def validate_shape(
         self, shape: torch.Tensor | np.ndarray | None, batch: int, dtype: torch.dtype
