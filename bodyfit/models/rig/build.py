@@ -1,17 +1,18 @@
 """Build one person's rig from several registered scans of them in different poses.
 
 The method follows P. Fechteler, A. Hilsmann and P. Eisert, "Example-based Body Model Optimization and
-Skinning", Eurographics 2016 Short Papers: the person's template vertices are solved by sparse least squares
-with a mesh-Laplacian term, alternating with the poses of all example scans, until the model resembles every
-scan. Here the
-template is our shape space's body for one shared coefficient vector plus per-vertex rest-pose offsets
-(:func:`bodyfit.models.fitting.sequence.offsets.fit_rest_offsets`, as in SMPL+D), so the skeleton stays
-the shape space's OpenSim-valid one:
+Skinning", Eurographics 2016 Short Papers: the person's template vertices (sparse least squares with a
+mesh-Laplacian term), skinning weights and joint positions are solved in turn, alternating with the poses of
+all example scans, until the model resembles every scan. Here the template is our shape space's body for one
+shared coefficient vector plus per-vertex rest-pose offsets
+(:func:`bodyfit.models.fitting.sequence.offsets.fit_rest_offsets`, as in SMPL+D), the weights are solved
+per vertex (:mod:`.weights`) and the joints as offsets to the segment scales (:mod:`.joints`), so the
+skeleton stays the shape space's OpenSim-valid one:
 
 1. each scan is fitted alone (:class:`RegisteredFitter`, its own shape: the generic model's error);
 2. the joints the scans' poses leave undetermined are named (:func:`undetermined_joints`);
-3. one shape for all scans and a pose per scan are fitted; then, ``rounds`` times, the offsets are solved
-   against the residuals and the shape and poses refitted with them;
+3. one shape for all scans and a pose per scan are fitted; then, ``rounds`` times, the offsets, the weights
+   and the joints are solved against the fit in turn and the shape and poses refitted with them;
 4. a scan the rig explains far worse than the others is of another person (:func:`strangers`): refused.
 """
 
@@ -19,17 +20,26 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
-import torch
 
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.errors import BodyfitError, ShapeError
 from bodyfit.models.fitting.registered.fitter import BodyFit, RegisteredFitter
 from bodyfit.models.fitting.registered.stages import DEFAULT_STAGES, RegisteredFitConfig
 from bodyfit.models.fitting.sequence.offsets import OffsetConfig, offsets_of_fit
-from bodyfit.models.rig.subject import Subject, model_fingerprint
+from bodyfit.models.rig.fit import with_decoder
+from bodyfit.models.rig.joints import JointConfig, solve_scale_offsets
+from bodyfit.models.rig.subject import PersonalParts, Subject, model_fingerprint
+from bodyfit.models.rig.weights import (
+    WeightConfig,
+    adjacency,
+    body_adjacency,
+    candidate_bodies,
+    skinning_columns,
+    solve_weights,
+)
 
 LIMB_JOINTS = (
     "hip_r", "hip_l", "walker_knee_r", "walker_knee_l", "ankle_r", "ankle_l",
@@ -46,7 +56,8 @@ class RigError(BodyfitError):
 
 @dataclass(frozen=True, kw_only=True)
 class RigConfig:
-    """min_scans: scans needed; rounds: offset/pose alternations; offsets: their smoothness and stiffness;
+    """min_scans: scans needed; rounds: alternations; offsets: their smoothness and stiffness; weights,
+    joints: how the person's skinning weights and joint centres are solved (None: the body model's);
     stranger_mm, stranger_factor: a scan the rig misses by more than both ``stranger_mm`` and
     ``stranger_factor`` times the median scan's error is of another person; min_motion_deg: how far a limb
     joint must move between two scans to be observed; allow_undetermined: build anyway when some are not
@@ -55,6 +66,8 @@ class RigConfig:
     min_scans: int = 3
     rounds: int = 4
     offsets: OffsetConfig = field(default_factory=lambda: OffsetConfig(smoothness=0.3, stiffness=1e-3))
+    weights: WeightConfig | None = field(default_factory=WeightConfig)
+    joints: JointConfig | None = field(default_factory=JointConfig)
     stranger_mm: float = 3.0
     stranger_factor: float = 2.5
     min_motion_deg: float = 15.0
@@ -129,7 +142,7 @@ def build_rig(
             f"scans whose angles at it differ by {cfg.min_motion_deg:g} degrees or more (add scans with them "
             "bent), or allow it (`--allow-undetermined`: their centres then come from the shape space alone)"
         )
-    fit, offsets = _alternate(model, fitter, x, w, cfg)
+    fit, parts = _alternate(model, fitter, x, w, alone, cfg)
     generic = _mean_mm(alone)
     personal = _mean_mm(fit)
     others = strangers(personal, cfg.stranger_mm, cfg.stranger_factor)
@@ -141,23 +154,54 @@ def build_rig(
         )
     report = {"generic_mm": float(generic.mean()), "personal_mm": float(personal.mean())}
     subject = Subject(
-        fit.shape[0], offsets, model_fingerprint(model), fit.coordinates, fit.root, tuple(labels), report
+        fit.shape[0],
+        parts.offsets,
+        model_fingerprint(model),
+        fit.coordinates,
+        fit.root,
+        tuple(labels),
+        report,
+        weights=parts.weights,
+        scale_offsets=parts.scale_offsets,
     )
     return RigBuild(subject, generic, personal, tuple(undetermined), time.perf_counter() - began)
 
 
 def _alternate(
-    model: BodyModel, fitter: RegisteredFitter, x: np.ndarray, w: np.ndarray, cfg: RigConfig
-) -> tuple[BodyFit, np.ndarray]:
-    """One shape and K poses, then ``rounds`` of offsets against the residuals and a refit with them."""
-    fit = fitter.fit(x, w, shared_shape=True)
-    offsets = np.zeros((model.n_vertices, 3))
+    model: BodyModel, fitter: RegisteredFitter, x: np.ndarray, w: np.ndarray, alone: BodyFit, cfg: RigConfig
+) -> tuple[BodyFit, PersonalParts]:
+    """One shape and K poses (started from each scan's own fit, ``alone``), then ``rounds`` of: offsets
+    against the residuals, weights, joints (each with the others fixed), and a refit of the shape and poses
+    with them."""
+    fit = fitter.fit(x, w, init=alone, shared_shape=True)
+    parts = PersonalParts.generic(model)
     refitter = RegisteredFitter(model, RegisteredFitConfig(stages=REFIT_STAGES))
-    decoder = model.decoder(torch.float64)
+    neighbours = adjacency(model.faces, model.n_vertices)
+    candidates = None
+    if cfg.weights is not None:
+        bodies = (
+            body_adjacency(model.skeleton.spec)
+            if cfg.weights.jointed
+            else np.eye(len(parts.weights[0]), dtype=bool)
+        )
+        candidates = candidate_bodies(parts.weights, neighbours, bodies, cfg.weights.rings, cfg.weights.floor)
     for _ in range(cfg.rounds):
-        offsets = offsets + offsets_of_fit(decoder, fit, x, w, model.faces, cfg.offsets)
-        fit = refitter.with_offsets(offsets).fit(x, w, init=fit, shared_shape=True)
-    return fit, offsets
+        step = offsets_of_fit(parts.decoder(model), fit, x, w, model.faces, cfg.offsets)
+        parts = replace(parts, offsets=parts.offsets + step)
+        if cfg.weights is not None and candidates is not None:
+            columns, _ = skinning_columns(
+                parts.decoder(model), fit.shape[0], fit.coordinates, fit.root, model.bind_coordinates
+            )
+            weights = solve_weights(columns, x, w, parts.weights, candidates, neighbours, cfg.weights)
+            parts = replace(parts, weights=weights)
+        if cfg.joints is not None:
+            joints = solve_scale_offsets(
+                model, parts, fit.shape[0], fit.coordinates, fit.root, x, w, cfg.joints
+            )
+            parts = replace(parts, scale_offsets=joints)
+        personal = with_decoder(refitter, parts.decoder(model, refitter.config.dtype))
+        fit = personal.fit(x, w, init=fit, shared_shape=True)
+    return fit, parts
 
 
 def _mean_mm(fit: BodyFit) -> np.ndarray:

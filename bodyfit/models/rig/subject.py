@@ -1,5 +1,6 @@
-"""The portable subject file: one person's shape coefficients and rest-pose template offsets for one body
-model, saved as a single ``.npz`` and refused when it was built for another model or has been altered."""
+"""The portable subject file: one person's shape coefficients, rest-pose template offsets, skinning weights
+and joint centres (segment scale offsets) for one body model, saved as a single ``.npz`` and refused when it
+was built for another model, by an older version, or has been altered."""
 
 from __future__ import annotations
 
@@ -14,7 +15,8 @@ import torch
 from bodyfit.models.body.model import BodyDecoder, BodyModel
 from bodyfit.models.errors import BodyfitError
 
-FORMAT = "bodyfit-subject-1"
+FORMAT = "bodyfit-subject-2"
+OLD_FORMATS = ("bodyfit-subject-1",)
 FINGERPRINT_ARRAYS = ("faces", "vertices_mean", "weights", "scale_mean", "scale_basis", "identity_basis")
 
 
@@ -33,11 +35,36 @@ def model_fingerprint(model: BodyModel) -> str:
 
 
 @dataclass(frozen=True)
+class PersonalParts:
+    """What one person's decoder carries beyond the shape coefficients: skinning ``weights`` (V, n_body),
+    template ``offsets`` (V, 3) metres and segment ``scale_offsets`` (n_seg, 3) (their joint centres)."""
+
+    weights: np.ndarray
+    offsets: np.ndarray
+    scale_offsets: np.ndarray
+
+    @classmethod
+    def generic(cls, model: BodyModel) -> PersonalParts:
+        """The body model's own weights and joints, no offsets: its decoder is ``model.decoder``'s."""
+        shape = np.asarray(model.data["scale_mean"]).shape
+        return cls(
+            np.asarray(model.data["weights"], np.float64), np.zeros((model.n_vertices, 3)), np.zeros(shape)
+        )
+
+    def decoder(self, model: BodyModel, dtype: torch.dtype = torch.float64) -> BodyDecoder:
+        """``model``'s decoder carrying these parts (:meth:`BodyModel.scaled_decoder`,
+        :meth:`BodyDecoder.with_weights`, :meth:`BodyDecoder.with_offsets`)."""
+        decoder = model.scaled_decoder(self.scale_offsets, dtype)
+        return decoder.with_weights(self.weights).with_offsets(self.offsets)
+
+
+@dataclass(frozen=True)
 class Subject:
     """One person for one body model: ``shape`` (n_shape,) coefficients [bone, identity]; ``offsets`` (V, 3)
     metres added to the template before skinning; ``model`` the body model's :func:`model_fingerprint`;
     ``poses`` (K, n_dof) and ``roots`` (K, 3) of the scans it was built from, named by ``scans``;
-    ``report``: how well it fits them (mm)."""
+    ``report``: how well it fits them (mm); ``weights`` (V, n_body) their skinning weights and
+    ``scale_offsets`` (n_seg, 3) their joint centres as segment scale offsets (None: the body model's)."""
 
     shape: np.ndarray
     offsets: np.ndarray
@@ -46,16 +73,29 @@ class Subject:
     roots: np.ndarray
     scans: tuple[str, ...] = ()
     report: dict[str, float] = field(default_factory=dict)
+    weights: np.ndarray | None = None
+    scale_offsets: np.ndarray | None = None
+
+    def parts(self, model: BodyModel) -> PersonalParts:
+        """This person's weights, offsets and joints, the body model's where the subject has none."""
+        generic = PersonalParts.generic(model)
+        return PersonalParts(
+            generic.weights if self.weights is None else np.asarray(self.weights, np.float64),
+            np.asarray(self.offsets, np.float64),
+            generic.scale_offsets
+            if self.scale_offsets is None
+            else np.asarray(self.scale_offsets, np.float64),
+        )
 
     def decoder(self, model: BodyModel, dtype: torch.dtype = torch.float32) -> BodyDecoder:
-        """``model``'s decoder carrying this person's template offsets (shape coefficients are still an
-        input: pass :attr:`shape`).
+        """``model``'s decoder carrying everything personal: this person's template offsets, skinning weights
+        and joint centres (shape coefficients are still an input: pass :attr:`shape`).
 
         Raises:
             SubjectError: the subject was built for another body model.
         """
         self.check_model(model)
-        return model.decoder(dtype).with_offsets(self.offsets)
+        return self.parts(model).decoder(model, dtype)
 
     def check_model(self, model: BodyModel) -> None:
         """Raises SubjectError unless this subject was built for ``model``."""
@@ -90,7 +130,13 @@ class Subject:
                 arrays = {k: npz[k] for k in npz.files}
         except (OSError, ValueError, EOFError) as exc:
             raise SubjectError(f"not a subject file (an .npz written by `bodyfit rig`): {exc}") from None
-        if str(arrays.pop("format", "")) != FORMAT:
+        found = str(arrays.pop("format", ""))
+        if found in OLD_FORMATS:
+            raise SubjectError(
+                f"this subject file was written by an older bodyfit ({found}, without the person's own "
+                "skinning weights and joint centres); rebuild it with `bodyfit rig` from the same scans"
+            )
+        if found != FORMAT:
             raise SubjectError(
                 f"not a subject file: its format is not {FORMAT!r} (write one with `bodyfit rig`)"
             )
@@ -109,10 +155,21 @@ class Subject:
             report=dict(
                 zip(map(str, arrays["report_keys"]), map(float, arrays["report_values"]), strict=True)
             ),
+            weights=arrays["weights"] if arrays["weights"].size else None,
+            scale_offsets=arrays["scale_offsets"] if arrays["scale_offsets"].size else None,
         )
         if model is not None:
             subject.check_model(model)
-            if subject.offsets.shape != (model.n_vertices, 3) or subject.shape.shape != (model.n_shape,):
+            generic = PersonalParts.generic(model)
+            if (
+                subject.offsets.shape != (model.n_vertices, 3)
+                or subject.shape.shape != (model.n_shape,)
+                or (subject.weights is not None and subject.weights.shape != generic.weights.shape)
+                or (
+                    subject.scale_offsets is not None
+                    and subject.scale_offsets.shape != generic.scale_offsets.shape
+                )
+            ):
                 raise SubjectError("the subject's arrays do not match the body model's sizes")
         return subject
 
@@ -131,6 +188,10 @@ class Subject:
             "scans": np.array(self.scans, dtype=str),
             "report_keys": np.array(list(self.report), dtype=str),
             "report_values": np.array(list(self.report.values()), np.float64),
+            "weights": np.zeros(0) if self.weights is None else np.asarray(self.weights, np.float64),
+            "scale_offsets": np.zeros(0)
+            if self.scale_offsets is None
+            else np.asarray(self.scale_offsets, np.float64),
         }
 
 
