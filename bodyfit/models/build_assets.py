@@ -28,7 +28,7 @@ from bodyfit.models.body.onnx_export import OUTPUTS as ONNX_OUTPUTS
 from bodyfit.models.fitting.registered.smpl_topology import ASSET as SMPL_ASSET
 from bodyfit.models.fitting.registered.smpl_topology import SOURCE_DIR as SMPL_SOURCE_DIR
 from bodyfit.models.fitting.registered.smpl_topology import SOURCES as SMPL_SOURCES
-from bodyfit.models.fitting.registered.smpl_topology import build_smpl_topology, read_obj
+from bodyfit.models.fitting.registered.smpl_topology import TopologyMap, build_smpl_topology, read_obj
 from bodyfit.models.skeleton.bones import BONES_ASSET, build_bone_mesh
 from bodyfit.models.skeleton.build import build_skeleton
 from bodyfit.models.skeleton.docs import skeleton_markdown
@@ -91,7 +91,10 @@ def build_proxy_asset(folder: Path | None = None, model: BodyModel | None = None
     folder = folder or assets_dir()
     model = model or BodyModel.load(folder)
     t0 = time.perf_counter()
-    arrays, metrics = build_proxy(default_cache_dir(), model.faces)
+    tmap = TopologyMap.load(folder / SMPL_ASSET)
+    bodies = np.stack([tmap.transfer(read_obj(SMPL_SOURCE_DIR / name)[0][None])[0] for name in SMPL_SOURCES])
+    usable = np.repeat(tmap.weight[None] > 0, len(bodies), axis=0)
+    arrays, metrics = build_proxy(default_cache_dir(), model.faces, smpl_rest=(bodies, usable))
     np.savez_compressed(folder / PROXY_ASSET, allow_pickle=False, **_float32(arrays))
     entry = {"metrics": metrics, "build_seconds": round(time.perf_counter() - t0, 2)}
     return write_manifest(folder, {PROXY_ASSET: entry}, {})

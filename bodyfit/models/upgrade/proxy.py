@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from bodyfit.models.errors import BodyfitError
+from bodyfit.models.upgrade.rest_pose import rest_alignment, rest_rotations_deg, segment_alignment
 from bodyfit.models.upgrade.smpl_joints import SMPL_JOINTS, SMPL_PARENTS
 from bodyfit.models.upgrade.smpl_model import SmplModel, load_smpl_model
 
@@ -232,15 +233,16 @@ def _sample_adults(anny: Any, soma: Any, names: tuple[str, ...], count: int, see
 
 
 def _t_posed(
-    soma: Any, names: tuple[str, ...], n_bones: int, keep: np.ndarray, p: np.ndarray
+    soma: Any, names: tuple[str, ...], pose: np.ndarray, keep: np.ndarray, p: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """T-posed bodies (n, V, 3) and SOMA bone heads (n, 78, 3) for phenotypes p (n, K)."""
+    """Bodies (n, V, 3) and SOMA bone heads (n, 78, 3) for phenotypes p (n, K), each bone turned by ``pose``
+    (78, 4, 4) from the T-pose (relative to its parent in world-aligned axes: local-ref, the rig's)."""
     import torch
 
     kwargs = {n: torch.as_tensor(p[:, k]) for k, n in enumerate(names)}
-    identity = torch.eye(4, dtype=torch.float64).expand(len(p), n_bones, 4, 4)
+    bones = torch.as_tensor(pose, dtype=torch.float64).expand(len(p), *pose.shape)
     with torch.no_grad():
-        out = soma(pose_parameters=identity, phenotype_kwargs=kwargs)
+        out = soma(pose_parameters=bones, phenotype_kwargs=kwargs)
     return out["vertices"][:, keep].numpy(), out["bone_poses"][..., :3, 3].numpy()
 
 
@@ -275,7 +277,12 @@ def _smpl_weights(soma: Any, keep: np.ndarray, labels: list[str]) -> np.ndarray:
 
 
 def build_proxy(
-    cache_dir: Path, faces: np.ndarray, n_bodies: int = 400, seed: int = 11, held_out: int = 50
+    cache_dir: Path,
+    faces: np.ndarray,
+    n_bodies: int = 400,
+    seed: int = 11,
+    held_out: int = 50,
+    smpl_rest: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """The proxy's arrays (SMPL keys plus ``phenotype_names``, ``phenotype_mean``) and build metrics.
 
@@ -283,6 +290,9 @@ def build_proxy(
         cache_dir: anny's and warp's caches; faces: (F, 3) our template's triangles (checked against the
             SOMA model's mesh); n_bodies: sampled adults for the shape directions and the regressor;
             held_out: more adults, only to measure the shape directions.
+        smpl_rest: bodies in SMPL's rest pose (K, V, 3), carried onto our topology in SMPL's frame, and their
+            usable vertices (K, V) bool: the proxy is turned into their pose
+            (:mod:`bodyfit.models.upgrade.rest_pose`); None keeps SOMA's T-pose.
     """
     os.environ.setdefault("ANNY_CACHE_DIR", str(cache_dir / "anny"))
     os.environ.setdefault("WARP_CACHE_PATH", str(cache_dir / "warp"))
@@ -303,8 +313,17 @@ def build_proxy(
     P, P_test = P_all[:n_bodies], P_all[n_bodies:]
     mean = P.mean(0)
 
+    weights = _smpl_weights(soma, keep, labels)
+    pose = np.repeat(np.eye(4)[None], len(labels), axis=0)
+    alignment = np.repeat(np.eye(3)[None], len(SMPL_JOINTS), axis=0)
+    if smpl_rest is not None:
+        t_mean, t_heads = _t_posed(soma, names, pose, keep, mean[None])
+        segments = segment_alignment(t_mean[0], smpl_rest[0], weights, t_heads[0, head_bone], smpl_rest[1])
+        alignment = rest_alignment(segments)
+    pose[head_bone, :3, :3] = alignment  # SMPL's rest pose: each SMPL joint's bone turned into it
+
     def t_posed(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return _t_posed(soma, names, len(labels), keep, p)
+        return _t_posed(soma, names, pose, keep, p)
 
     verts, heads = zip(*(t_posed(P[i : i + 50]) for i in range(0, len(P), 50)), strict=True)
     V, H = np.concatenate(verts), np.concatenate(heads)
@@ -317,7 +336,7 @@ def build_proxy(
         "v_template": v_mean[0],
         "shapedirs": dirs.T.reshape(len(keep), 3, len(dirs)),
         "J_regressor": regressor,
-        "weights": _smpl_weights(soma, keep, labels),
+        "weights": weights,
         "kintree_table": np.array([SMPL_PARENTS, np.arange(len(SMPL_JOINTS))], np.int64),
         "f": faces.astype(np.int64),
         "phenotype_names": np.array(names),
@@ -332,5 +351,6 @@ def build_proxy(
         ),
         "phenotypes": list(names),
         "anny": getattr(anny, "__version__", "unknown"),
+        "rest_pose_deg": rest_rotations_deg(alignment),
     }
     return arrays, metrics
