@@ -9,10 +9,11 @@ How (:func:`detect_up`), on SMPL's joints posed by forward kinematics over (a sa
 
 1. For each of the six signed axes, heights along it: the lowest of the foot joints (ankles, toes) in each
    frame, the floor at the 5th percentile of those over the sequence.
-2. The body's extent along the axis (head above the floor, median over frames), less the spread of the
-   root's height above that floor (standard deviation): the up axis is the one along which the body is
-   tallest and the root keeps a roughly constant height (gravity), so a walk's travel, which the root's
-   horizontal positions carry, counts against the horizontal axes.
+2. The body's extent along the axis (the head above the frame's lowest foot joint, median over frames),
+   less the spread of the root's height above that foot (standard deviation): the up axis is the one along
+   which the body is tallest and the root keeps a roughly constant height over the feet (gravity). Both are
+   taken within each frame, so a walk's travel, however long, adds nothing to a horizontal axis; measured
+   from the sequence's floor instead, half the distance walked would count as height.
 3. The sign: the head is above the feet.
 4. The evidence is weak when the best axis's score leads the next by less than :data:`WEAK_MARGIN_M`, or the
    feet touch the floor (within :data:`CONTACT_M`) in fewer than :data:`CONTACT_MIN` of the frames; in a
@@ -156,8 +157,8 @@ def detect_up(joints: np.ndarray, surface_model_type: str = "smpl") -> UpAxis:
         lowest = h[:, FOOT_JOINTS].min(axis=1)
         floor = np.percentile(lowest, 5)
         contacts[axis] = float((lowest - floor < CONTACT_M).mean())
-        extent = float(np.median(h[:, HEAD] - floor))  # negative when the head is below the feet
-        scores[axis] = extent - float(np.std(h[:, PELVIS] - floor))
+        extent = float(np.median(h[:, HEAD] - lowest))  # negative when the head is below the feet
+        scores[axis] = extent - float(np.std(h[:, PELVIS] - lowest))
     ranked = sorted(scores, key=lambda a: -scores[a])
     best, second = ranked[0], ranked[1]
     margin = scores[best] - scores[second]
