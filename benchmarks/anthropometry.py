@@ -28,7 +28,7 @@ Usage::
 
     python benchmarks/anthropometry.py [--quick] [--json]
     python benchmarks/anthropometry.py figure docs/anthropometry_tapes.png
-    python benchmarks/anthropometry.py calibrate     # print the definitions' offsets (calibration.py)
+    python benchmarks/anthropometry.py calibrate     # print the definitions' calibration (calibration.py)
     python benchmarks/anthropometry.py populations   # rebuild bodyfit/models/anthropometry/populations.npz
 """
 
@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from bodyfit.models.anthropometry.calibration import learn_offsets
+from bodyfit.models.anthropometry.calibration import learn_calibration
 from bodyfit.models.anthropometry.definitions import MEASUREMENTS
 from bodyfit.models.anthropometry.inverse import (
     NAMES,
@@ -214,8 +214,8 @@ def ks_scores(model: BodyModel, nhanes: dict[str, dict[str, np.ndarray]], n: int
 
 
 def calibrate(per_sex: int = 200) -> None:
-    """Learn the definitions' offsets (bodyfit.models.anthropometry.calibration) on ``per_sex`` subjects
-    of each sex's training split, and print them as the source's table."""
+    """Learn the definitions' scales, offsets and the density (bodyfit.models.anthropometry.calibration) on
+    ``per_sex`` subjects of each sex's training split, and print them as the sources' tables."""
     torch.set_num_threads(1)
     model = BodyModel.load()
     ansur, _, _ = load_surveys()
@@ -223,11 +223,13 @@ def calibrate(per_sex: int = 200) -> None:
     for s in SEXES:
         train, _ = split(len(ansur[s]["stature"]))
         rows[s] = table(ansur[s], train[np.random.default_rng(SEED).permutation(len(train))[:per_sex]])
-    offsets = learn_offsets(model, rows, NAMES)
-    print("OFFSETS: dict[str, float] = {")
-    for name, value in offsets.items():
-        print(f'    "{name}": {value},')
-    print("}")
+    learned = learn_calibration(model, rows, NAMES)
+    print(f"DENSITY = {learned.density}")
+    for title, values in (("SCALES", learned.scales), ("OFFSETS", learned.offsets)):
+        print(f"{title}: dict[str, float] = {{")
+        for name, value in values.items():
+            print(f'    "{name}": {value},')
+        print("}")
 
 
 def build(args: list[str]) -> None:

@@ -278,19 +278,28 @@ def test_population_errors_name_the_choices(body: BodyModel, tmp_path: Path) -> 
 
 
 def test_calibration_offsets_recover_a_known_shift(body: BodyModel) -> None:
-    from bodyfit.models.anthropometry.calibration import OFFSETS, learn_offsets
+    from bodyfit.models.anthropometry.calibration import OFFSETS, SCALES, learn_calibration
     from bodyfit.models.anthropometry.inverse import evaluate
+    from bodyfit.models.anthropometry.measure import DENSITY
 
     shapes = np.random.default_rng(8).normal(size=(6, body.n_shape)) * 0.7
-    truth = evaluate(body, shapes)
+    ours = evaluate(body, shapes)
+    size = ours[:, 0] / 1.7  # offsets in proportion to the stature
+    truth = ours.copy()
     shift = {"cervicaleheight": -0.02, "neckcircumference": 0.03}
     for name, value in shift.items():
-        truth[:, NAMES.index(name)] += value * truth[:, 0] / 1.7  # in proportion to the stature
+        truth[:, NAMES.index(name)] += value * size
     keep = ["stature", "cervicaleheight", "acromialheight", "neckcircumference", "chestcircumference"]
     rows = np.where(np.isin(NAMES, keep), truth, np.nan)
-    learned = learn_offsets(body, {"male": rows}, NAMES, rounds=3)
-    assert set(learned) == set(keep) - {"stature"}
-    moved = {name: learned[name] - OFFSETS.get(name, 0.0) for name in keep[1:]}
+    learned = learn_calibration(body, {"male": rows}, NAMES, rounds=3, shrink=np.inf)
+    assert set(learned.offsets) == set(learned.scales) == set(keep) - {"stature"}
+    assert set(learned.scales.values()) == {1.0}  # offsets alone
+    assert learned.density == DENSITY  # no weights given: the density stays
+    moved = {}  # how much the learned calibration moves each measurement of these bodies, per unit size
+    for name in keep[1:]:
+        old = ours[:, NAMES.index(name)]
+        raw = (old - OFFSETS.get(name, 0.0) * size) / SCALES.get(name, 1.0)
+        moved[name] = float(np.mean((learned.scales[name] * raw + learned.offsets[name] * size - old) / size))
     # The bodies absorb part of a shift their shape can make; the offsets take what is left, and the
     # measurements not shifted keep theirs.
     for name in keep[1:]:
@@ -298,3 +307,14 @@ def test_calibration_offsets_recover_a_known_shift(body: BodyModel) -> None:
             assert 0.3 * abs(shift[name]) < moved[name] * np.sign(shift[name]) < 1.1 * abs(shift[name]), name
         else:
             assert abs(moved[name]) < 0.008, name
+
+
+def test_calibration_scale_is_shrunk_towards_one() -> None:
+    from bodyfit.models.anthropometry.calibration import _slope
+
+    x = np.random.default_rng(3).uniform(0.8, 1.2, 200)
+    y = 1.2 * x + 0.05 + np.random.default_rng(4).normal(0.0, 0.002, 200)
+    assert np.allclose(_slope(x, y, 0.0), (1.2, 0.05), atol=0.01)  # least squares
+    assert np.allclose(_slope(x, y, 1.0), (1.1, 0.15), atol=0.01)  # halfway to one
+    scale, offset = _slope(x, y, np.inf)  # an offset alone: the mean difference
+    assert scale == 1.0 and offset == pytest.approx(np.mean(y - x))

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from bodyfit.models.anthropometry.calibration import OFFSETS
+from bodyfit.models.anthropometry.calibration import calibrated
 from bodyfit.models.anthropometry.definitions import MEASUREMENTS
 from bodyfit.models.anthropometry.regions import Topology, topology
 from bodyfit.models.anthropometry.sections import closed_volume
@@ -27,13 +27,13 @@ from bodyfit.models.body.model import BodyModel
 from bodyfit.models.errors import ShapeError
 from bodyfit.models.skeleton.model import check_finite
 
-# Whole-body density (kg/m^3) that turns the skin's enclosed volume into mass. Tissue densities are
-# 900 (fat) to 1,100 (fat-free mass) kg/m^3 (W. E. Siri, "Body composition from fluid spaces and density:
-# analysis of methods", in J. Brozek and A. Henschel (eds.), Techniques for Measuring Body Composition,
-# National Academy of Sciences, 1961); the skin also encloses the air in the lungs (about 3 L at rest),
-# which takes an adult's 1,040-1,070 to about 1,000. The value is checked against ANSUR II weights in
-# benchmarks/anthropometry.py.
-DENSITY = 1000.0
+# Whole-body density (kg/m^3) that turns the skin's enclosed volume into mass: the weight's scale in the
+# calibration to ANSUR II (calibration.py; benchmarks/anthropometry.py calibrate), which makes bodies built
+# for ANSUR II subjects' lengths and tapes weigh what the subjects did. Tissue densities are 900 (fat) to
+# 1,100 (fat-free mass) kg/m^3 (W. E. Siri, "Body composition from fluid spaces and density: analysis of
+# methods", in J. Brozek and A. Henschel (eds.), Techniques for Measuring Body Composition, National
+# Academy of Sciences, 1961), an adult's 1,030-1,070 before the air in the lungs.
+DENSITY = 1039.0
 
 # Width (metres, for a body of REFERENCE_STATURE) over which the bust and buttock points are averaged.
 SOFT_EXTREME = 0.002
@@ -147,9 +147,9 @@ def measure_torch(
     out.update(leg_tapes(cut, p))
     out.update(arm_tapes(cut, p))
     out["weightkg"] = closed_volume(vertices, topo.faces) * DENSITY
-    # Calibrated to ANSUR II's measurers (calibration.py): an offset per definition, in proportion to the
-    # body's size as every length is.
-    return {name: out[name] + OFFSETS[name] * size if name in OFFSETS else out[name] for name in MEASUREMENTS}
+    # Calibrated to ANSUR II's measurers (calibration.py): a scale and an offset per definition, the offset
+    # in proportion to the body's size as every length is.
+    return calibrated({name: out[name] for name in MEASUREMENTS}, size)
 
 
 def _points(topo: Topology, v: torch.Tensor, joints: torch.Tensor) -> dict[str, torch.Tensor]:
