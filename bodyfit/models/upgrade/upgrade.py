@@ -36,7 +36,7 @@ from scipy import sparse
 from bodyfit.io.smpl import SmplSequence
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting.common.report import count_limit_violations
-from bodyfit.models.fitting.registered.fitter import RegisteredFitter
+from bodyfit.models.fitting.registered.fitter import FixedBody, RegisteredFitter
 from bodyfit.models.fitting.registered.smpl_topology import SMPL_TO_BODY, SMPL_VERTICES, TopologyMap, smpl_map
 from bodyfit.models.fitting.registered.stages import RegisteredFitConfig
 from bodyfit.models.fitting.retarget.fitter import wrap_pelvis
@@ -185,7 +185,7 @@ def upgrade_with_model(
         notes.append(f"the model has {smpl.n_betas} shape directions; betas beyond those were ignored")
     errors = np.array([r.distances.mean for r in fit.reports])
     arrays = (fit.coordinates, fit.root, fit.joints, errors)
-    result = _result("a", sequence, model, fit.shape, arrays, good, notes, began)
+    result = _result("a", sequence, model, fit.shape, arrays, good, notes, began, fitter.fitter.body)
     return replace(result, offsets=fit.offsets, extra={**result.extra, **axis.summary()})
 
 
@@ -226,7 +226,7 @@ def upgrade_from_rotations(
         *shape_notes,
     ]
     arrays = (fit.coordinates, fit.root, fit.joints, np.full(len(good), np.nan))
-    result = _result("b", sequence, fitter.model, fit.shape, arrays, good, notes, began)
+    result = _result("b", sequence, fitter.model, fit.shape, arrays, good, notes, began, fitter.fitter.body)
     proxy_mm = float(np.mean([r.distances.mean for r in fit.reports]))
     extra = {**result.extra, "proxy_fit_mm": round(proxy_mm, 3), **axis.summary()}
     return replace(result, offsets=fit.offsets, extra=extra)
@@ -283,11 +283,13 @@ def _result(
     good: np.ndarray,
     notes: list[str],
     began: float,
+    body: FixedBody | None = None,
 ) -> UpgradeResult:
     """Fill bad frames by interpolation from the fitted ones and assemble the result. ``arrays``:
     coordinates, root, joints and per-frame error of the good frames. A bad frame's coordinates and root
     are interpolated, its joints computed from them (one answer per frame: OpenSim posed by the saved
-    coordinates puts the joints where the file says)."""
+    coordinates puts the joints where the file says). ``body``: the known person the fit held fixed
+    (:meth:`SequenceFitter.for_body`), whose decoder gives the bone scales and joints."""
     T = sequence.n_frames
     frames = np.arange(T)
 
@@ -301,13 +303,17 @@ def _result(
     coordinates, root, joints = (fill(a) for a in arrays[:3])
     error = np.full(T, np.nan)
     error[good] = arrays[3]
-    with torch.no_grad():
-        scales = model.forward(shape[None]).scales.numpy()[0]
+    scales = _scales(model, shape, body)
     skel = model.skeleton
     in_range = wrap_pelvis(coordinates, skel)
     bad = sequence.bad_frames
     if bad.any() and len(good) < T:
-        joints[bad] = _joints(model, shape, in_range[bad], root[bad])
+        joints[bad] = _joints(model, shape, in_range[bad], root[bad], body)
+    if body is not None:
+        notes.append(
+            "the body is the subject file's: its shape, template and skeleton were held fixed and only the "
+            "poses fitted; the bone scales are the subject's"
+        )
     if sequence.bad_frames.any():
         notes.append(
             f"{int(sequence.bad_frames.sum())} frames held NaN / inf: left out of the fit; their coordinates "
@@ -390,10 +396,23 @@ def _proportion_range(model: BodyModel) -> ProportionRange:
     return ProportionRange.of(model)
 
 
-def _joints(model: BodyModel, shape: np.ndarray, q: np.ndarray, root: np.ndarray) -> np.ndarray:
+def _scales(model: BodyModel, shape: np.ndarray, body: FixedBody | None) -> np.ndarray:
+    """(n_seg, 3) the bone scales of the body of shape (n_shape,): the model's, or those of the known
+    person's decoder (``body``)."""
+    with torch.no_grad():
+        if body is None:
+            return model.forward(shape[None]).scales.numpy()[0]
+        c = torch.as_tensor(np.asarray(shape)[None], dtype=torch.float32)
+        q = torch.zeros(1, model.skeleton.n_dof, dtype=torch.float32)
+        return body.decoder(torch.float32)(c, q, torch.zeros(1, 3))[3].numpy()[0]
+
+
+def _joints(
+    model: BodyModel, shape: np.ndarray, q: np.ndarray, root: np.ndarray, body: FixedBody | None = None
+) -> np.ndarray:
     """Anatomical joints (B, J, 3) of the body of shape (n_shape,) at coordinates q (B, n_dof) and roots
-    (B, 3), in float64, a block of frames at a time."""
-    decoder = model.decoder(torch.float64)
+    (B, 3), in float64, a block of frames at a time; with ``body``, from the known person's decoder."""
+    decoder = model.decoder(torch.float64) if body is None else body.decoder(torch.float64)
     out = np.empty((len(q), len(model.joint_names), 3))
     with torch.no_grad():
         for lo in range(0, len(q), 256):

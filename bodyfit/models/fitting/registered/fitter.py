@@ -71,6 +71,7 @@ __all__ = [
     "UPPER_DOF_PREFIXES",
     "BodyFit",
     "DataTerm",
+    "FixedBody",
     "RegisteredFitConfig",
     "RegisteredFitter",
     "Stage",
@@ -99,6 +100,21 @@ class BodyFit:
     reports: list[FitReport] = field(default_factory=list)
 
 
+@dataclass(frozen=True)
+class FixedBody:
+    """One known person's body, which a fit holds fixed: ``shape`` (n_shape,) their coefficients, and
+    ``decoders`` giving their decoder for a float type (a :class:`BodyDecoder` of the same model carrying what
+    is personal, e.g. a subject file's template offsets). A fit given one solves the pose and the root only
+    (:meth:`RegisteredFitter.for_body`)."""
+
+    shape: np.ndarray
+    decoders: Callable[[torch.dtype], BodyDecoder]
+
+    def decoder(self, dtype: torch.dtype) -> BodyDecoder:
+        """The person's decoder in ``dtype``."""
+        return self.decoders(dtype)
+
+
 def vertex_term(targets_mm: torch.Tensor, weights: torch.Tensor) -> DataTerm:
     """The registered data term: weighted mean squared vertex distance (B,) in mm^2, for targets (B, V', 3)
     in mm and weights (B, V') (mean one)."""
@@ -122,6 +138,7 @@ class RegisteredFitter:
         dtype = self.config.dtype
         skel = model.skeleton
         self.decoder = model.decoder(dtype)
+        self.body: FixedBody | None = None
         self.index = vertex_sets(model, self.config)
         self.decoders = self._decoders_of(self.decoder)
         self.dof_mask = coordinate_masks(skel, dtype)
@@ -142,6 +159,24 @@ class RegisteredFitter:
         fitter.decoder = self.model.decoder(self.config.dtype).with_offsets(offsets)
         fitter.decoders = self._decoders_of(fitter.decoder)
         return fitter
+
+    def for_body(self, body: FixedBody) -> RegisteredFitter:
+        """This fitter for one known person (:class:`FixedBody`): their decoder, every stage's shape frozen
+        (whatever stages run through it: its own, a scan fit's phases, a sequence's) and fits started from
+        their shape, so that a fit solves the pose and the root only; the preconditioning and settings are
+        shared."""
+        fitter = copy.copy(self)
+        fitter.body = body
+        fitter.decoder = body.decoder(self.config.dtype)
+        fitter.decoders = self._decoders_of(fitter.decoder)
+        fitter.shape_mask = {name: torch.zeros_like(mask) for name, mask in self.shape_mask.items()}
+        return fitter
+
+    def start_shape(self, rows: int) -> np.ndarray:
+        """(rows, n_shape) the shape fits start from: the population mean (zeros), or the fixed body's."""
+        if self.body is None:
+            return np.zeros((rows, self.model.n_shape))
+        return np.tile(np.asarray(self.body.shape, np.float64), (rows, 1))
 
     # -- input -----------------------------------------------------------------------------------------
     def validate(
@@ -200,7 +235,7 @@ class RegisteredFitter:
         dtype = self.config.dtype
         if init is None:
             q0, r0 = self.bone_start(x, w)
-            c0 = np.zeros((B, self.model.n_shape))
+            c0 = self.start_shape(B)
         else:
             q0, r0, c0 = init.coordinates, init.root, init.shape
         z = self.start_state(q0, r0, c0.mean(0, keepdims=True) if shared_shape else c0)
@@ -240,14 +275,18 @@ class RegisteredFitter:
         return z_u, z_r, z_c
 
     def parameters(self, z: State) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Shape (B, n_shape), coordinates (B, n_dof) within the limits and root (B, 3), float64."""
+        """Shape (B, n_shape), coordinates (B, n_dof) within the limits and root (B, 3), float64; a fixed
+        body's shape as given (the state holds it in the fitter's float type)."""
         z_u, z_r, z_c = z
         s_u, s_r, s_c = self._scales
         with torch.no_grad():
             # In float64: float32 tanh saturates to exactly +-1, which rounds onto (or past) a bound.
             q = self.model.skeleton.from_unbounded((z_u * s_u).double())
             root = (z_r * s_r).double()
-            c = (z_c * s_c).double().expand(len(q), -1)
+            if self.body is None:
+                c = (z_c * s_c).double().expand(len(q), -1)
+            else:
+                c = torch.as_tensor(np.asarray(self.body.shape, np.float64)).expand(len(q), -1)
         return c, q, root
 
     def coordinates(self, z_u: torch.Tensor) -> torch.Tensor:

@@ -89,6 +89,7 @@ for Progressive Image Sampling", IEEE Transactions on Image Processing 6(9), 199
 
 from __future__ import annotations
 
+import copy
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
@@ -102,7 +103,7 @@ from bodyfit.models.fitting.common.nearest import PointTree
 from bodyfit.models.fitting.common.surface import (
     NormalOperators,
 )
-from bodyfit.models.fitting.registered.fitter import DataTerm, RegisteredFitter, State
+from bodyfit.models.fitting.registered.fitter import DataTerm, FixedBody, RegisteredFitter, State
 from bodyfit.models.fitting.scan.clothing import (
     ClothingField,
     bare_vertices,
@@ -211,6 +212,18 @@ class ScanFitter:
         if self.config.processes > 1:
             # the registered fitter travels too: the helper need not build its preconditioner again
             self._helper = ScanHelper(ScanFitter, model, replace(self.config, processes=1), self.fitter)
+
+    def for_body(self, body: FixedBody) -> ScanFitter:
+        """This fitter for one known person (:meth:`RegisteredFitter.for_body`): their decoder, their shape
+        held fixed through every phase, so that a fit solves the orientation, pose and root only. It shares
+        the cleaning, surfaces and settings, and runs in this process: the helper process holds the
+        population's fitter."""
+        fitter = copy.copy(self)
+        fitter.fitter = self.fitter.for_body(body)
+        fitter.limbs = LimbSearch(fitter.fitter)
+        fitter._steps = HypothesisSteps(self.model, fitter.fitter, self._normals)
+        fitter._helper = None
+        return fitter
 
     def fit(
         self,

@@ -166,7 +166,7 @@ class HypothesisSteps:
         area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
         centre_offset = (tri.mean(1) * area[:, None]).sum(0) / area.sum()  # the surface's centroid
         r0 = np.repeat(-centre_offset[None], H, axis=0)
-        state = self.fitter.start_state(q0, r0, np.zeros((H, model.n_shape)))
+        state = self.fitter.start_state(q0, r0, self.fitter.start_shape(H))
         return Hypotheses(rotation, points.mean(0), np.zeros((H, 0, 3)), state, orientation is None)
 
     def arm_starts(self, q: np.ndarray) -> np.ndarray:

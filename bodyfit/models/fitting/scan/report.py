@@ -12,7 +12,7 @@ import torch
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 
-from bodyfit.models.body.model import BodyModel
+from bodyfit.models.body.model import BodyDecoder, BodyModel
 from bodyfit.models.fitting.common.nearest import PointTree
 from bodyfit.models.fitting.common.nonrigid import refine_nonrigid
 from bodyfit.models.fitting.common.quality import Prediction, prior_distance, scan_features, shipped_model
@@ -77,15 +77,22 @@ def in_scan_frame(
     root: np.ndarray,
     rotation: np.ndarray,
     centre: np.ndarray,
+    decoder: BodyDecoder | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The coordinates (n_dof,) and root (3,) of a body (shape c, coordinates q, root (3,) in the body frame
     ``body = rotation @ (scan - centre)``), in the scan's frame when the pelvis angles (DOFs ``pelvis``) can
     hold its orientation, else as they are; the (4, 4) map from the scan's frame to theirs; the joints (J, 3)
-    in the scan's frame."""
+    in the scan's frame. ``decoder``: a known person's float64 decoder (their joints), else the model's."""
     skel = model.skeleton
     R, m = rotation, centre
-    out = model.forward(c[None], q[None], root[None], dtype=torch.float64)
-    frame = out.frames[0, 0].numpy()
+    if decoder is None:
+        out = model.forward(c[None], q[None], root[None], dtype=torch.float64)
+        frames, joint_rows = out.frames, out.joints
+    else:
+        with torch.no_grad():
+            args = (torch.as_tensor(a[None], dtype=torch.float64) for a in (c, q, root))
+            _, joint_rows, frames, _ = decoder(*args)
+    frame = frames[0, 0].numpy()
     q_scan = q.copy()
     q_scan[pelvis] = zxy_angles(R.T @ frame[:3, :3])
     root_scan = R.T @ frame[:3, 3] + m
@@ -95,7 +102,7 @@ def in_scan_frame(
         q, root = q_scan, root_scan
     else:
         scan_to_body[:3, :3], scan_to_body[:3, 3] = R, -R @ m
-    joints = out.joints[0].numpy() @ R + m
+    joints = joint_rows[0].numpy() @ R + m
     return q, root, scan_to_body, joints
 
 
@@ -389,7 +396,9 @@ def placed_fit(
             config.nonrigid,
             seen=None if seen is None else seen[0],
         )
-    q, root, scan_to_body, joints = in_scan_frame(model, steps.pelvis, c, q, root, R, m)
+    body = steps.fitter.body
+    decoder = None if body is None else body.decoder(torch.float64)
+    q, root, scan_to_body, joints = in_scan_frame(model, steps.pelvis, c, q, root, R, m, decoder)
     vertices = body_verts @ R + m
     registration = registration @ R + m
     parts = np.array_split(points, config.workers)

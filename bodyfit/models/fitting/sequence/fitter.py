@@ -38,6 +38,7 @@ sequence-level numbers in :mod:`.stats` and the results in :mod:`.result`.
 
 from __future__ import annotations
 
+import copy
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -50,6 +51,7 @@ from bodyfit.models.errors import ShapeError
 from bodyfit.models.fitting.common.report import DistanceStats, FitReport
 from bodyfit.models.fitting.registered.fitter import (
     CONFIDENT_MEAN_MM,
+    FixedBody,
     RegisteredFitConfig,
     RegisteredFitter,
 )
@@ -144,6 +146,14 @@ class SequenceFitter:
     @property
     def model(self) -> BodyModel:
         return self.fitter.model
+
+    def for_body(self, body: FixedBody) -> SequenceFitter:
+        """This fitter for one known person (:meth:`RegisteredFitter.for_body`): no shape fit and no
+        rest-pose offsets, every frame posed with their decoder and shape."""
+        fitter = copy.copy(self)
+        fitter.fitter = self.fitter.for_body(body)
+        fitter.pose_fitter = self.pose_fitter.for_body(body)
+        return fitter
 
     # -- fit -------------------------------------------------------------------------------------------
     def fit(
@@ -265,7 +275,10 @@ class SequenceFitter:
         self, source: FrameSource, shape_keys: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray | None, RegisteredFitter]:
         """The shared shape c (1, n_shape) fitted to the frames ``shape_keys`` (K,), the rest-pose offsets
-        (V, 3) fitted with it (None unless ``config.offsets``) and the pose fitter that carries them."""
+        (V, 3) fitted with it (None unless ``config.offsets``) and the pose fitter that carries them; a known
+        person's shape (:meth:`for_body`) as it is."""
+        if self.fitter.body is not None:
+            return np.asarray(self.fitter.body.shape, np.float64)[None], None, self.pose_fitter
         x_s, w_s, G_s, o_s = self._frames(source, shape_keys)
         x_c = turn(x_s, G_s, o_s)
         shaped = self.fitter.fit(x_c, w_s, shared_shape=True)
