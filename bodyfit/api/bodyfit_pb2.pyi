@@ -93,7 +93,7 @@ class Values(_message.Message):
     def __init__(self, values: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class SynthesizeRequest(_message.Message):
-    __slots__ = ("shape", "coordinates", "named_coordinates", "root", "skeleton", "format", "faces", "batch", "measurements", "sex")
+    __slots__ = ("shape", "coordinates", "named_coordinates", "root", "skeleton", "format", "faces", "batch", "measurements", "sex", "subject")
     class NamedCoordinatesEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -118,6 +118,7 @@ class SynthesizeRequest(_message.Message):
     BATCH_FIELD_NUMBER: _ClassVar[int]
     MEASUREMENTS_FIELD_NUMBER: _ClassVar[int]
     SEX_FIELD_NUMBER: _ClassVar[int]
+    SUBJECT_FIELD_NUMBER: _ClassVar[int]
     shape: Array
     coordinates: Array
     named_coordinates: _containers.MessageMap[str, Values]
@@ -128,7 +129,8 @@ class SynthesizeRequest(_message.Message):
     batch: int
     measurements: _containers.ScalarMap[str, float]
     sex: str
-    def __init__(self, shape: _Optional[_Union[Array, _Mapping]] = ..., coordinates: _Optional[_Union[Array, _Mapping]] = ..., named_coordinates: _Optional[_Mapping[str, Values]] = ..., root: _Optional[_Union[Array, _Mapping]] = ..., skeleton: _Optional[bool] = ..., format: _Optional[_Union[Format, str]] = ..., faces: _Optional[bool] = ..., batch: _Optional[int] = ..., measurements: _Optional[_Mapping[str, float]] = ..., sex: _Optional[str] = ...) -> None: ...
+    subject: bytes
+    def __init__(self, shape: _Optional[_Union[Array, _Mapping]] = ..., coordinates: _Optional[_Union[Array, _Mapping]] = ..., named_coordinates: _Optional[_Mapping[str, Values]] = ..., root: _Optional[_Union[Array, _Mapping]] = ..., skeleton: _Optional[bool] = ..., format: _Optional[_Union[Format, str]] = ..., faces: _Optional[bool] = ..., batch: _Optional[int] = ..., measurements: _Optional[_Mapping[str, float]] = ..., sex: _Optional[str] = ..., subject: _Optional[bytes] = ...) -> None: ...
 
 class SynthesizeResponse(_message.Message):
     __slots__ = ("data", "media_type", "vertices", "joints", "joint_names", "faces", "bones", "bone_faces", "built")
@@ -165,7 +167,7 @@ class Progress(_message.Message):
     def __init__(self, stage: _Optional[str] = ..., done: _Optional[int] = ..., total: _Optional[int] = ..., message: _Optional[str] = ...) -> None: ...
 
 class FitScanRequest(_message.Message):
-    __slots__ = ("data", "format", "units", "up", "facing", "pose", "sex", "height_m")
+    __slots__ = ("data", "format", "units", "up", "facing", "pose", "sex", "height_m", "subject")
     DATA_FIELD_NUMBER: _ClassVar[int]
     FORMAT_FIELD_NUMBER: _ClassVar[int]
     UNITS_FIELD_NUMBER: _ClassVar[int]
@@ -174,6 +176,7 @@ class FitScanRequest(_message.Message):
     POSE_FIELD_NUMBER: _ClassVar[int]
     SEX_FIELD_NUMBER: _ClassVar[int]
     HEIGHT_M_FIELD_NUMBER: _ClassVar[int]
+    SUBJECT_FIELD_NUMBER: _ClassVar[int]
     data: bytes
     format: str
     units: str
@@ -182,7 +185,8 @@ class FitScanRequest(_message.Message):
     pose: str
     sex: str
     height_m: float
-    def __init__(self, data: _Optional[bytes] = ..., format: _Optional[str] = ..., units: _Optional[str] = ..., up: _Optional[str] = ..., facing: _Optional[str] = ..., pose: _Optional[str] = ..., sex: _Optional[str] = ..., height_m: _Optional[float] = ...) -> None: ...
+    subject: bytes
+    def __init__(self, data: _Optional[bytes] = ..., format: _Optional[str] = ..., units: _Optional[str] = ..., up: _Optional[str] = ..., facing: _Optional[str] = ..., pose: _Optional[str] = ..., sex: _Optional[str] = ..., height_m: _Optional[float] = ..., subject: _Optional[bytes] = ...) -> None: ...
 
 class MeshFitResult(_message.Message):
     __slots__ = ("fitted_as", "shape", "coordinates", "root", "vertices", "joints", "dof_names", "joint_names", "report_json", "to_model")
@@ -217,14 +221,16 @@ class FitScanEvent(_message.Message):
     def __init__(self, progress: _Optional[_Union[Progress, _Mapping]] = ..., result: _Optional[_Union[MeshFitResult, _Mapping]] = ...) -> None: ...
 
 class FitSequenceRequest(_message.Message):
-    __slots__ = ("frames", "weights", "chunk")
+    __slots__ = ("frames", "weights", "chunk", "subject")
     FRAMES_FIELD_NUMBER: _ClassVar[int]
     WEIGHTS_FIELD_NUMBER: _ClassVar[int]
     CHUNK_FIELD_NUMBER: _ClassVar[int]
+    SUBJECT_FIELD_NUMBER: _ClassVar[int]
     frames: Array
     weights: Array
     chunk: int
-    def __init__(self, frames: _Optional[_Union[Array, _Mapping]] = ..., weights: _Optional[_Union[Array, _Mapping]] = ..., chunk: _Optional[int] = ...) -> None: ...
+    subject: bytes
+    def __init__(self, frames: _Optional[_Union[Array, _Mapping]] = ..., weights: _Optional[_Union[Array, _Mapping]] = ..., chunk: _Optional[int] = ..., subject: _Optional[bytes] = ...) -> None: ...
 
 class SequenceChunk(_message.Message):
     __slots__ = ("start", "stop", "coordinates", "root", "vertices", "joints", "error_mm")
@@ -269,7 +275,7 @@ class FitSequenceEvent(_message.Message):
     def __init__(self, progress: _Optional[_Union[Progress, _Mapping]] = ..., chunk: _Optional[_Union[SequenceChunk, _Mapping]] = ..., result: _Optional[_Union[SequenceSummary, _Mapping]] = ...) -> None: ...
 
 class UpgradeRequest(_message.Message):
-    __slots__ = ("data", "filename", "chunk", "sex", "height_m", "mass_kg", "up")
+    __slots__ = ("data", "filename", "chunk", "sex", "height_m", "mass_kg", "up", "subject")
     DATA_FIELD_NUMBER: _ClassVar[int]
     FILENAME_FIELD_NUMBER: _ClassVar[int]
     CHUNK_FIELD_NUMBER: _ClassVar[int]
@@ -277,6 +283,7 @@ class UpgradeRequest(_message.Message):
     HEIGHT_M_FIELD_NUMBER: _ClassVar[int]
     MASS_KG_FIELD_NUMBER: _ClassVar[int]
     UP_FIELD_NUMBER: _ClassVar[int]
+    SUBJECT_FIELD_NUMBER: _ClassVar[int]
     data: bytes
     filename: str
     chunk: int
@@ -284,7 +291,8 @@ class UpgradeRequest(_message.Message):
     height_m: float
     mass_kg: float
     up: str
-    def __init__(self, data: _Optional[bytes] = ..., filename: _Optional[str] = ..., chunk: _Optional[int] = ..., sex: _Optional[str] = ..., height_m: _Optional[float] = ..., mass_kg: _Optional[float] = ..., up: _Optional[str] = ...) -> None: ...
+    subject: bytes
+    def __init__(self, data: _Optional[bytes] = ..., filename: _Optional[str] = ..., chunk: _Optional[int] = ..., sex: _Optional[str] = ..., height_m: _Optional[float] = ..., mass_kg: _Optional[float] = ..., up: _Optional[str] = ..., subject: _Optional[bytes] = ...) -> None: ...
 
 class UpgradeChunk(_message.Message):
     __slots__ = ("start", "stop", "coordinates", "root", "joints", "error_mm", "bad_frames")
@@ -419,3 +427,53 @@ class MeasureResponse(_message.Message):
     unmet: _containers.RepeatedScalarFieldContainer[str]
     flagged: bool
     def __init__(self, measurements: _Optional[_Iterable[_Union[MeasurementInfo, _Mapping]]] = ..., values: _Optional[_Mapping[str, Values]] = ..., shape: _Optional[_Union[Array, _Mapping]] = ..., requested: _Optional[_Mapping[str, float]] = ..., residuals: _Optional[_Mapping[str, float]] = ..., unmet: _Optional[_Iterable[str]] = ..., flagged: _Optional[bool] = ...) -> None: ...
+
+class ScanFile(_message.Message):
+    __slots__ = ("data", "filename", "format")
+    DATA_FIELD_NUMBER: _ClassVar[int]
+    FILENAME_FIELD_NUMBER: _ClassVar[int]
+    FORMAT_FIELD_NUMBER: _ClassVar[int]
+    data: bytes
+    filename: str
+    format: str
+    def __init__(self, data: _Optional[bytes] = ..., filename: _Optional[str] = ..., format: _Optional[str] = ...) -> None: ...
+
+class BuildSubjectRequest(_message.Message):
+    __slots__ = ("scans", "units", "up", "facing", "pose", "allow_undetermined")
+    SCANS_FIELD_NUMBER: _ClassVar[int]
+    UNITS_FIELD_NUMBER: _ClassVar[int]
+    UP_FIELD_NUMBER: _ClassVar[int]
+    FACING_FIELD_NUMBER: _ClassVar[int]
+    POSE_FIELD_NUMBER: _ClassVar[int]
+    ALLOW_UNDETERMINED_FIELD_NUMBER: _ClassVar[int]
+    scans: _containers.RepeatedCompositeFieldContainer[ScanFile]
+    units: str
+    up: str
+    facing: str
+    pose: str
+    allow_undetermined: bool
+    def __init__(self, scans: _Optional[_Iterable[_Union[ScanFile, _Mapping]]] = ..., units: _Optional[str] = ..., up: _Optional[str] = ..., facing: _Optional[str] = ..., pose: _Optional[str] = ..., allow_undetermined: _Optional[bool] = ...) -> None: ...
+
+class SubjectResult(_message.Message):
+    __slots__ = ("scans", "generic_mm", "personal_mm", "undetermined_joints", "seconds", "subject")
+    SCANS_FIELD_NUMBER: _ClassVar[int]
+    GENERIC_MM_FIELD_NUMBER: _ClassVar[int]
+    PERSONAL_MM_FIELD_NUMBER: _ClassVar[int]
+    UNDETERMINED_JOINTS_FIELD_NUMBER: _ClassVar[int]
+    SECONDS_FIELD_NUMBER: _ClassVar[int]
+    SUBJECT_FIELD_NUMBER: _ClassVar[int]
+    scans: _containers.RepeatedScalarFieldContainer[str]
+    generic_mm: _containers.RepeatedScalarFieldContainer[float]
+    personal_mm: _containers.RepeatedScalarFieldContainer[float]
+    undetermined_joints: _containers.RepeatedScalarFieldContainer[str]
+    seconds: float
+    subject: bytes
+    def __init__(self, scans: _Optional[_Iterable[str]] = ..., generic_mm: _Optional[_Iterable[float]] = ..., personal_mm: _Optional[_Iterable[float]] = ..., undetermined_joints: _Optional[_Iterable[str]] = ..., seconds: _Optional[float] = ..., subject: _Optional[bytes] = ...) -> None: ...
+
+class BuildSubjectEvent(_message.Message):
+    __slots__ = ("progress", "result")
+    PROGRESS_FIELD_NUMBER: _ClassVar[int]
+    RESULT_FIELD_NUMBER: _ClassVar[int]
+    progress: Progress
+    result: SubjectResult
+    def __init__(self, progress: _Optional[_Union[Progress, _Mapping]] = ..., result: _Optional[_Union[SubjectResult, _Mapping]] = ...) -> None: ...

@@ -64,6 +64,11 @@ class BodyfitStub:
                 request_serializer=bodyfit__pb2.MeasureRequest.SerializeToString,
                 response_deserializer=bodyfit__pb2.MeasureResponse.FromString,
                 _registered_method=True)
+        self.BuildSubject = channel.unary_stream(
+                '/bodyfit.v1.Bodyfit/BuildSubject',
+                request_serializer=bodyfit__pb2.BuildSubjectRequest.SerializeToString,
+                response_deserializer=bodyfit__pb2.BuildSubjectEvent.FromString,
+                _registered_method=True)
 
 
 class BodyfitServicer:
@@ -112,6 +117,14 @@ class BodyfitServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def BuildSubject(self, request, context):
+        """One person's rig from several scans of them in different poses (POST /v1/subjects): progress, then the
+        per-scan report and the subject file, which Synthesize, FitScan, FitSequence and Upgrade take back.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_BodyfitServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -144,6 +157,11 @@ def add_BodyfitServicer_to_server(servicer, server):
                     servicer.Measure,
                     request_deserializer=bodyfit__pb2.MeasureRequest.FromString,
                     response_serializer=bodyfit__pb2.MeasureResponse.SerializeToString,
+            ),
+            'BuildSubject': grpc.unary_stream_rpc_method_handler(
+                    servicer.BuildSubject,
+                    request_deserializer=bodyfit__pb2.BuildSubjectRequest.FromString,
+                    response_serializer=bodyfit__pb2.BuildSubjectEvent.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -308,6 +326,33 @@ class Bodyfit:
             '/bodyfit.v1.Bodyfit/Measure',
             bodyfit__pb2.MeasureRequest.SerializeToString,
             bodyfit__pb2.MeasureResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def BuildSubject(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_stream(
+            request,
+            target,
+            '/bodyfit.v1.Bodyfit/BuildSubject',
+            bodyfit__pb2.BuildSubjectRequest.SerializeToString,
+            bodyfit__pb2.BuildSubjectEvent.FromString,
             options,
             channel_credentials,
             insecure,

@@ -16,7 +16,7 @@ import time
 from collections.abc import Callable, Iterator
 from concurrent import futures
 from contextlib import contextmanager
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import Any, TypeVar
 
 import grpc
@@ -37,16 +37,20 @@ from bodyfit.api.grpc_wire import (
     optional,
     progress_message,
     sequence_event,
+    subject_message,
     to_proto,
     upgrade_event,
 )
 from bodyfit.api.metrics import Metrics
 from bodyfit.api.settings import ServiceSettings
+from bodyfit.io.scans import Scan
+from bodyfit.models.rig.build import RigConfig
 from bodyfit.service.core import BodyService, SynthRequest, shape_hints, upgrade_up
 from bodyfit.service.errors import InvalidInputError, ServiceError, as_service_error
 from bodyfit.service.formats import MEDIA_TYPES, encode_bodies
 from bodyfit.service.hints import ScanHints
 from bodyfit.service.jobs import Job, Progress
+from bodyfit.service.subjects import build_subject
 from bodyfit.wire.hints import HINT_NAMES
 
 LOG = logging.getLogger("bodyfit.grpc")
@@ -87,6 +91,18 @@ def _coordinates(request: pb.SynthesizeRequest | pb.MeasureRequest) -> Any:
     return coordinates
 
 
+def _scan_file(service: BodyService, scan: pb.ScanFile, name: str, units: str) -> Scan:
+    """One scan of a BuildSubject request, read in its format (the name's suffix when not given).
+
+    Raises:
+        InvalidInputError: no format to read it in, or a file that cannot be read.
+    """
+    fmt = scan.format or PurePath(name).suffix.lstrip(".")
+    if not fmt:
+        raise InvalidInputError(f"{name!r} has no suffix and no format: give the scan's format", "scans")
+    return service.read_scan(scan.data, fmt, units or "auto")
+
+
 def _progress(p: Progress) -> pb.Progress:
     return progress_message(results.progress_event(p))
 
@@ -122,6 +138,7 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
             batch=request.batch or None,
             measurements=dict(request.measurements) if request.measurements else None,
             sex=_set(request, "sex"),
+            subject=request.subject or None,
         )
         synth, built = self.service.with_built_shape(synth)
         out = self._synthesized(request, synth)
@@ -184,8 +201,9 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
 
         def work(job: Job) -> list[pb.FitScanEvent]:
             hints = ScanHints.given(*(_set(request, name) for name in HINT_NAMES))
+            body = service.subject_body(request.subject or None)
             scan = service.read_scan(request.data, request.format or "", request.units or "auto")
-            fit = service.fit_mesh(scan, job, hints)
+            fit = service.fit_mesh(scan, job, hints, body)
             result = results.mesh_fit_result(fit, list(info.dof_names), list(info.joint_names))
             return [pb.FitScanEvent(result=mesh_fit_message(result))]
 
@@ -208,8 +226,9 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
                 raise InvalidInputError(f"chunk must be at least 1; got {chunk}", "chunk")
             if frames.ndim >= 1 and len(frames) > service.limits.max_frames:
                 service.fit_sequence(frames)  # raises the limit error
+            body = service.subject_body(request.subject or None)
             chunks = results.SequenceChunker(chunk, lambda e: job.emit(sequence_event(e)))
-            fit = service.fit_sequence(frames, weights, job, on_frames=chunks)
+            fit = service.fit_sequence(frames, weights, job, on_frames=chunks, body=body)
             chunks.flush()
             return [sequence_event(results.sequence_summary(fit, joint_names))]
 
@@ -227,12 +246,30 @@ class BodyfitServicer(pb_grpc.BodyfitServicer):
                 raise InvalidInputError(f"chunk must be at least 1; got {chunk}", "chunk")
             up = upgrade_up(_set(request, "up"))
             hints = shape_hints(*(_set(request, name) for name in ("sex", "height_m", "mass_kg")))
-            result = service.upgrade(service.read_upgrade(request.data, name), job, hints, up)
+            body = service.subject_body(request.subject or None)
+            result = service.upgrade(service.read_upgrade(request.data, name), job, hints, up, body)
             files = service.upgrade_files(result, Path(name).stem or "upgrade")
             chunks = [upgrade_event(e) for e in results.upgrade_chunks(result, chunk)]
             return [*chunks, upgrade_event(results.upgrade_summary(result, files))]
 
         return self._stream("Upgrade", context, work, lambda p: pb.UpgradeEvent(progress=_progress(p)))
+
+    def BuildSubject(
+        self, request: pb.BuildSubjectRequest, context: grpc.ServicerContext
+    ) -> Iterator[pb.BuildSubjectEvent]:
+        service = self.service
+
+        def work(job: Job) -> list[pb.BuildSubjectEvent]:
+            hints = ScanHints.given(*(_set(request, name) for name in ("up", "facing", "pose")))
+            names = [f.filename or f"scan{k}" for k, f in enumerate(request.scans)]
+            scans = [_scan_file(service, f, name, request.units) for f, name in zip(request.scans, names)]
+            config = RigConfig(allow_undetermined=request.allow_undetermined)
+            built = build_subject(service, scans, names, job, hints, config)
+            return [subject_message(results.subject_result(built))]
+
+        return self._stream(
+            "BuildSubject", context, work, lambda p: pb.BuildSubjectEvent(progress=_progress(p))
+        )
 
     # -- plumbing --------------------------------------------------------------------------------------
     @contextmanager

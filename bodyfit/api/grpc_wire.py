@@ -14,6 +14,7 @@ from bodyfit import wire as w
 from bodyfit.api import bodyfit_pb2 as pb
 from bodyfit.wire.arrays import MAX_NDIM
 from bodyfit.wire.measure import Measurements
+from bodyfit.wire.subjects import SubjectResult
 
 DTYPES = w.DTYPES
 FLOATS = ("float32", "float64")
@@ -150,6 +151,19 @@ def upgrade_event(e: w.UpgradeChunkEvent | w.UpgradeResultEvent) -> pb.UpgradeEv
         **array_fields(e.arrays),
     )
     return pb.UpgradeEvent(result=summary)
+
+
+def subject_message(e: SubjectResult) -> pb.BuildSubjectEvent:
+    """The result of a rig build as the stream's message."""
+    result = pb.SubjectResult(
+        scans=e.scans,
+        generic_mm=e.generic_mm,
+        personal_mm=e.personal_mm,
+        undetermined_joints=e.undetermined_joints,
+        seconds=e.seconds,
+        subject=e.subject,
+    )
+    return pb.BuildSubjectEvent(result=result)
 
 
 def measure_message(m: Measurements) -> pb.MeasureResponse:

@@ -11,10 +11,12 @@ import numpy as np
 from bodyfit import wire as w
 from bodyfit.models.fitting.common.report import FitReport
 from bodyfit.models.fitting.sequence.fitter import SequenceFit, SequenceFrames
+from bodyfit.models.rig.build import RigBuild
 from bodyfit.models.upgrade.upgrade import UpgradeResult
 from bodyfit.service.core import MeshFit
 from bodyfit.service.formats import json_ready
 from bodyfit.service.jobs import Progress
+from bodyfit.wire.subjects import SubjectResultEvent
 
 encode_array = w.WireArray.from_numpy
 
@@ -137,4 +139,17 @@ def upgrade_summary(result: UpgradeResult, files: dict[str, bytes]) -> w.Upgrade
         arrays=w.UpgradeArrays(shape=encode_array(result.shape), scales=encode_array(result.scales)),
         summary=w.UpgradeSummary.model_validate(json_ready(result.summary())),
         files=files,
+    )
+
+
+def subject_result(built: RigBuild) -> SubjectResultEvent:
+    """The final event of a rig build: each scan's error under the generic model and the rig (mm), the
+    undetermined joints, the seconds and the subject file's bytes."""
+    return SubjectResultEvent(
+        scans=built.subject.scans,
+        generic_mm=tuple(float(v) for v in built.generic_mm),
+        personal_mm=tuple(float(v) for v in built.personal_mm),
+        undetermined_joints=built.undetermined,
+        seconds=built.seconds,
+        subject=built.subject.to_bytes(),
     )

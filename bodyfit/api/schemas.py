@@ -9,6 +9,8 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from bodyfit.wire.arrays import Base64Bytes
+
 Format = Literal["npz", "ply", "obj", "glb", "json"]
 Matrix = list[list[float]]
 
@@ -47,4 +49,9 @@ class SynthesizeRequest(BaseModel):
     )
     faces: bool = Field(
         default=False, description="Add the triangles to npz / json (mesh formats always have them)."
+    )
+    subject: Base64Bytes | None = Field(
+        default=None,
+        description="Instead of shape: a subject file (the .npz of POST /v1/subjects or `bodyfit rig`), "
+        "base64; every body is that person's (their shape and template). Not with shape or measurements.",
     )

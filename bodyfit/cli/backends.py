@@ -27,9 +27,16 @@ if TYPE_CHECKING:
 class LocalUpgrader:
     """Upgrades in this process: the body model and fitters are loaded once (``server`` extra). Path (a)
     with the SMPL-family model file ``smpl_model`` (default $BODYFIT_SMPL_MODEL; a path that does not exist
-    is an error), else path (b) from the joint rotations (each result's notes say which ran)."""
+    is an error), else path (b) from the joint rotations (each result's notes say which ran); with
+    ``subject`` (a subject file's bytes), every sequence as that person's body.
 
-    def __init__(self, smpl_model: str | os.PathLike[str] | None = None) -> None:
+    Raises:
+        InvalidInputError: a subject file that cannot be used with this model.
+    """
+
+    def __init__(
+        self, smpl_model: str | os.PathLike[str] | None = None, subject: bytes | None = None
+    ) -> None:
         from bodyfit.models.upgrade.smpl_model import ENV_VAR, model_path
         from bodyfit.service.core import BodyService
         from bodyfit.service.limits import Limits
@@ -37,11 +44,12 @@ class LocalUpgrader:
         given = smpl_model or os.environ.get(ENV_VAR)
         limits = Limits(max_concurrent=os.cpu_count() or 1, max_frames=10**7, max_upload_bytes=2**40)
         self.service = BodyService.load(limits=limits, smpl_model=model_path(given) if given else None)
+        self.body = None if subject is None else self.service.subject_body(subject)
 
     def __call__(self, path: Path) -> Files:
         from bodyfit.io.smpl import read_smpl_sequence
 
-        result = self.service.upgrade(read_smpl_sequence(path))
+        result = self.service.upgrade(read_smpl_sequence(path), body=self.body)
         return self.service.upgrade_files(result, path.stem)
 
 
@@ -118,24 +126,29 @@ def _is_ray(backend: str) -> bool:
 
 
 def upgrader(
-    backend: str, concurrency: int = 1, smpl_model: str | os.PathLike[str] | None = None
+    backend: str,
+    concurrency: int = 1,
+    smpl_model: str | os.PathLike[str] | None = None,
+    subject: bytes | None = None,
 ) -> Upgrader:
     """The back-end named ``backend``: ``local``, ``ray``, ``ray://host:port`` or a server URL
-    (``http://host:8000``; the server uses its own model file, so ``smpl_model`` is for the others).
+    (``http://host:8000``; the server uses its own model file, so ``smpl_model`` is for the others);
+    ``subject``: the subject file's bytes of the person every sequence shows, or None.
 
     Raises:
         ValueError: any other name.
     """
     if backend == "local":
-        return LocalUpgrader(smpl_model)
+        return LocalUpgrader(smpl_model, subject)
     if _is_ray(backend):
         from bodyfit.models.upgrade.smpl_model import ENV_VAR, model_path
 
         given = smpl_model or os.environ.get(ENV_VAR)
         model_file = str(model_path(given)) if given else None
-        return RayPool(_ray_address(backend), concurrency, functools.partial(LocalUpgrader, model_file))
+        make = functools.partial(LocalUpgrader, model_file, subject)
+        return RayPool(_ray_address(backend), concurrency, make)
     if backend.startswith(("http://", "https://")):
-        return server_upgrader(backend)
+        return server_upgrader(backend, subject=subject)
     raise ValueError(
         f"unknown backend {backend!r}: give local, ray, ray://host:port or a server URL (http://host:8000)"
     )

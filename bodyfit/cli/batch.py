@@ -32,6 +32,15 @@ def batch_upgrade(
         Path | None,
         typer.Option(help="SMPL-family model file for local / ray (default $BODYFIT_SMPL_MODEL)."),
     ] = None,
+    subject: Annotated[
+        Path | None,
+        typer.Option(
+            exists=True,
+            dir_okay=False,
+            help="A subject file (subject.npz of `bodyfit rig`) of the one person every sequence shows: "
+            "their body and bone scales in every upgrade.",
+        ),
+    ] = None,
 ) -> None:
     """Upgrade a whole dataset tree; resumes (finished sequences are skipped) and reports failures at the end
     without stopping. Writes <out>/<relative path>.npz, .json, .osim and .mot per sequence (units as
@@ -40,8 +49,11 @@ def batch_upgrade(
     from bodyfit.clients.batch import batch_upgrade as run
     from bodyfit.clients.errors import BodyfitClientError
 
+    person = None if subject is None else subject.read_bytes()
+    with reported():
+        worker = upgrader(backend, concurrency, smpl_model, person)
     try:
-        report = run(dataset, out, concurrency, upgrader(backend, concurrency, smpl_model))
+        report = run(dataset, out, concurrency, worker)
     except (BodyfitClientError, OSError, ValueError) as exc:
         fail(exc)
     finish(report)

@@ -16,6 +16,12 @@ SMPL_MODEL_HELP = (
 )
 
 
+SUBJECT_HELP = (
+    "A subject file (the subject.npz of `bodyfit rig`): the body is that person's, their shape and template "
+    "held fixed; only the pose is fitted."
+)
+
+
 def fail(exc: BaseException | str) -> NoReturn:
     """Print ``error: <what>`` on standard error and exit with status 2 (a bad input or option)."""
     typer.echo(f"error: {exc}", err=True)

@@ -39,14 +39,23 @@ def rig(
     up: Annotated[str | None, typer.Option(help=f"Hint for every raw scan: {UP_HELP}.")] = None,
     facing: Annotated[str | None, typer.Option(help=f"Hint for every raw scan: {FACING_HELP}.")] = None,
     pose: Annotated[str | None, typer.Option(help=f"Hint for every raw scan: {POSE_HELP}.")] = None,
-    onnx: Annotated[bool, typer.Option(help="Also write the subject's ONNX decoder (about 6 MB).")] = True,
+    onnx: Annotated[
+        bool, typer.Option(help="Also write the subject's ONNX decoder (about 6 MB; local builds).")
+    ] = True,
+    server: Annotated[
+        str | None,
+        typer.Option(help="Build on this bodyfit server (URL: POST /v1/subjects), not in this process."),
+    ] = None,
 ) -> None:
     """Build one person's rig: each scan is registered, then one shape and the person's rest-pose template
     offsets are fitted to all of them. Writes <out>/subject.npz (the portable subject file: `--subject` /
     `subject=` elsewhere), subject.json (errors per scan, generic against personal, mm), rest.ply (the
-    person standing) and subject.onnx (shape, coordinates, root -> vertices, joints)."""
+    person standing) and subject.onnx (shape, coordinates, root -> vertices, joints; not with --server)."""
     if units not in ("auto", "m", "mm"):
         fail(f"--units must be auto, m or mm; got {units!r}")
+    if server is not None:
+        _on_server(server, scans, out, units, allow_undetermined, (up, facing, pose))
+        return
     with reported():
         from bodyfit.io.scans import load_scan
         from bodyfit.models.rig.build import RigConfig
@@ -72,6 +81,52 @@ def rig(
     if built.undetermined:
         typer.echo(f"undetermined joints (from the shape space): {', '.join(built.undetermined)}")
     typer.echo(f"wrote {out}/subject.npz, subject.json, rest.ply{', subject.onnx' if onnx else ''}")
+
+
+def _on_server(
+    url: str,
+    scans: list[Path],
+    out: Path,
+    units: str,
+    allow_undetermined: bool,
+    hints: tuple[str | None, str | None, str | None],
+) -> None:
+    """Build the rig on a server through the SDK (``build_subject``) and write subject.npz, subject.json and
+    rest.ply (the person in the zero pose, synthesized by the server from the subject file)."""
+    from bodyfit.clients.errors import BodyfitClientError
+    from bodyfit.clients.rest_client import Client
+
+    up, facing, pose = hints
+
+    def show(event: dict[str, object]) -> None:
+        if event.get("message"):
+            note(f"  {event['message']}")
+
+    try:
+        with Client(url) as client:
+            built = client.build_subject(
+                scans, units, show, up=up, facing=facing, pose=pose, allow_undetermined=allow_undetermined
+            )
+            rest = client.synthesize_file("ply", subject=built.subject)
+    except (BodyfitClientError, ValueError) as exc:
+        fail(exc)
+    out.mkdir(parents=True, exist_ok=True)
+    built.save(out / "subject.npz")
+    record = {
+        "scans": list(built.scans),
+        "generic_mm": [round(v, 3) for v in built.generic_mm],
+        "personal_mm": [round(v, 3) for v in built.personal_mm],
+        "undetermined_joints": list(built.undetermined_joints),
+        "seconds": round(built.seconds, 2),
+        "server": url,
+    }
+    (out / "subject.json").write_text(json.dumps(record, indent=1) + "\n")
+    (out / "rest.ply").write_bytes(rest)
+    for name, g, p in zip(built.scans, built.generic_mm, built.personal_mm, strict=True):
+        typer.echo(f"{name}: {g:.2f} mm with the generic model, {p:.2f} mm with the rig")
+    if built.undetermined_joints:
+        typer.echo(f"undetermined joints (from the shape space): {', '.join(built.undetermined_joints)}")
+    typer.echo(f"wrote {out}/subject.npz, subject.json, rest.ply")
 
 
 def write_rig(out: Path, built: RigBuild, model: BodyModel, onnx: bool) -> None:

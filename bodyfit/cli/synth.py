@@ -52,6 +52,15 @@ def synth(
     server: Annotated[
         str | None, typer.Option(help="Ask this bodyfit server (URL) instead of computing locally.")
     ] = None,
+    subject: Annotated[
+        Path | None,
+        typer.Option(
+            exists=True,
+            dir_okay=False,
+            help="A subject file (the subject.npz of `bodyfit rig`): the body is that person's, instead of "
+            "--shape or --measure.",
+        ),
+    ] = None,
 ) -> None:
     """Synthesize one posed body and write it (format from the file suffix); a body built from --measure
     prints what it achieved beside what was asked."""
@@ -60,6 +69,8 @@ def synth(
     fmt = out.suffix.lstrip(".").lower()
     if shape is not None and measure:
         fail("give --shape or --measure, not both: the body built from measurements has its own shape")
+    if subject is not None and (shape is not None or measure):
+        fail("give --subject or --shape / --measure, not both: the subject's body has its own shape")
     try:
         values = {k: float(v) for k, v in (item.split("=", 1) for item in coordinate or [])}
         wanted = {k.strip(): float(v) for k, v in (item.split("=", 1) for item in measure or [])} or None
@@ -72,14 +83,16 @@ def synth(
         )
     built = None
     if server is not None:
-        data, built = _from_server(server, fmt, c, values, r, skeleton, wanted, sex)
+        data, built = _from_server(server, fmt, c, values, r, skeleton, wanted, sex, subject)
     else:
         with reported():
             from bodyfit.service.core import BodyService, SynthRequest
             from bodyfit.service.formats import encode_bodies
 
             service = BodyService.load(fitters=False)
-            request, built = service.with_built_shape(SynthRequest(c, values, r, skeleton, None, wanted, sex))
+            person = None if subject is None else subject.read_bytes()
+            asked = SynthRequest(c, values, r, skeleton, None, wanted, sex, person)
+            request, built = service.with_built_shape(asked)
             data = encode_bodies(service.synthesize(request), fmt, faces=True)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_bytes(data)
@@ -109,6 +122,7 @@ def _from_server(
     skeleton: bool,
     measurements: dict[str, float] | None,
     sex: str | None,
+    subject: Path | None = None,
 ) -> tuple[bytes, Any]:
     """The body's file from a server's REST API, through the SDK, and for measurements what the build
     achieved (the SDK's synthesis arrays carry it; the file is then asked for with the built shape)."""
@@ -124,7 +138,7 @@ def _from_server(
                 built = client.synthesize(measurements=measurements, sex=sex).built
                 shape = None if built is None else np.asarray(built.shape, np.float64)
             data = client.synthesize_file(
-                fmt, shape=shape, coordinates=coordinates, root=root, skeleton=skeleton
+                fmt, shape=shape, coordinates=coordinates, root=root, skeleton=skeleton, subject=subject
             )
             return data, built
     except BodyfitClientError as exc:

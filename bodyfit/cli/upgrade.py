@@ -11,6 +11,12 @@ import typer
 
 from bodyfit.cli.common import OUT_HELP, SMPL_MODEL_HELP, note, reported
 
+SUBJECT_HELP = (
+    "A subject file (the subject.npz of `bodyfit rig`): the body is that person's (shape, template and "
+    "skeleton held fixed; only the poses are fitted) and the .osim carries their bone scales. Not with "
+    "--sex, --height or --mass."
+)
+
 
 def upgrade(
     sequence: Annotated[
@@ -36,6 +42,7 @@ def upgrade(
             "the motion (AMASS's Z-up needs nothing). The output is Y-up, as OpenSim's."
         ),
     ] = "auto",
+    subject: Annotated[Path | None, typer.Option(exists=True, dir_okay=False, help=SUBJECT_HELP)] = None,
 ) -> None:
     """Upgrade an SMPL-format sequence to biomechanical coordinates: path (a) with an SMPL-family model file,
     else path (b) from the joint rotations alone (shape: from --sex/--height/--mass, else the population
@@ -60,6 +67,7 @@ def upgrade(
         upgrade_with_model,
         write_upgrade,
     )
+    from bodyfit.service.personal import check_alone, personal_body
 
     with reported():
         up_axis = up_axis_name(up)
@@ -68,6 +76,9 @@ def upgrade(
         given = smpl_model or os.environ.get(ENV_VAR)
         smpl = load_smpl_model(given) if given else None
         model = BodyModel.load()
+        body = None if subject is None else personal_body(model, subject.read_bytes())
+        check_alone(body, [("--sex, --height and --mass", hints)])
+        fitter = upgrade_fitter(model) if body is None else upgrade_fitter(model).for_body(body)
         with tqdm(total=seq.n_frames, unit="frame", desc=sequence.name) as bar:
 
             def progress(done: int, total: int) -> None:
@@ -75,10 +86,9 @@ def upgrade(
 
             if smpl is None:
                 note("no SMPL-family model file: path (b), from the joint rotations alone")
-                fitter = upgrade_fitter(model)
                 result = upgrade_from_rotations(seq, fitter, hints=hints, progress=progress, up=up_axis)
             else:
-                result = upgrade_with_model(seq, smpl, upgrade_fitter(model), progress=progress, up=up_axis)
+                result = upgrade_with_model(seq, smpl, fitter, progress=progress, up=up_axis)
     paths = write_upgrade(result, model, out, sequence.stem)
     summary = result.summary()
     v2v = "" if summary["v2v_mean_mm"] is None else f"v2v {summary['v2v_mean_mm']:.1f} mm, "

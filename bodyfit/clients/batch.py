@@ -27,6 +27,7 @@ from typing import Any, Protocol
 from tqdm import tqdm
 
 from bodyfit.clients.errors import BodyfitClientError
+from bodyfit.clients.uploads import SubjectInput, subject_upload
 
 Files = dict[str, bytes]
 SKIPPED_NAMES = ("shape.npz",)
@@ -88,17 +89,21 @@ def write_outputs(base: Path, files: Files) -> None:
         os.replace(tmp, target)
 
 
-def server_upgrader(url: str, timeout: float = 600.0, up: str | None = None) -> Upgrader:
+def server_upgrader(
+    url: str, timeout: float = 600.0, up: str | None = None, subject: SubjectInput | None = None
+) -> Upgrader:
     """Upgrades through a bodyfit server's REST API; ``up``: every sequence's up axis (None: detected per
-    sequence, see :func:`bodyfit.clients.core.operations.upgrade`)."""
+    sequence, see :func:`bodyfit.clients.core.operations.upgrade`); ``subject``: the subject file of the
+    person every sequence shows (None: each sequence's own body)."""
     import httpx
 
     from bodyfit.clients.rest_client import Client
 
     client = Client(url, timeout=httpx.Timeout(30.0, read=timeout))
+    person = subject_upload(subject)
 
     def upgrade(path: Path) -> Files:
-        return client.upgrade(path, up=up).files
+        return client.upgrade(path, up=up, subject=person).files
 
     return upgrade
 
@@ -123,6 +128,7 @@ def batch_upgrade(
     smpl_model: str | os.PathLike[str] | None = None,
     progress: bool = True,
     up: str | None = None,
+    subject: SubjectInput | None = None,
 ) -> BatchReport:
     """Upgrade every sequence under ``dataset_dir`` into ``out_dir`` (see the module docstring).
 
@@ -135,17 +141,25 @@ def batch_upgrade(
         progress: show a tqdm bar.
         up: the sequences' up axis (+x, -x, +y, -y, +z or -z) for a server URL back-end; None: each
             sequence's is detected from its motion (AMASS's Z-up needs nothing).
+        subject: for a server URL back-end, the subject file of the one person every sequence shows (a
+            path, bytes, a ``Subject`` or ``build_subject``'s result; see ``upgrade(subject=)``).
 
     Raises:
-        ValueError: ``up`` with a back-end that cannot take it (give the server URL, or an
+        ValueError: ``up`` or ``subject`` with a back-end that cannot take it (give the server URL, or an
             :class:`Upgrader` that applies it).
     """
     root = Path(dataset_dir)
     if not root.is_dir():
         raise FileNotFoundError(f"{root} is not a folder of .npz sequences")
-    if up is not None and not (isinstance(backend, str) and backend.startswith(("http://", "https://"))):
-        raise ValueError("batch_upgrade(up=...) needs a server URL back-end; an Upgrader applies its own")
-    upgrader = _resolve(backend, concurrency, smpl_model, up) if isinstance(backend, str) else backend
+    served = isinstance(backend, str) and backend.startswith(("http://", "https://"))
+    if (up is not None or subject is not None) and not served:
+        raise ValueError(
+            "batch_upgrade(up=..., subject=...) needs a server URL back-end; an Upgrader applies its own"
+        )
+    if isinstance(backend, str):
+        upgrader = _resolve(backend, concurrency, smpl_model, up, subject)
+    else:
+        upgrader = backend
     return run_batch(root, Path(out_dir), find_sequences(root), upgrader, concurrency, progress, "seq")
 
 
@@ -187,12 +201,16 @@ def run_batch(
 
 
 def _resolve(
-    backend: str, concurrency: int, smpl_model: str | os.PathLike[str] | None, up: str | None = None
+    backend: str,
+    concurrency: int,
+    smpl_model: str | os.PathLike[str] | None,
+    up: str | None = None,
+    subject: SubjectInput | None = None,
 ) -> Upgrader:
     """A server URL's :func:`server_upgrader`; the deprecated in-process names through
     :func:`bodyfit.cli.backends.upgrader`, with a :class:`DeprecationWarning`."""
     if backend.startswith(("http://", "https://")):
-        return server_upgrader(backend, up=up)
+        return server_upgrader(backend, up=up, subject=subject)
     warnings.warn(
         f"batch_upgrade(backend={backend!r}) from bodyfit.clients.batch is deprecated and will be removed in "
         "the next release: pass backend=bodyfit.cli.backends.upgrader(name, concurrency, smpl_model)",

@@ -23,7 +23,8 @@ from bodyfit.api import bodyfit_pb2 as pb
 from bodyfit.api import bodyfit_pb2_grpc as pb_grpc
 from bodyfit.api.grpc_wire import measure_doc, to_proto
 from bodyfit.clients.core import AsyncClientCore, Event, Operation, SyncClientCore, parse_retry_after
-from bodyfit.clients.core.base import retry_policy
+from bodyfit.clients.core import operations as ops
+from bodyfit.clients.core.base import async_method, retry_policy, sync_method
 from bodyfit.clients.core.operations import Coordinates
 from bodyfit.clients.core.retry import DEFAULT_RETRIES, RetryPolicy
 from bodyfit.clients.errors import BodyfitClientError, InvalidRequestError, ServerError, error_from_status
@@ -41,6 +42,7 @@ RPCS = {
     "fit_sequence": "FitSequence",
     "upgrade": "Upgrade",
     "measure": "Measure",
+    "build_subject": "BuildSubject",
 }
 C = TypeVar("C", grpc.Channel, grpc.aio.Channel)
 __all__ = ["AsyncGrpcClient", "Coordinates", "GrpcClient", "RetryPolicy", "client_error"]
@@ -68,12 +70,28 @@ def request_of(op: Operation[Any]) -> Message:
         return synth_request(a, op.name == "synthesize_file")
     if op.name == "measure":
         return measure_request(a)
+    subject = a.get("subject") or b""
     if op.name == "fit_scan":
-        return pb.FitScanRequest(data=a["data"], format=a["format"], units=a["units"], **a["hints"])
+        hints = a["hints"]
+        return pb.FitScanRequest(
+            data=a["data"], format=a["format"], units=a["units"], subject=subject, **hints
+        )
     if op.name == "fit_sequence":
         weights = None if a["weights"] is None else to_proto(a["weights"])
-        return pb.FitSequenceRequest(frames=to_proto(a["frames"]), weights=weights, chunk=a["chunk"])
-    return pb.UpgradeRequest(data=a["data"], filename=a["name"], chunk=a["chunk"], **a["hints"])
+        frames = to_proto(a["frames"])
+        return pb.FitSequenceRequest(frames=frames, weights=weights, chunk=a["chunk"], subject=subject)
+    if op.name == "build_subject":
+        return subject_request(a)
+    hints = a["hints"]
+    return pb.UpgradeRequest(data=a["data"], filename=a["name"], chunk=a["chunk"], subject=subject, **hints)
+
+
+def subject_request(a: dict[str, Any]) -> pb.BuildSubjectRequest:
+    """The BuildSubject request of a build_subject operation's arguments (files and form fields)."""
+    fields = dict(a["fields"])
+    allow = fields.pop("allow_undetermined") == "true"
+    scans = [pb.ScanFile(data=data, filename=name) for name, data in a["files"]]
+    return pb.BuildSubjectRequest(scans=scans, allow_undetermined=allow, **fields)
 
 
 def synth_request(a: dict[str, Any], file: bool) -> pb.SynthesizeRequest:
@@ -85,6 +103,8 @@ def synth_request(a: dict[str, Any], file: bool) -> pb.SynthesizeRequest:
         req.measurements.update(a["measurements"])
     if a["sex"] is not None:
         req.sex = a["sex"]
+    if a["subject"] is not None:
+        req.subject = a["subject"]
     return req
 
 
@@ -237,6 +257,9 @@ class GrpcClient(_Grpc[grpc.Channel], SyncClientCore):
         retry: the retry policy (default :class:`RetryPolicy`: a 20 s budget); ``retries`` caps its count.
     """
 
+    # a rig from several scans (``BuildSubject``)
+    build_subject = sync_method(ops.build_subject)
+
     def _new_channel(self, target: str, options: list[tuple[str, int]]) -> grpc.Channel:
         return grpc.insecure_channel(target, options=options)
 
@@ -261,6 +284,8 @@ class GrpcClient(_Grpc[grpc.Channel], SyncClientCore):
 
 class AsyncGrpcClient(_Grpc[grpc.aio.Channel], AsyncClientCore):
     """Asynchronous gRPC client (grpc.aio); the same methods as :class:`GrpcClient`, awaited."""
+
+    build_subject = async_method(ops.build_subject)
 
     def _new_channel(self, target: str, options: list[tuple[str, int]]) -> grpc.aio.Channel:
         return grpc.aio.insecure_channel(target, options=options)

@@ -10,6 +10,7 @@ documents (JSON text, one per NDJSON line), which the core reads with the models
 
 from __future__ import annotations
 
+import base64
 import os
 from collections.abc import AsyncGenerator, Generator
 from typing import Any, Generic, TypeVar
@@ -58,7 +59,14 @@ def _json_body(args: dict[str, Any]) -> dict[str, Any]:
     for key in ("batch", "measurements", "sex"):
         if args.get(key) is not None:
             body[key] = args[key]
+    if args.get("subject") is not None:
+        body["subject"] = base64.b64encode(args["subject"]).decode()
     return body
+
+
+def _with_subject(files: dict[str, Any], a: dict[str, Any]) -> dict[str, Any]:
+    """The multipart files of an upload plus the operation's subject file, when it has one."""
+    return files if a.get("subject") is None else {**files, "subject": ("subject.npz", a["subject"])}
 
 
 def _arrays(args: dict[str, Any], keys: tuple[str, ...]) -> dict[str, Any]:
@@ -103,17 +111,17 @@ def request_of(op: Operation[Any]) -> tuple[str, str, dict[str, Any]]:
         return "POST", "/v1/measure", measure_request(a)
     stream: dict[str, Any] = {"headers": {"accept": NDJSON}}
     if op.name == "fit_scan":
-        files = {"file": (a["name"], a["data"])}
+        files = _with_subject({"file": (a["name"], a["data"])}, a)
         fields = {"units": a["units"], **{k: str(v) for k, v in a["hints"].items()}}
         return "POST", "/v1/fit/scan", {"files": files, "data": fields, **stream}
     if op.name == "fit_sequence":
-        files = {"file": ("frames.npz", frames_npz(a["frames"], a["weights"]))}
+        files = _with_subject({"file": ("frames.npz", frames_npz(a["frames"], a["weights"]))}, a)
         return "POST", f"/v1/fit/sequence?chunk={a['chunk']}", {"files": files, **stream}
     if op.name == "build_subject":
         parts = [("files", item) for item in a["files"]]
         return "POST", "/v1/subjects", {"files": parts, "data": a["fields"], **stream}
     hints = {k: str(v) for k, v in a["hints"].items()} or None
-    files = {"file": (a["name"], a["data"])}
+    files = _with_subject({"file": (a["name"], a["data"])}, a)
     return "POST", f"/v1/upgrade?chunk={a['chunk']}", {"files": files, "data": hints, **stream}
 
 
@@ -181,7 +189,7 @@ class Client(_Rest[httpx.Client], SyncClientCore):
         retry: the retry policy (default :class:`RetryPolicy`: a 20 s budget); ``retries`` caps its count.
     """
 
-    # a rig from several scans (REST only: ``POST /v1/subjects``)
+    # a rig from several scans (``POST /v1/subjects``)
     build_subject = sync_method(ops.build_subject)
 
     def _new_http(self, **kwargs: Any) -> httpx.Client:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import os
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -41,3 +42,40 @@ def scan_upload(scan: ScanInput, format: str | None) -> tuple[str, bytes]:
         )
     path = Path(scan)
     return (f"{path.stem}.{format}" if format else path.name), path.read_bytes()
+
+
+class SubjectFile(Protocol):
+    """A subject held in memory: ``bodyfit.models.rig.subject.Subject`` (``to_bytes``)."""
+
+    def to_bytes(self) -> bytes: ...
+
+
+SubjectInput = str | os.PathLike[str] | bytes | SubjectFile
+"""A subject file (``bodyfit rig``, ``build_subject``): its path, its bytes, a ``Subject``, or the
+``SubjectOutput`` that ``build_subject`` returned."""
+
+
+def subject_upload(subject: SubjectInput | None) -> bytes | None:
+    """The subject file's bytes (None stays None); the server checks them.
+
+    Raises:
+        ValueError: empty bytes or an empty file; TypeError: anything else.
+    """
+    if subject is None:
+        return None
+    if isinstance(subject, bytes | bytearray):
+        data = bytes(subject)
+    elif isinstance(subject, str | os.PathLike):
+        data = Path(subject).read_bytes()
+    elif isinstance(getattr(subject, "subject", None), bytes):  # the SDK's SubjectOutput
+        data = subject.subject  # type: ignore[attr-defined]
+    elif callable(getattr(subject, "to_bytes", None)):
+        data = subject.to_bytes()
+    else:
+        raise TypeError(
+            f"subject must be a subject file's path or bytes, a Subject or build_subject's result; got "
+            f"{type(subject).__name__}"
+        )
+    if not data:
+        raise ValueError("the subject file is empty; pass the .npz that `bodyfit rig` or build_subject wrote")
+    return data

@@ -29,11 +29,13 @@ from bodyfit.models.assets import read_manifest, verified_asset
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.body.onnx_export import BODY_ONNX
 from bodyfit.models.fitting.common.report import FitReport
-from bodyfit.models.fitting.registered.fitter import BodyFit, RegisteredFitter
+from bodyfit.models.fitting.registered.fitter import BodyFit, FixedBody, RegisteredFitter
 from bodyfit.models.fitting.registered.smpl_topology import SMPL_VERTICES, fit_smpl_mesh
 from bodyfit.models.fitting.scan.config import ScanFitConfig
-from bodyfit.models.fitting.scan.fitter import ScanFitter
+from bodyfit.models.fitting.scan.fitter import ScanFit, ScanFitter
+from bodyfit.models.fitting.scan.phases import prepare_scan
 from bodyfit.models.fitting.sequence.fitter import SequenceFit, SequenceFitter, SequenceFrames
+from bodyfit.models.rig.subject import Subject
 from bodyfit.models.upgrade.axes import up_axis_name
 from bodyfit.models.upgrade.inputs import check_axis_angle, layout_error
 from bodyfit.models.upgrade.proxy import ShapeHintError, ShapeHints, SmplProxy, load_proxy
@@ -52,6 +54,7 @@ from bodyfit.service.formats import Bodies
 from bodyfit.service.hints import ScanHints, height_check, hint_use
 from bodyfit.service.jobs import Job
 from bodyfit.service.limits import Limits
+from bodyfit.service.personal import check_alone, personal_body
 from bodyfit.service.synthesis import SynthRequest, batch_of, synthesis_parameters
 from bodyfit.service.uploads import SEQUENCE_BYTES_PER_FRAME
 from bodyfit.service.validation import (
@@ -95,13 +98,15 @@ def model_info(model: BodyModel, manifest: dict[str, Any]) -> ModelInfo:
 
 @dataclass(frozen=True)
 class PendingSynthesis:
-    """A validated synthesis whose model call is queued: ``future`` gives (vertices, joints)."""
+    """A validated synthesis whose model call is queued: ``future`` gives (vertices, joints); ``body``: the
+    subject's body that posed it (its decoder, not the ONNX session), or None."""
 
     request: SynthRequest
     shape: np.ndarray
     coordinates: np.ndarray
     root: np.ndarray
     future: Future[Outputs]
+    body: FixedBody | None = None
 
 
 # how :meth:`BodyService.fit_mesh` fits a mesh (:meth:`BodyService.route`), as ``MeshFit.fitted_as`` says
@@ -248,6 +253,16 @@ class BodyService:
     def info(self) -> ModelInfo:
         return self._info
 
+    def subject_body(self, subject: bytes | Subject | None) -> FixedBody | None:
+        """A request's subject file as the person's body (:func:`bodyfit.service.personal.personal_body`):
+        transports call it before any work starts, so that a bad subject is refused up front.
+
+        Raises:
+            InvalidInputError: an empty upload, not a subject file, a damaged one or one built for another
+                body model (field ``subject``).
+        """
+        return personal_body(self.model, subject)
+
     # -- synthesis -------------------------------------------------------------------------------------
     def synthesize(self, request: SynthRequest) -> Bodies:
         """Parameters -> posed skin and joints (ONNX Runtime), and the posed bone mesh when asked for.
@@ -267,8 +282,13 @@ class BodyService:
 
         Raises:
             InvalidInputError: both shape and measurements, sex without measurements, an unknown
-                measurement name (with the closest names) or an implausible value (with its range).
+                measurement name (with the closest names) or an implausible value (with its range); a
+                subject with shape, measurements or sex, or a subject file that cannot be used.
         """
+        if request.subject is not None:
+            body = self.subject_body(request.subject)
+            check_alone(body, [(n, getattr(request, n)) for n in ("shape", "measurements", "sex")])
+            return request, None
         if request.measurements is None:
             if request.sex is not None:
                 raise InvalidInputError("sex goes with measurements (a body built from them)", field="sex")
@@ -292,16 +312,30 @@ class BodyService:
     def start_synthesis(self, request: SynthRequest) -> PendingSynthesis:
         """Validate ``request`` (raising as :meth:`synthesize`) and queue its model call; concurrent
         requests share one call (:class:`SynthBatcher`). Await ``future`` then :meth:`finish_synthesis`.
-        A request with measurements is built first (:meth:`with_built_shape`, whose report is dropped here).
+        A request with measurements is built first (:meth:`with_built_shape`, whose report is dropped here);
+        one with a subject is posed at once by the subject's decoder (the ONNX model has no personal
+        template), its future already done.
         """
         request, _ = self.with_built_shape(request)
         q, root, shape = synthesis_parameters(request, self.model, self.limits.max_batch)
-        return PendingSynthesis(request, shape, q, root, self._batcher.submit(shape, q, root))
+        body = self.subject_body(request.subject)
+        if body is None:
+            return PendingSynthesis(request, shape, q, root, self._batcher.submit(shape, q, root))
+        shape = np.repeat(body.shape[None].astype(np.float32), len(q), 0)
+        vertices, joints, _, _ = _posed(body, shape, q, root)
+        done: Future[Outputs] = Future()
+        done.set_result((vertices.numpy(), joints.numpy()))
+        return PendingSynthesis(request, shape, q, root, done, body)
 
     def finish_synthesis(self, pending: PendingSynthesis, vertices: np.ndarray, joints: np.ndarray) -> Bodies:
         """The :class:`Bodies` of a finished model call, with the bone mesh posed when it was asked for."""
         bones = bone_faces = None
-        if pending.request.skeleton:
+        if pending.request.skeleton and pending.body is not None:
+            _, _, frames, scales = _posed(pending.body, pending.shape, pending.coordinates, pending.root)
+            with torch.no_grad():
+                bones = self.model.pose_bones(frames, scales).numpy().astype(np.float32)
+            bone_faces = np.asarray(self.model.skeleton.bone_mesh().faces, np.int32)
+        elif pending.request.skeleton:
             with torch.no_grad():
                 out = self.model.forward(pending.shape, pending.coordinates, pending.root, skeleton_mesh=True)
             assert out.bones is not None
@@ -392,7 +426,13 @@ class BodyService:
         """
         check_scan(scan, whole_body=self.route(scan) != RAW_SCAN)
 
-    def fit_mesh(self, scan: Scan, job: Job | None = None, hints: ScanHints | None = None) -> MeshFit:
+    def fit_mesh(
+        self,
+        scan: Scan,
+        job: Job | None = None,
+        hints: ScanHints | None = None,
+        body: FixedBody | None = None,
+    ) -> MeshFit:
         """Fit one mesh or scan, routed by its topology: 13,348 vertices -> registered fit; 6,890 vertices
         with faces -> SMPL topology (placed through the stored map, then refined on the mesh's surface);
         anything else -> raw scan (orientation searched unless ``hints`` give it, no landmarks). The answer
@@ -402,7 +442,9 @@ class BodyService:
         (both needed; not searched then) or an SMPL-topology mesh's (in place of SMPL's +Y up, facing +Z);
         the pose class gives a raw scan's start pose; the height is checked against the fitted body's (a
         difference over :data:`~bodyfit.service.hints.HEIGHT_TOLERANCE_M` makes the fit not confident);
-        sex is recorded. The report's ``extra["hints"]`` says how each given hint was used.
+        sex is recorded. The report's ``extra["hints"]`` says how each given hint was used. ``body``: a
+        subject's (:meth:`subject_body`), whose shape and template are held fixed: only the orientation,
+        pose and root are fitted.
 
         Raises:
             InvalidInputError: a scan that cannot be a body (:meth:`check_scan`), found so during the
@@ -425,7 +467,7 @@ class BodyService:
                 total = steps
                 job.report("fit", done, steps, line)
 
-            fit = _fit_routed(fitters, route, scan, progress, hints or ScanHints())
+            fit = _fit_routed(fitters, route, scan, progress, hints or ScanHints(), body)
             check_finite_result(
                 "fit",
                 {**fit.arrays(), "report distances": np.array(fit.report.distances.mean)},
@@ -456,12 +498,14 @@ class BodyService:
         job: Job | None = None,
         checked: bool = False,
         on_frames: Callable[[SequenceFrames], None] | None = None,
+        body: FixedBody | None = None,
     ) -> SequenceFit:
         """Fit a registered sequence (T, V, 3) of one person (one shape, per-frame pose). ``checked``: the
         caller ran :meth:`check_sequence` on these arrays already (it runs here otherwise). ``on_frames``:
         called with each block of final frames while the fit runs, in time order, every frame once
         (:meth:`bodyfit.models.fitting.sequence.fitter.SequenceFitter.fit_frames`), each block checked
-        finite first, so that a transport streams the first frames while the rest are fitted.
+        finite first, so that a transport streams the first frames while the rest are fitted. ``body``: a
+        subject's (:meth:`subject_body`): no shape fit, every frame posed with the subject's body.
 
         Raises:
             InvalidInputError: wrong shape or dtype, NaN, no frames, a frame that is not a body
@@ -487,7 +531,8 @@ class BodyService:
                     on_frames(block)
 
             with invalid_input("frames"):
-                fit = self.fitters.sequence.fit(
+                fitter = self.fitters.sequence if body is None else self.fitters.sequence.for_body(body)
+                fit = fitter.fit(
                     x, weights, progress=progress, on_frames=None if on_frames is None else checked_frames
                 )
             _check_sequence_fit(fit)
@@ -519,19 +564,24 @@ class BodyService:
         job: Job | None = None,
         hints: ShapeHints | None = None,
         up: str | None = None,
+        body: FixedBody | None = None,
     ) -> UpgradeResult:
         """Upgrade an SMPL-format sequence: path (a) with the server's SMPL-family model file, else path (b)
         from the joint rotations, its shape from ``hints`` (see :func:`shape_hints`) or the population
         mean (the result's notes say which ran). ``up``: the input's up axis (see :func:`upgrade_up`);
-        None: detected from the motion.
+        None: detected from the motion. ``body``: a subject's (:meth:`subject_body`), whose shape, template
+        and skeleton are held fixed (path (a) poses the SMPL meshes from the sequence's betas still, but fits
+        only the poses to them); the .osim carries the subject's bone scales.
 
         Raises:
-            InvalidInputError: a sequence found unusable during the work, or whose result is not finite.
+            InvalidInputError: a sequence found unusable during the work, or whose result is not finite;
+                shape hints together with a subject.
             BusyError: no worker slot within ``limits.queue_seconds``.
             JobCancelledError: ``job`` was cancelled (the client went away).
             DeadlineExceededError: ``job`` ran past its time limit.
         """
         job = job or Job(timeout_s=self.limits.max_seconds)
+        check_alone(body, [("shape hints (sex, height_m, mass_kg)", hints)])
         with self._slot():
             job.report("upgrade", 0, sequence.n_frames, "posing the SMPL meshes")
 
@@ -540,14 +590,11 @@ class BodyService:
 
             with invalid_input("file"):
                 fitters = self.fitters
+                upgrader = fitters.upgrade if body is None else fitters.upgrade.for_body(body)
                 if self._smpl is None:
-                    result = upgrade_from_rotations(
-                        sequence, fitters.upgrade, fitters.proxy, hints, progress, up=up
-                    )
+                    result = upgrade_from_rotations(sequence, upgrader, fitters.proxy, hints, progress, up=up)
                 else:
-                    result = upgrade_with_model(
-                        sequence, self._smpl, fitters.upgrade, progress=progress, up=up
-                    )
+                    result = upgrade_with_model(sequence, self._smpl, upgrader, progress=progress, up=up)
             _check_upgrade(result)
             if hints is not None and result.path == "a":
                 note = "shape hints were not used: path (a) shapes the body from the sequence's betas"
@@ -603,30 +650,91 @@ def upgrade_up(text: str | None) -> str | None:
         raise InvalidInputError(str(exc), field="up") from None
 
 
+def _for_body(fitters: _Fitters, body: FixedBody) -> _Fitters:
+    """The registered and scan fitters of ``fitters`` for a subject's body (:meth:`ScanFitter.for_body`, whose
+    registered fitter serves both); the sequence, upgrade and proxy as they are (a mesh fit uses neither)."""
+    scan = fitters.scan.for_body(body)
+    return replace(fitters, registered=scan.fitter, scan=scan)
+
+
+def _personal_refinement(
+    scanner: ScanFitter,
+    scan: Scan,
+    start: ScanFit,
+    body: FixedBody,
+    progress: Callable[[int, int, str], None],
+) -> ScanFit:
+    """A raw scan of a known person: the population's fit ``start`` (orientation searched, limbs placed)
+    refined by ``scanner`` (:meth:`ScanFitter.for_body`: its point-to-plane phases and the non-rigid
+    refinement, on the scan's points that the scene separation keeps, as the population's fit did) with the
+    person's shape and template held fixed, then answered in the scan's frame. A pose-only fit of the person
+    from the rigid start can settle with the legs swapped on a surface it matches within a millimetre; the
+    population's fit places the limbs first. A head and shoulders is fitted by ``scanner`` alone (its own
+    upper-body phases).
+
+    In the frame ``start``'s parameters pose the body in (``x_body = R x_scan + t`` from its
+    ``scan_to_body``) the refinement's parameters hold the placement themselves, so its map is ``start``'s.
+    """
+    if start.report.extra.get("fitted_part") == "head and shoulders":
+        return scanner.fit(scan, progress=progress)
+    turn = start.scan_to_body
+    R, t = turn[:3, :3], turn[:3, 3]
+    person, _, _, _ = prepare_scan(scan, scanner.config)
+    fit = scanner.refine(person @ R.T + t, body.shape, start.coordinates, start.root, progress)
+
+    def back(x: np.ndarray) -> np.ndarray:
+        return (x - t) @ R
+
+    scene = {k: v for k, v in start.report.extra.items() if k == "scene"}  # what the separation removed
+    return replace(
+        fit,
+        vertices=back(fit.vertices),
+        registration=back(fit.registration),
+        joints=back(fit.joints),
+        scan_to_body=fit.scan_to_body @ turn,
+        report=replace(fit.report, extra={**fit.report.extra, **scene}),
+    )
+
+
+def _posed(
+    body: FixedBody, shape: np.ndarray, q: np.ndarray, root: np.ndarray
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A subject's bodies in float32: vertices (B, V, 3), joints (B, J, 3), frames (B, n_body, 4, 4) and
+    scales (B, n_seg, 3) of their shapes (B, n_shape), coordinates (B, n_dof) and roots (B, 3)."""
+    with torch.no_grad():
+        args = (torch.as_tensor(np.asarray(a), dtype=torch.float32) for a in (shape, q, root))
+        return body.decoder(torch.float32)(*args)
+
+
 def _fit_routed(
     fitters: _Fitters,
     route: FittedAs,
     scan: Scan,
     progress: Callable[[int, int, str], None],
     hints: ScanHints,
+    body: FixedBody | None = None,
 ) -> MeshFit:
     """Fit ``scan`` the way ``route`` says (:meth:`BodyService.route`), with ``hints`` where the route can
     use them, in the input's frame (:class:`MeshFit`); ``progress`` (done, steps, line) gets the scan
-    fitter's steps."""
+    fitter's steps. ``body``: a subject's, held fixed (:func:`_for_body`; a raw scan of a whole body is
+    placed by the population's fit first, :func:`_personal_refinement`)."""
     orientation = hints.orientation()
     start = hints.start(fitters.scan.model)
+    personal = fitters if body is None else _for_body(fitters, body)
     if route == REGISTERED:
-        fit = _first(fitters.registered.fit(scan.points), REGISTERED)
+        fit = _first(personal.registered.fit(scan.points), REGISTERED)
         return _with_hints(fit, fitters.scan.model, hints, False, False)
     if route == SMPL_TOPOLOGY:  # placed through the map, then refined on the mesh's surface
         assert scan.faces is not None  # the route needs them
-        registered, faces = fitters.registered, scan.faces
-        f = fit_smpl_mesh(registered, fitters.scan, scan.points, faces, orientation, progress=progress)
+        registered, faces = personal.registered, scan.faces
+        f = fit_smpl_mesh(registered, personal.scan, scan.points, faces, orientation, progress=progress)
         start = None
         up = None
     else:
         up = hints.up_only()  # up without facing: the search keeps it
         f = fitters.scan.fit(scan, progress=progress, orientation=orientation, start=start, up=up)
+        if body is not None:
+            f = _personal_refinement(personal.scan, scan, f, body, progress)
     fit = MeshFit(route, f.shape, f.coordinates, f.root, f.registration, f.joints, f.report, f.scan_to_body)
     used = (orientation is not None, start is not None, up is not None)
     return _with_hints(fit, fitters.scan.model, hints, *used)

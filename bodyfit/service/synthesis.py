@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from bodyfit.models.body.model import BodyModel
+from bodyfit.models.rig.subject import Subject
 from bodyfit.models.skeleton.model import RANGE_TOLERANCE
 from bodyfit.service.errors import InvalidInputError, LimitExceededError
 from bodyfit.service.validation import check_plausible, float_array, invalid_input
@@ -24,7 +25,9 @@ class SynthRequest:
     mapping DOF name -> value or (B,) values (missing DOFs are 0), or None (zero pose); root (B, 3) metres
     or None; skeleton: also pose the bone mesh; batch: B when nothing else gives it; measurements: instead
     of shape, build the body from these ({name: value}, docs/anthropometry.md) for ``sex`` (male, female or
-    None), all B bodies with that shape (:meth:`bodyfit.service.core.BodyService.with_built_shape`)."""
+    None), all B bodies with that shape (:meth:`bodyfit.service.core.BodyService.with_built_shape`);
+    subject: instead of shape or measurements, a subject file (its ``.npz`` bytes or a :class:`Subject`):
+    all B bodies are that person's (:mod:`bodyfit.service.personal`)."""
 
     shape: np.ndarray | None = None
     coordinates: Coordinates = None
@@ -33,6 +36,7 @@ class SynthRequest:
     batch: int | None = None
     measurements: Mapping[str, float] | None = None
     sex: str | None = None
+    subject: bytes | Subject | None = None
 
 
 def rows_array(value: Sequence[Sequence[float]] | None, field: str) -> np.ndarray | None:

@@ -73,7 +73,9 @@ def test_fit_starts_a_helper_process_for_three_or_more_raw_scans(
 
     seen: list[int] = []
 
-    def first_fit(self: BodyService, scan: object, job: object = None, hints: object = None) -> None:
+    def first_fit(
+        self: BodyService, scan: object, job: object = None, hints: object = None, body: object = None
+    ) -> None:
         seen.append(self.scan_processes)
         raise OSError("stopped by the test")
 
@@ -98,7 +100,9 @@ def test_fit_reads_a_depth_camera_cloud_as_the_server_does(
     does, and says how many (the fit itself is stopped here: reading is what is tested)."""
     from bodyfit.service.core import BodyService
 
-    def first_fit(self: BodyService, scan: object, job: object = None, hints: object = None) -> None:
+    def first_fit(
+        self: BodyService, scan: object, job: object = None, hints: object = None, body: object = None
+    ) -> None:
         raise OSError("stopped by the test")
 
     monkeypatch.setattr(BodyService, "fit_mesh", first_fit)
@@ -115,7 +119,9 @@ def _stub_fit(monkeypatch: pytest.MonkeyPatch) -> list[object]:
 
     given: list[object] = []
 
-    def first_fit(self: BodyService, scan: object, job: object = None, hints: object = None) -> None:
+    def first_fit(
+        self: BodyService, scan: object, job: object = None, hints: object = None, body: object = None
+    ) -> None:
         given.append(hints)
         raise OSError("stopped by the test")
 
@@ -382,7 +388,7 @@ def test_no_kind_detects_it_and_runs_that_subcommands_fit(
     assert result.exit_code == 0, result.output
     ((ran, called),) = seen
     assert ran == kind and called[:2] == ([path], out)
-    defaults = {"scan": (commands.ScanOptions(),), "sequence": (30.0,)}
+    defaults = {"scan": (commands.ScanOptions(),), "sequence": (30.0, None)}
     if kind == "markers":
         options = called[2]
         assert isinstance(options, commands.MarkerOptions)

@@ -102,7 +102,7 @@ def test_the_up_axis_goes_to_the_server(tmp_path: Path, monkeypatch: pytest.Monk
         def __init__(self, url: str, **_: object) -> None:
             self.url = url
 
-        def upgrade(self, path: Path, up: str | None = None) -> Answer:
+        def upgrade(self, path: Path, up: str | None = None, subject: bytes | None = None) -> Answer:
             sent.append(up)
             return Answer()
 

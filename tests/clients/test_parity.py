@@ -629,7 +629,16 @@ def test_a_hint_that_names_no_allowed_value_is_refused_before_sending(
 def test_the_four_clients_have_the_same_methods_and_signatures() -> None:
     import inspect
 
-    names = ("model_info", "synthesize", "synthesize_file", "fit_scan", "fit_sequence", "upgrade", "measure")
+    names = (
+        "model_info",
+        "synthesize",
+        "synthesize_file",
+        "fit_scan",
+        "fit_sequence",
+        "upgrade",
+        "measure",
+        "build_subject",
+    )
     for name in names:
         signatures = {
             str(inspect.signature(getattr(cls, name)))
@@ -640,6 +649,6 @@ def test_the_four_clients_have_the_same_methods_and_signatures() -> None:
         assert not inspect.iscoroutinefunction(getattr(Client, name))
     synthesize = inspect.signature(Client("http://t").synthesize)
     assert list(synthesize.parameters) == [
-        "shape", "coordinates", "root", "skeleton", "faces", "batch", "measurements", "sex"
+        "shape", "coordinates", "root", "skeleton", "faces", "batch", "measurements", "sex", "subject"
     ]  # fmt: skip
     assert synthesize.return_annotation.__name__ == "Synthesis"

@@ -14,6 +14,7 @@ from bodyfit import wire as w
 from bodyfit.api import results
 from bodyfit.api.rest.jobs import answer
 from bodyfit.api.rest.openapi import streamed
+from bodyfit.api.rest.routes_subjects import SUBJECT_HELP, subject_body
 from bodyfit.api.rest.state import Service
 from bodyfit.service.errors import InvalidInputError
 from bodyfit.service.hints import ScanHints
@@ -40,8 +41,10 @@ async def fit_scan(
     pose: Annotated[str | None, Form(description=f"Hint: {POSE_HELP}.")] = None,
     sex: Annotated[str | None, Form(description=f"Hint: {SEX_HELP}.")] = None,
     height_m: Annotated[float | None, Form(description=f"Hint: {HEIGHT_HELP}.")] = None,
+    subject: Annotated[UploadFile | None, File(description=f"{SUBJECT_HELP}.")] = None,
 ) -> StreamingResponse | JSONResponse:
     hints = ScanHints.given(up, facing, pose, sex, height_m)  # a bad hint: 422 before the upload is read
+    body = await subject_body(service, subject)
     data = await file.read()
     fmt = format or PurePath(file.filename or "").suffix.lstrip(".")
     if not fmt:
@@ -53,7 +56,7 @@ async def fit_scan(
     info = service.info()
 
     def work(job: Job) -> list[w.MeshFitEvent]:
-        fit = service.fit_mesh(scan, job, hints)
+        fit = service.fit_mesh(scan, job, hints, body)
         return [results.mesh_fit_result(fit, list(info.dof_names), list(info.joint_names))]
 
     return await answer(request, work, Job(timeout_s=service.limits.max_seconds))
@@ -72,7 +75,11 @@ async def fit_sequence(
         UploadFile, File(description=".npz with frames (T, 13348, 3) metres, optional weights (T, V)")
     ],
     chunk: Annotated[int, Query(ge=1, le=1024, description="Frames per chunk event.")] = 64,
+    subject: Annotated[
+        UploadFile | None, File(description=f"{SUBJECT_HELP} (no shape fit: every frame is that body).")
+    ] = None,
 ) -> StreamingResponse | JSONResponse:
+    body = await subject_body(service, subject)
     data = await file.read()
     frames, weights = await run_in_threadpool(service.read_sequence, data)
     await run_in_threadpool(service.check_sequence, frames, weights)  # 422 before streaming or fitting
@@ -80,7 +87,7 @@ async def fit_sequence(
 
     def work(job: Job) -> list[w.SequenceResultEvent]:
         chunks = results.SequenceChunker(chunk, job.emit)  # streamed while the later frames are fitted
-        fit = service.fit_sequence(frames, weights, job, checked=True, on_frames=chunks)
+        fit = service.fit_sequence(frames, weights, job, checked=True, on_frames=chunks, body=body)
         chunks.flush()
         return [results.sequence_summary(fit, joint_names)]
 

@@ -10,11 +10,14 @@ from fastapi import APIRouter, File, Form, Request, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse, StreamingResponse
 
+from bodyfit.api import results
 from bodyfit.api.rest.jobs import answer
 from bodyfit.api.rest.openapi import streamed
 from bodyfit.api.rest.state import Service
 from bodyfit.io.scans import Scan
+from bodyfit.models.fitting.registered.fitter import FixedBody
 from bodyfit.models.rig.build import RigConfig
+from bodyfit.service.core import BodyService
 from bodyfit.service.errors import InvalidInputError
 from bodyfit.service.hints import ScanHints
 from bodyfit.service.jobs import Job
@@ -23,6 +26,19 @@ from bodyfit.wire.hints import FACING_HELP, POSE_HELP, UP_HELP
 from bodyfit.wire.subjects import SubjectResult, SubjectResultEvent
 
 router = APIRouter(prefix="/v1", tags=["subjects"])
+
+SUBJECT_HELP = (
+    "Optional: a subject file (the .npz of POST /v1/subjects or `bodyfit rig`): the body is that person's, "
+    "their shape and template held fixed; only the pose is fitted"
+)
+
+
+async def subject_body(service: BodyService, upload: UploadFile | None) -> FixedBody | None:
+    """The person's body of a route's optional ``subject`` upload, read and checked before any work starts
+    (a subject that cannot be used: 422 naming the field ``subject``)."""
+    if upload is None:
+        return None
+    return await run_in_threadpool(service.subject_body, await upload.read())
 
 
 @router.post(
@@ -59,16 +75,6 @@ async def build_subject_route(
     config = RigConfig(allow_undetermined=allow_undetermined)
 
     def work(job: Job) -> list[SubjectResultEvent]:
-        built = build_subject(service, scans, names, job, hints, config)
-        return [
-            SubjectResultEvent(
-                scans=built.subject.scans,
-                generic_mm=tuple(float(v) for v in built.generic_mm),
-                personal_mm=tuple(float(v) for v in built.personal_mm),
-                undetermined_joints=built.undetermined,
-                seconds=built.seconds,
-                subject=built.subject.to_bytes(),
-            )
-        ]
+        return [results.subject_result(build_subject(service, scans, names, job, hints, config))]
 
     return await answer(request, work, Job(timeout_s=service.limits.max_seconds))

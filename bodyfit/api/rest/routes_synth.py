@@ -79,13 +79,17 @@ async def synthesize(body: SynthesizeRequest, service: Service) -> Response:
         batch=body.batch,
         measurements=body.measurements,
         sex=body.sex,
+        subject=body.subject,
     )
     headers = {}
     if request.measurements is not None or request.sex is not None:
         request, built = await run_in_threadpool(service.with_built_shape, request)
         if built is not None:
             headers[BUILT_HEADER] = built.model_dump_json(exclude={"measurements"})
-    pending = service.start_synthesis(request)  # validates here; the model call joins the next batch
+    if request.subject is None:
+        pending = service.start_synthesis(request)  # validates here; the model call joins the next batch
+    else:  # the subject's decoder poses the bodies at once: off the event loop
+        pending = await run_in_threadpool(service.start_synthesis, request)
     vertices, joints = await asyncio.wrap_future(pending.future)
 
     def encode() -> bytes:

@@ -13,9 +13,11 @@ from bodyfit import wire as w
 from bodyfit.api import results
 from bodyfit.api.rest.jobs import answer
 from bodyfit.api.rest.openapi import streamed
+from bodyfit.api.rest.routes_subjects import SUBJECT_HELP, subject_body
 from bodyfit.api.rest.state import Service
 from bodyfit.service.core import shape_hints, upgrade_up
 from bodyfit.service.jobs import Job
+from bodyfit.service.personal import check_alone
 
 router = APIRouter(prefix="/v1", tags=["upgrade"])
 
@@ -46,15 +48,21 @@ async def upgrade(
             "detected from the motion (AMASS's Z-up needs nothing). The output is Y-up."
         ),
     ] = None,
+    subject: Annotated[
+        UploadFile | None,
+        File(description=f"{SUBJECT_HELP}; the .osim carries their bone scales. Not with the shape hints."),
+    ] = None,
 ) -> StreamingResponse | JSONResponse:
     hints = shape_hints(sex, height_m, mass_kg)
     up_axis = upgrade_up(up)
+    body = await subject_body(service, subject)
+    check_alone(body, [("shape hints (sex, height_m, mass_kg)", hints)])
     data = await file.read()
     name = file.filename or "upload.npz"
     sequence = await run_in_threadpool(service.read_upgrade, data, name)
 
     def work(job: Job) -> list[w.UpgradeChunkEvent | w.UpgradeResultEvent]:
-        result = service.upgrade(sequence, job, hints, up_axis)
+        result = service.upgrade(sequence, job, hints, up_axis, body)
         files = service.upgrade_files(result, PurePath(name).stem or "upgrade")
         return [*results.upgrade_chunks(result, chunk), results.upgrade_summary(result, files)]
 

@@ -10,7 +10,7 @@ from typing import Annotated, Any, Literal
 import typer
 from typer.core import TyperGroup
 
-from bodyfit.cli.common import OUT_HELP, fail, note, reported
+from bodyfit.cli.common import OUT_HELP, SUBJECT_HELP, fail, note, reported
 from bodyfit.cli.fit.kinds import DESCRIPTION, Kind, single_kind, wrong_kind
 from bodyfit.cli.fit.markers import MarkerOptions
 from bodyfit.cli.fit.scan import HELPER_SCANS
@@ -87,7 +87,9 @@ OPTION_KINDS: dict[str, tuple[Kind, ...]] = {
     "--up": ("scan", "markers"),
     "--forward": ("markers",),
     "--fps": ("sequence",),
+    "--subject": ("scan", "sequence"),
 }
+Subject = Annotated[Path | None, typer.Option(exists=True, dir_okay=False, help=SUBJECT_HELP)]
 
 
 @dataclass(frozen=True)
@@ -102,6 +104,7 @@ class ScanOptions:
     pose: str | None = None
     sex: str | None = None
     height_m: float | None = None
+    subject: Path | None = None
 
 
 def run_scans(files: list[Path], out: Path, options: ScanOptions) -> None:
@@ -116,7 +119,8 @@ def run_scans(files: list[Path], out: Path, options: ScanOptions) -> None:
         o = options
         hints = ScanHints.given(o.up, o.facing, o.pose, o.sex, o.height_m)
         service = BodyService.load(fitters=False)
-        fit_mesh_files(service, files, out, o.units, o.processes, typer.echo, note, hints)
+        body = None if o.subject is None else service.subject_body(o.subject.read_bytes())
+        fit_mesh_files(service, files, out, o.units, o.processes, typer.echo, note, hints, body)
     typer.echo(f"wrote {len(files)} fits to {out}/ (fit.npz, fit.json, registration_*.ply, fit.mot)")
 
 
@@ -129,14 +133,17 @@ def run_markers(files: list[Path], out: Path, options: MarkerOptions) -> None:
     typer.echo(f"wrote {len(files)} marker fits to {out}/ (fit.json, <trial>.mot, <trial>.osim)")
 
 
-def run_sequences(files: list[Path], out: Path, fps: float) -> None:
-    """Fit registered sequences in this process (:func:`bodyfit.cli.fit.sequence.fit_sequence_files`)."""
+def run_sequences(files: list[Path], out: Path, fps: float, subject: Path | None = None) -> None:
+    """Fit registered sequences in this process (:func:`bodyfit.cli.fit.sequence.fit_sequence_files`), with
+    the person of the ``subject`` file when one is given."""
     from bodyfit.cli.fit.sequence import fit_sequence_files
 
     with reported():
         from bodyfit.service.core import BodyService
 
-        fit_sequence_files(BodyService.load(fitters=False), files, out, fps, typer.echo)
+        service = BodyService.load(fitters=False)
+        body = None if subject is None else service.subject_body(subject.read_bytes())
+        fit_sequence_files(service, files, out, fps, typer.echo, body)
     typer.echo(f"wrote {len(files)} sequence fits to {out}/ (fit.json, <name>.npz, <name>.mot)")
 
 
@@ -164,6 +171,7 @@ def scan(
     pose: Annotated[PoseClass | None, typer.Option(help=SCAN_POSE_HELP)] = None,
     sex: Annotated[Sex | None, typer.Option(help=SCAN_SEX_HELP)] = None,
     height_m: Annotated[float | None, typer.Option(help=SCAN_HEIGHT_HELP)] = None,
+    subject: Subject = None,
 ) -> None:
     """Fit meshes and scans, any placement.
 
@@ -175,9 +183,10 @@ def scan(
     the input's frame, and to_model, the 4 x 4 map from the input's frame to the one the parameters pose the
     model in), fit.json (one error report per input: distances in mm both ways, joint-limit violations,
     iterations, time, confidence, hints), the registrations as .ply and the coordinates as an OpenSim .mot.
+    With --subject every input is fitted as that person (`bodyfit rig`): pose and placement only.
     """
     _only(files, "scan")
-    run_scans(files, out, ScanOptions(units, processes, up, facing, pose, sex, height_m))
+    run_scans(files, out, ScanOptions(units, processes, up, facing, pose, sex, height_m, subject))
 
 
 @app.command("markers")
@@ -219,14 +228,16 @@ def sequence(
     ],
     out: Out = Path("out/fit"),
     fps: Annotated[float, typer.Option(min=0.001, help=FPS_HELP)] = 30.0,
+    subject: Subject = None,
 ) -> None:
-    """Fit registered mesh sequences: one shape and a pose per frame.
+    """Fit registered mesh sequences: one shape and a pose per frame (with --subject, that person's body:
+    a pose per frame only).
 
     Writes <name>.npz (shape, coordinates in radians, root in metres, vertices, joints, per-frame error_mm),
     <name>.mot and fit.json (frames per second, error in mm, jitter).
     """
     _only(files, "sequence")
-    run_sequences(files, out, fps)
+    run_sequences(files, out, fps, subject)
 
 
 @app.command(AUTO)
@@ -259,6 +270,9 @@ def auto(
     pose: Annotated[PoseClass | None, typer.Option(help=f"Scans: {SCAN_POSE_HELP}")] = None,
     sex: Annotated[Sex | None, typer.Option(help=f"Scans: {SCAN_SEX_HELP}")] = None,
     height_m: Annotated[float | None, typer.Option(help=f"Scans: {SCAN_HEIGHT_HELP}")] = None,
+    subject: Annotated[
+        Path | None, typer.Option(exists=True, dir_okay=False, help=f"Scans and sequences: {SUBJECT_HELP}")
+    ] = None,
 ) -> None:
     """Detect the kind of the files, then fit them as `scan`, `markers` or `sequence` do (the default when
     no kind is given: `bodyfit fit FILE...`). Every file of one run must be of one kind."""
@@ -279,6 +293,7 @@ def auto(
         "--pose": pose,
         "--sex": sex,
         "--height-m": height_m,
+        "--subject": subject,
     }
     stray = [name for name, value in given.items() if value is not None and kind not in OPTION_KINDS[name]]
     if stray:
@@ -297,6 +312,7 @@ def auto(
         )
         run_markers(files, out, options)
     elif kind == "sequence":
-        run_sequences(files, out, 30.0 if fps is None else fps)
+        run_sequences(files, out, 30.0 if fps is None else fps, subject)
     else:
-        run_scans(files, out, ScanOptions(units or "auto", processes, up, facing, pose, sex, height_m))
+        scan_options = ScanOptions(units or "auto", processes, up, facing, pose, sex, height_m, subject)
+        run_scans(files, out, scan_options)

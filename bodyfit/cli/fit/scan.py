@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from bodyfit.models.fitting.registered.fitter import FixedBody
     from bodyfit.service.core import BodyService
     from bodyfit.service.hints import ScanHints
 
@@ -26,6 +27,7 @@ def fit_mesh_files(
     echo: Callable[[str], None],
     note: Callable[[str], None],
     hints: ScanHints | None = None,
+    body: FixedBody | None = None,
 ) -> list[dict[str, Any]]:
     """Fit each mesh or scan (read first, all of them, in ``units``: auto, m or mm, as the server reads them:
     NaN or infinite points, the missing pixels of depth cameras and organized PCD clouds, are dropped and
@@ -35,7 +37,8 @@ def fit_mesh_files(
     helper process for raw scans), None: 2 from :data:`HELPER_SCANS` raw scans on. ``echo`` gets a summary
     line per input, ``note`` the progress. ``hints`` (up, facing, pose class, sex, height) go with every
     input (:meth:`BodyService.fit_mesh`); fit.npz's ``to_model`` (B, 4, 4) maps each input's frame, in which
-    the vertices and joints lie, to the frame its parameters pose the model in.
+    the vertices and joints lie, to the frame its parameters pose the model in. ``body``: a subject's
+    (:meth:`BodyService.subject_body`), held fixed in every fit.
 
     Raises:
         BodyfitError (unreadable files, bad scans), ServiceError, OSError.
@@ -68,7 +71,7 @@ def fit_mesh_files(
     fits = []
     for path, scan in zip(paths, scans, strict=True):
         note(f"{path.name}: fitting as a {service.route(scan)}")  # its first progress line gives the points
-        fits.append(service.fit_mesh(scan, Job(on_progress=show), hints))
+        fits.append(service.fit_mesh(scan, Job(on_progress=show), hints, body))
     out.mkdir(parents=True, exist_ok=True)
     arrays: dict[str, np.ndarray] = {
         key: np.stack([f.arrays()[key] for f in fits]) for key in fits[0].arrays()

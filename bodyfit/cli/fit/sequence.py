@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from bodyfit.models.fitting.registered.fitter import FixedBody
     from bodyfit.service.core import BodyService
 
 SEQUENCE_KEY = "frames"
@@ -29,11 +30,17 @@ def is_sequence_file(path: Path) -> bool:
 
 
 def fit_sequence_files(
-    service: BodyService, paths: Sequence[Path], out: Path, fps: float, echo: Callable[[str], None]
+    service: BodyService,
+    paths: Sequence[Path],
+    out: Path,
+    fps: float,
+    echo: Callable[[str], None],
+    body: FixedBody | None = None,
 ) -> list[dict[str, Any]]:
     """Fit each sequence, write ``<stem>.npz`` (shape, coordinates, root, vertices, joints, per-frame
     error_mm) and ``<stem>.mot`` (``fps`` frames per second) to ``out`` and ``fit.json`` (one record per
-    sequence); returns the records. ``echo`` gets progress and a summary line per sequence.
+    sequence); returns the records. ``echo`` gets progress and a summary line per sequence. ``body``: a
+    subject's (:meth:`BodyService.subject_body`): no shape fit, every frame is that body.
 
     Raises:
         ServiceError (unreadable or malformed files, too many frames), BodyfitError, OSError.
@@ -53,7 +60,7 @@ def fit_sequence_files(
     records = []
     for path, (frames, weights) in zip(paths, loaded, strict=True):
         echo(f"{path.name}: {len(frames)} frames")
-        fit = service.fit_sequence(frames, weights, Job(on_progress=show))
+        fit = service.fit_sequence(frames, weights, Job(on_progress=show), body=body)
         errors = np.array([r.distances.mean for r in fit.reports])
         np.savez_compressed(
             out / f"{path.stem}.npz",

@@ -32,7 +32,7 @@ from bodyfit.clients.results import (
     read_model_info,
     reader,
 )
-from bodyfit.clients.uploads import ScanInput, scan_upload
+from bodyfit.clients.uploads import ScanInput, SubjectInput, scan_upload, subject_upload
 from bodyfit.wire.hints import axis_name, pose_class
 from bodyfit.wire.measure import Measurements
 from bodyfit.wire.subjects import SUBJECT_EVENTS, SubjectResult
@@ -77,16 +77,20 @@ def synthesis_args(
     fmt: str,
     measurements: Mapping[str, float] | None = None,
     sex: str | None = None,
+    subject: SubjectInput | None = None,
 ) -> dict[str, Any]:
     """The checked arguments of a synthesis: arrays as float64 rows, named coordinates as float64 arrays,
-    measurements as {str: float}.
+    measurements as {str: float}, the subject file as bytes.
 
     Raises:
-        ValueError: a format other than :data:`FORMATS`, or both shape and measurements."""
+        ValueError: a format other than :data:`FORMATS`, or more than one of shape, measurements and
+            subject."""
     if fmt not in FORMATS:
         raise ValueError(f"format must be one of {', '.join(FORMATS)}; got {fmt!r}")
     if shape is not None and measurements is not None:
         raise ValueError("give shape or measurements, not both: the body built from measurements has its own")
+    if subject is not None and (shape is not None or measurements is not None):
+        raise ValueError("give a subject or shape / measurements, not both: the subject's body has its own")
     named = isinstance(coordinates, Mapping)
     coords = (
         {str(k): np.asarray(v, np.float64) for k, v in coordinates.items()}
@@ -104,6 +108,7 @@ def synthesis_args(
         "format": fmt,
         "measurements": None if measurements is None else {str(k): float(v) for k, v in measurements.items()},
         "sex": sex,
+        "subject": subject_upload(subject),
     }
 
 
@@ -149,14 +154,17 @@ def synthesize(
     batch: int | None = None,
     measurements: Mapping[str, float] | None = None,
     sex: str | None = None,
+    subject: SubjectInput | None = None,
 ) -> Operation[Synthesis]:
     """Posed bodies as arrays. shape (B, n_shape); coordinates (B, n_dof) or {name: value(s)}; root
     (B, 3); see :meth:`synthesize_file` for npz / ply / obj / glb / json bytes.
 
     Instead of shape, ``measurements`` ({name: value} in metres, kilograms for the mass: ANSUR II names or
     aliases such as stature, mass, waist; any subset, docs/anthropometry.md) build the body, for ``sex``
-    (male, female or None); the result's ``built`` holds what was requested and achieved."""
-    args = synthesis_args(shape, coordinates, root, skeleton, faces, batch, "npz", measurements, sex)
+    (male, female or None); the result's ``built`` holds what was requested and achieved. Or ``subject``
+    (a subject file's path or bytes, a ``Subject``, or :meth:`build_subject`'s result): every body is that
+    person's."""
+    args = synthesis_args(shape, coordinates, root, skeleton, faces, batch, "npz", measurements, sex, subject)
     return Operation("synthesize", _synthesis, _result, args, idempotent=True)
 
 
@@ -168,13 +176,16 @@ def synthesize_file(
     skeleton: bool = False,
     measurements: Mapping[str, float] | None = None,
     sex: str | None = None,
+    subject: SubjectInput | None = None,
 ) -> Operation[bytes]:
-    """Posed bodies encoded as ``format`` (npz, ply, obj, glb or json; faces included); ``measurements``
-    and ``sex`` as for :meth:`synthesize` (what the build achieved: :meth:`measure` with the same ones).
+    """Posed bodies encoded as ``format`` (npz, ply, obj, glb or json; faces included); ``measurements``,
+    ``sex`` and ``subject`` as for :meth:`synthesize` (what the build achieved: :meth:`measure` with the
+    same ones).
 
     Raises:
-        ValueError: another format, or both shape and measurements (before anything is sent)."""
-    args = synthesis_args(shape, coordinates, root, skeleton, True, None, format, measurements, sex)
+        ValueError: another format, or more than one of shape, measurements and subject (before anything
+            is sent)."""
+    args = synthesis_args(shape, coordinates, root, skeleton, True, None, format, measurements, sex, subject)
     return Operation("synthesize_file", _file, _result, args, idempotent=True)
 
 
@@ -232,6 +243,7 @@ def fit_scan(
     pose: str | None = None,
     sex: str | None = None,
     height_m: float | None = None,
+    subject: SubjectInput | None = None,
 ) -> Operation[MeshFitResult]:
     """Fit a mesh or point cloud: a file (path, or bytes with ``format``) or (N, 3) points; ``units``:
     auto, m or mm; ``progress`` gets each progress event.
@@ -241,6 +253,9 @@ def fit_scan(
     orientation is not searched); ``pose``, the start pose class (standing, sitting, a-pose, t-pose);
     ``sex`` (male, female, neutral; recorded); ``height_m``, the standing height in metres (the fitted
     body's is checked against it).
+
+    ``subject``: a subject file (path, bytes, ``Subject`` or :meth:`build_subject`'s result): the body is
+    that person's, their shape and template held fixed; only the orientation, pose and root are fitted.
 
     Raises:
         ValueError: an axis or pose class that names none of the allowed values (before anything is sent).
@@ -252,6 +267,7 @@ def fit_scan(
         "format": Path(name).suffix.lstrip("."),
         "units": units,
         "hints": scan_hints(up, facing, pose, sex, height_m),
+        "subject": subject_upload(subject),
     }
     return Operation("fit_scan", _scan_events, _mesh_fit, args, stream=True, progress=progress)
 
@@ -280,11 +296,18 @@ def fit_sequence(
     weights: np.ndarray | None = None,
     progress: ProgressCallback | None = None,
     chunk: int = 64,
+    subject: SubjectInput | None = None,
 ) -> Operation[SequenceResult]:
     """Fit a registered sequence (T, V, 3) in the model's topology (one shape, per-frame pose);
-    ``weights`` (T, V) optional; the server answers in chunks of ``chunk`` frames."""
+    ``weights`` (T, V) optional; the server answers in chunks of ``chunk`` frames. ``subject``: a subject
+    file (as for :meth:`fit_scan`): no shape fit, every frame is that person's body."""
     f32 = None if weights is None else np.asarray(weights, np.float32)
-    args = {"frames": np.asarray(frames, np.float32), "weights": f32, "chunk": chunk}
+    args = {
+        "frames": np.asarray(frames, np.float32),
+        "weights": f32,
+        "chunk": chunk,
+        "subject": subject_upload(subject),
+    }
     return Operation(
         "fit_sequence", _sequence_events, SequenceResult.from_events, args, stream=True, progress=progress
     )
@@ -298,20 +321,28 @@ def upgrade(
     height_m: float | None = None,
     mass_kg: float | None = None,
     up: str | None = None,
+    subject: SubjectInput | None = None,
 ) -> Operation[UpgradeOutput]:
     """Upgrade an AMASS-style .npz (path or bytes) to biomechanical coordinates and OpenSim files.
     ``sex``, ``height_m`` and ``mass_kg`` shape the body when the server has no SMPL-family model file
     (path b). ``up``: the input's up axis (+x, -x, +y, -y, +z or -z; a bare axis is +); None or "auto":
-    the server detects it from the motion (AMASS's Z-up needs nothing); the result is Y-up.
+    the server detects it from the motion (AMASS's Z-up needs nothing); the result is Y-up. ``subject``: a
+    subject file (as for :meth:`fit_scan`): the body is that person's, only the poses are fitted, and the
+    .osim carries their bone scales; not with the shape hints.
 
     Raises:
-        ValueError: ``up`` naming no axis (before anything is sent).
+        ValueError: ``up`` naming no axis, or a subject with shape hints (before anything is sent).
     """
     name, data = upgrade_upload(sequence)
     axis = None if up is None or up.strip().lower() in ("", "auto") else axis_name(up)
     given = (("sex", sex), ("height_m", height_m), ("mass_kg", mass_kg), ("up", axis))
     hints = {k: v for k, v in given if v is not None}
-    args = {"name": name, "data": data, "chunk": chunk, "hints": hints}
+    if subject is not None and hints.keys() - {"up"}:
+        raise ValueError(
+            "give a subject or shape hints (sex, height_m, mass_kg), not both: the subject's body has its "
+            "own shape"
+        )
+    args = {"name": name, "data": data, "chunk": chunk, "hints": hints, "subject": subject_upload(subject)}
     return Operation(
         "upgrade", _upgrade_events, UpgradeOutput.from_events, args, stream=True, progress=progress
     )
