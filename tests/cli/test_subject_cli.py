@@ -151,3 +151,21 @@ def test_rig_on_a_server(body_service: BodyService, tmp_path: Path, served: str)
     assert subject.scans == ("pose0.npz", "pose1.npz", "pose2.npz")
     assert json.loads((out / "subject.json").read_text())["server"] == served
     assert (out / "rest.ply").read_bytes().startswith(b"ply")
+
+
+def test_batch_upgrade_with_a_subject(
+    subject: Subject, subject_file: Path, tmp_path: Path, served: str
+) -> None:
+    """Every sequence of the dataset upgraded as the subject's body, on a server and in this process."""
+    with np.load(DATA / "cmu_131_smpl.npz") as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    arrays["poses"], arrays["trans"] = arrays["poses"][:6], arrays["trans"][:6]
+    dataset = tmp_path / "amass" / "me"
+    dataset.mkdir(parents=True)
+    np.savez(dataset / "walk.npz", **arrays)
+    for backend in (served, "local"):
+        out = tmp_path / f"out_{backend[:4]}"
+        args = ["batch-upgrade", str(tmp_path / "amass"), str(out), "--backend", backend]
+        result = runner.invoke(app, [*args, "--subject", str(subject_file)])
+        assert result.exit_code == 0, result.output
+        assert np.array_equal(np.load(out / "me" / "walk.npz")["shape"], subject.shape), backend
