@@ -4,6 +4,7 @@ request, refused naming the field and the fix."""
 
 from __future__ import annotations
 
+import dataclasses
 import tempfile
 from pathlib import Path
 
@@ -165,3 +166,23 @@ def test_an_upgrade_with_a_subject_and_shape_hints_is_contradictory(
     body = body_service.subject_body(subject.to_bytes())
     with pytest.raises(InvalidInputError, match="give a subject or shape hints"):
         body_service.upgrade(read_smpl_sequence(SEQUENCE), hints=shape_hints("male", 1.8, None), body=body)
+
+
+def test_the_upgrade_takes_the_subjects_own_joint_centres(
+    body_service: BodyService, subject: Subject
+) -> None:
+    """A subject whose joint centres sit off the shape space's (segment scale offsets of +0.04): the
+    upgrade's scales are those of the subject's decoder, not the shape space's for the subject's shape."""
+    model = body_service.model
+    offsets = np.full(np.asarray(model.data["scale_mean"]).shape, 0.04)
+    moved = dataclasses.replace(subject, scale_offsets=offsets)
+    body = body_service.subject_body(moved.to_bytes())
+    assert body is not None
+    clip = read_smpl_sequence(SEQUENCE)
+    short = dataclasses.replace(
+        clip, poses=clip.poses[:6], trans=clip.trans[:6], bad_frames=clip.bad_frames[:6]
+    )
+    result = body_service.upgrade(short, body=body)
+    with torch.no_grad():
+        space = model.forward(moved.shape[None]).scales.numpy()[0]
+    assert np.allclose(result.scales, space + offsets, atol=1e-5)
