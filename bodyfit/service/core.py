@@ -716,13 +716,17 @@ def _fit_routed(
 ) -> MeshFit:
     """Fit ``scan`` the way ``route`` says (:meth:`BodyService.route`), with ``hints`` where the route can
     use them, in the input's frame (:class:`MeshFit`); ``progress`` (done, steps, line) gets the scan
-    fitter's steps. ``body``: a subject's, held fixed (:func:`_for_body`; a raw scan of a whole body is
-    placed by the population's fit first, :func:`_personal_refinement`)."""
+    fitter's steps. ``body``: a subject's, held fixed (:func:`_for_body`); a mesh in our topology and a raw
+    scan of a whole body are placed by the population's fit first (:func:`_personal_refinement`)."""
     orientation = hints.orientation()
     start = hints.start(fitters.scan.model)
     personal = fitters if body is None else _for_body(fitters, body)
     if route == REGISTERED:
-        fit = _first(personal.registered.fit(scan.points), REGISTERED)
+        placed = fitters.registered.fit(scan.points)
+        if body is not None:  # from the population's pose, as a raw scan (_personal_refinement)
+            start_from = replace(placed, shape=personal.registered.start_shape(1))
+            placed = personal.registered.fit(scan.points, init=start_from)
+        fit = _first(placed, REGISTERED)
         return _with_hints(fit, fitters.scan.model, hints, False, False)
     if route == SMPL_TOPOLOGY:  # placed through the map, then refined on the mesh's surface
         assert scan.faces is not None  # the route needs them
