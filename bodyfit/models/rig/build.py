@@ -30,7 +30,8 @@ from bodyfit.models.fitting.registered.fitter import BodyFit, RegisteredFitter
 from bodyfit.models.fitting.registered.stages import DEFAULT_STAGES, RegisteredFitConfig
 from bodyfit.models.fitting.sequence.offsets import OffsetConfig, offsets_of_fit
 from bodyfit.models.rig.fit import with_decoder
-from bodyfit.models.rig.joints import JointConfig, solve_scale_offsets
+from bodyfit.models.rig.icp import ClosestConfig, closest_targets
+from bodyfit.models.rig.joints import JointConfig, solve_joints
 from bodyfit.models.rig.subject import PersonalParts, Subject, model_fingerprint
 from bodyfit.models.rig.weights import (
     WeightConfig,
@@ -58,6 +59,7 @@ class RigError(BodyfitError):
 class RigConfig:
     """min_scans: scans needed; rounds: alternations; offsets: their smoothness and stiffness; weights,
     joints: how the person's skinning weights and joint centres are solved (None: the body model's);
+    closest: the closest-point pairing of raw scans and its rounds;
     stranger_mm, stranger_factor: a scan the rig misses by more than both ``stranger_mm`` and
     ``stranger_factor`` times the median scan's error is of another person; min_motion_deg: how far a limb
     joint must move between two scans to be observed; allow_undetermined: build anyway when some are not
@@ -68,6 +70,7 @@ class RigConfig:
     offsets: OffsetConfig = field(default_factory=lambda: OffsetConfig(smoothness=0.3, stiffness=1e-3))
     weights: WeightConfig | None = field(default_factory=WeightConfig)
     joints: JointConfig | None = field(default_factory=JointConfig)
+    closest: ClosestConfig = field(default_factory=ClosestConfig)
     stranger_mm: float = 3.0
     stranger_factor: float = 2.5
     min_motion_deg: float = 15.0
@@ -112,9 +115,13 @@ def build_rig(
     names: Sequence[str] = (),
     weights: np.ndarray | None = None,
     config: RigConfig | None = None,
+    points: Sequence[np.ndarray | None] | None = None,
 ) -> RigBuild:
     """One person's rig from K registrations (K, V, 3) metres in our topology, any placement, with per-vertex
     weights (K, V) (0 = unseen; default ones); ``names`` name the scans in messages and the subject file.
+    ``points``: for each scan, the raw scan's points (N_k, 3) in the frame of its registration, or None for
+    a scan given in our topology: the rig is then refined by closest points over all raw scans
+    (:mod:`.icp`).
 
     Raises:
         ShapeError: wrong array shapes. RigError: fewer than ``min_scans`` scans, scans of different people
@@ -132,6 +139,10 @@ def build_rig(
         raise RigError(
             f"a rig needs at least {cfg.min_scans} scans of the person in different poses; got {len(x)}"
         )
+    if points is not None and (
+        len(points) != len(x) or any(p is not None and (p.ndim != 2 or p.shape[1] != 3) for p in points)
+    ):
+        raise ShapeError(f"points must be one (N, 3) array or None per registration ({len(x)})")
     fitter = RegisteredFitter(model)
     x, w = fitter.validate(x, weights)
     alone = fitter.fit(x, w)
@@ -142,7 +153,7 @@ def build_rig(
             f"scans whose angles at it differ by {cfg.min_motion_deg:g} degrees or more (add scans with them "
             "bent), or allow it (`--allow-undetermined`: their centres then come from the shape space alone)"
         )
-    fit, parts = _alternate(model, fitter, x, w, alone, cfg)
+    fit, parts = _alternate(model, fitter, x, w, alone, cfg, points)
     generic = _mean_mm(alone)
     personal = _mean_mm(fit)
     others = strangers(personal, cfg.stranger_mm, cfg.stranger_factor)
@@ -168,40 +179,93 @@ def build_rig(
 
 
 def _alternate(
-    model: BodyModel, fitter: RegisteredFitter, x: np.ndarray, w: np.ndarray, alone: BodyFit, cfg: RigConfig
+    model: BodyModel,
+    fitter: RegisteredFitter,
+    x: np.ndarray,
+    w: np.ndarray,
+    alone: BodyFit,
+    cfg: RigConfig,
+    points: Sequence[np.ndarray | None] | None = None,
 ) -> tuple[BodyFit, PersonalParts]:
     """One shape and K poses (started from each scan's own fit, ``alone``), then ``rounds`` of: offsets
     against the residuals, weights, joints (each with the others fixed), and a refit of the shape and poses
-    with them."""
+    with them. With raw ``points`` (one (N_k, 3) array or None per scan), ``cfg.closest.rounds`` rounds, each
+    scan's targets re-paired with its points first (:func:`.icp.closest_targets`)."""
     fit = fitter.fit(x, w, init=alone, shared_shape=True)
     parts = PersonalParts.generic(model)
-    refitter = RegisteredFitter(model, RegisteredFitConfig(stages=REFIT_STAGES))
-    neighbours = adjacency(model.faces, model.n_vertices)
-    candidates = None
-    if cfg.weights is not None:
-        bodies = (
-            body_adjacency(model.skeleton.spec)
-            if cfg.weights.jointed
-            else np.eye(len(parts.weights[0]), dtype=bool)
-        )
-        candidates = candidate_bodies(parts.weights, neighbours, bodies, cfg.weights.rings, cfg.weights.floor)
-    for _ in range(cfg.rounds):
+    solver = _PartSolver(model, cfg)
+    raw = points is not None and any(p is not None for p in points)
+    for _ in range(cfg.closest.rounds if raw else cfg.rounds):
+        targets, confidence = x, w
+        if raw and points is not None:
+            targets, confidence = _closest(model, fit, x, w, points, cfg.closest)
+        parts, fit = solver.solve(parts, fit, targets, confidence)
+        personal = with_decoder(solver.refitter, parts.decoder(model, solver.refitter.config.dtype))
+        fit = personal.fit(targets, confidence, init=fit, shared_shape=True)
+    return fit, parts
+
+
+def _closest(
+    model: BodyModel,
+    fit: BodyFit,
+    x: np.ndarray,
+    w: np.ndarray,
+    points: Sequence[np.ndarray | None],
+    config: ClosestConfig,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Targets (K, V, 3) and confidences (K, V): each raw scan's closest-point targets from the rig posed
+    as ``fit`` has it, the registered scans' own vertices and weights."""
+    targets, confidence = x.copy(), w.copy()
+    for k, scan in enumerate(points):
+        if scan is not None:
+            targets[k], confidence[k] = closest_targets(fit.vertices[k], model.faces, scan, config)
+            if confidence[k].sum() <= 0:
+                targets[k], confidence[k] = x[k], w[k]  # no point near the rig: its registration stands
+    return targets, confidence
+
+
+class _PartSolver:
+    """One round's solves of the person's parts with the poses fixed: template offsets against the
+    residuals, then the skinning weights, then the joints (each with the others fixed)."""
+
+    def __init__(self, model: BodyModel, cfg: RigConfig) -> None:
+        self.model, self.cfg = model, cfg
+        self.refitter = RegisteredFitter(model, RegisteredFitConfig(stages=REFIT_STAGES))
+        self.neighbours = adjacency(model.faces, model.n_vertices)
+        self.candidates = None
+        if cfg.weights is not None:
+            generic = np.asarray(model.data["weights"], np.float64)
+            bodies = (
+                body_adjacency(model.skeleton.spec)
+                if cfg.weights.jointed
+                else np.eye(generic.shape[1], dtype=bool)
+            )
+            rings, floor = cfg.weights.rings, cfg.weights.floor
+            self.candidates = candidate_bodies(generic, self.neighbours, bodies, rings, floor)
+
+    def solve(
+        self, parts: PersonalParts, fit: BodyFit, x: np.ndarray, w: np.ndarray
+    ) -> tuple[PersonalParts, BodyFit]:
+        """The parts after one round against targets x (K, V, 3) with confidences w (K, V), at ``fit``, and
+        the fit with the poses the joints were solved with."""
+        model, cfg = self.model, self.cfg
         step = offsets_of_fit(parts.decoder(model), fit, x, w, model.faces, cfg.offsets)
         parts = replace(parts, offsets=parts.offsets + step)
-        if cfg.weights is not None and candidates is not None:
+        if cfg.weights is not None and self.candidates is not None:
             columns, _ = skinning_columns(
                 parts.decoder(model), fit.shape[0], fit.coordinates, fit.root, model.bind_coordinates
             )
-            weights = solve_weights(columns, x, w, parts.weights, candidates, neighbours, cfg.weights)
+            weights = solve_weights(
+                columns, x, w, parts.weights, self.candidates, self.neighbours, cfg.weights
+            )
             parts = replace(parts, weights=weights)
         if cfg.joints is not None:
-            joints = solve_scale_offsets(
+            scales, q, r = solve_joints(
                 model, parts, fit.shape[0], fit.coordinates, fit.root, x, w, cfg.joints
             )
-            parts = replace(parts, scale_offsets=joints)
-        personal = with_decoder(refitter, parts.decoder(model, refitter.config.dtype))
-        fit = personal.fit(x, w, init=fit, shared_shape=True)
-    return fit, parts
+            parts = replace(parts, scale_offsets=scales)
+            fit = replace(fit, coordinates=q, root=r)
+        return parts, fit
 
 
 def _mean_mm(fit: BodyFit) -> np.ndarray:
