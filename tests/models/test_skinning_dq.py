@@ -4,6 +4,8 @@ and the ONNX export's parity."""
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 import torch
@@ -11,11 +13,18 @@ import torch
 from benchmarks.personal import SEGMENTS, capped_volume, region
 from bodyfit.models.body.model import BodyDecoder, BodyModel
 from bodyfit.models.body.swing_twist import (
+    class_dual_quaternions,
+    class_rigid,
+    class_twists,
     cross,
     dual_quaternion_multiply,
+    monomial_table,
+    pair_rows,
+    pair_weights,
     quaternion_multiply,
     rigid_of_dual_quaternion,
     swing_transforms,
+    twist_blocks,
     twist_dual_quaternions,
     twist_rig,
 )
@@ -89,6 +98,49 @@ def test_dual_quaternion_algebra_matches_matrices() -> None:
     shift = (Ta[:, :3] * Tb[:, 3].unsqueeze(0)).sum(1) + Ta[:, 3]
     assert float((Tab[:, :3] - rot).abs().max()) < 1e-14
     assert float((Tab[:, 3] - shift).abs().max()) < 1e-14
+
+
+def test_the_classes_twists_from_one_table_product_equal_their_chains_products(model: BodyModel) -> None:
+    """The monomial table gives every class's dual quaternion, for any angles and bone coefficients, as the
+    chain of joint twists does; the pair rows normalised give the dual-quaternion blend's rigid map."""
+    rig = twist_rig(model.skeleton, model.data)
+    g = np.random.default_rng(5)
+    angle = torch.as_tensor(g.uniform(-3.0, 3.0, size=(4, len(rig.coordinate))))
+    bone = torch.as_tensor(np.c_[np.ones(4), g.normal(size=(4, len(rig.centre) - 1))])
+    centre = torch.einsum("bn,nkc->ckb", bone, torch.as_tensor(rig.centre))
+    axis = torch.as_tensor(rig.axis.T[..., None])
+    chain = torch.as_tensor(rig.chain)
+    expected = class_twists(twist_dual_quaternions(angle.T, axis, centre), chain).permute(2, 0, 1)
+    got = class_dual_quaternions(angle, bone, chain, torch.as_tensor(monomial_table(rig)))
+    assert float((got - expected).abs().max()) < 1e-12
+    rigid = rigid_of_dual_quaternion(expected.permute(1, 2, 0)).permute(3, 0, 1, 2).flatten(1, 2)
+    assert float((class_rigid(got) - rigid).abs().max()) < 1e-12
+    # A blend of two classes: the pair rows weighted and normalised are the blend's rigid map.
+    t = np.zeros((1, rig.n_class))
+    t[0, [2, 6]] = 0.3, 0.7
+    pairs, weights = pair_weights(t)
+    rows = (pair_rows(got, torch.as_tensor(pairs)) * torch.as_tensor(weights)).sum(-1)  # (B, 13)
+    blend = (got * torch.as_tensor(t)).sum(-1)  # (B, 8)
+    rigid = rigid_of_dual_quaternion((blend / blend[:, :4].norm(dim=1, keepdim=True)).T)  # (3, 4, B)
+    assert float((rows[:, :12] / rows[:, 12:] - rigid.permute(2, 0, 1).flatten(1)).abs().max()) < 1e-12
+
+
+def test_plain_blocks_hold_only_vertices_on_one_twist_class(model: BodyModel) -> None:
+    """Skinning a block by plain LBS is exact only where every vertex's twist weights lie in one class."""
+    rig = twist_rig(model.skeleton, model.data)
+    weights = np.asarray(model.data["weights"])
+    twist = rig.class_weights(weights)
+    blocks = twist_blocks(weights, twist, 12)
+    assert blocks[0][0] == 0 and blocks[-1][1] == len(weights)
+    assert all(a[1] == b[0] for a, b in itertools.pairwise(blocks))
+    mixed = (twist != 0).sum(axis=1) > 1
+    assert not any(mixed[a:b].any() for a, b, _, pairs in blocks if pairs is None)
+    assert any(pairs is None for *_, pairs in blocks) and any(pairs is not None for *_, pairs in blocks)
+    used = pair_weights(twist)[1] != 0
+    for a, b, bodies, pairs in blocks:
+        assert (weights[a:b][:, np.setdiff1d(np.arange(weights.shape[1]), bodies)] == 0).all()
+        if pairs is not None:
+            assert not used[a:b][:, np.setdiff1d(np.arange(used.shape[1]), pairs)].any()
 
 
 def test_the_twist_joints_and_classes_come_from_the_skeleton(model: BodyModel) -> None:

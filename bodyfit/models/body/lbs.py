@@ -98,21 +98,41 @@ def blend_blocks(weights: np.ndarray, n_blocks: int, step: int = 64) -> list[tup
         [(start, stop, bodies)] covering 0..V in order; bodies: indices of the bodies with weight in
         ``start:stop`` (at least one).
     """
-    V = weights.shape[0]
-    cuts = np.unique(np.r_[np.arange(0, V, step), V])
+    cuts = range_cuts(weights.shape[0], step)
     used = weights != 0
-    # counts[i, j]: vertices of range i that use body j; support of cuts[i]:cuts[k] from prefix sums.
-    prefix = np.concatenate(
-        [
-            np.zeros((1, used.shape[1]), np.int64),
-            np.cumsum(np.add.reduceat(used.astype(np.int64), cuts[:-1], axis=0), axis=0),
-        ]
-    )
+    prefix = range_counts(used, cuts)
     m = len(cuts)
     cost = np.full((m, m), np.inf)
     for i in range(m - 1):
         support = ((prefix[i + 1 :] - prefix[i]) > 0).sum(axis=1)
         cost[i, i + 1 :] = (cuts[i + 1 :] - cuts[i]) * np.maximum(support, 1)
+    blocks = []
+    for i, j in best_partition(cost, n_blocks):
+        bodies = np.flatnonzero(used[cuts[i] : cuts[j]].any(axis=0))
+        blocks.append((int(cuts[i]), int(cuts[j]), bodies if len(bodies) else np.zeros(1, np.int64)))
+    return blocks
+
+
+def range_cuts(n: int, step: int) -> np.ndarray:
+    """Candidate block boundaries (m,): the multiples of ``step`` below ``n``, and ``n``."""
+    return np.unique(np.r_[np.arange(0, n, step), n])
+
+
+def range_counts(used: np.ndarray, cuts: np.ndarray) -> np.ndarray:
+    """(m, n_col) prefix sums over the ranges between ``cuts`` of a boolean (V, n_col) table: row k counts
+    the rows of ``used[:cuts[k]]`` set in each column, so that any range's support is a difference."""
+    return np.concatenate(
+        [
+            np.zeros((1, used.shape[1]), np.int64),
+            np.cumsum(np.add.reduceat(used.astype(np.int64), cuts[:-1], axis=0), axis=0),
+        ]
+    )
+
+
+def best_partition(cost: np.ndarray, n_blocks: int) -> list[tuple[int, int]]:
+    """The split of cut points 0..m-1 into at most ``n_blocks`` consecutive ranges (i, j) of least total
+    ``cost[i, j]`` (m, m), by dynamic programming over the number of ranges; in order."""
+    m = len(cost)
     n_blocks = max(1, min(n_blocks, m - 1))
     best = np.full((n_blocks + 1, m), np.inf)
     best[0, 0] = 0.0
@@ -121,14 +141,13 @@ def blend_blocks(weights: np.ndarray, n_blocks: int, step: int = 64) -> list[tup
         total = best[k - 1][:, None] + cost  # (from, to)
         arg[k] = np.argmin(total, axis=0)
         best[k] = total[arg[k], np.arange(m)]
-    blocks = []
+    ranges = []
     j = m - 1
     for k in range(n_blocks, 0, -1):
         i = int(arg[k, j])
-        bodies = np.flatnonzero(used[cuts[i] : cuts[j]].any(axis=0))
-        blocks.append((int(cuts[i]), int(cuts[j]), bodies if len(bodies) else np.zeros(1, np.int64)))
+        ranges.append((i, j))
         j = i
-    return blocks[::-1]
+    return ranges[::-1]
 
 
 def normalised_weights(raw: torch.Tensor, mask: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:

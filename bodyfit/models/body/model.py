@@ -33,11 +33,12 @@ from bodyfit.models.body.lbs import blend_block, blend_blocks, blend_rows
 from bodyfit.models.body.swing_twist import (
     SKINNING_MODES,
     TwistRig,
-    blend_twist,
-    class_twists,
+    TwistSkin,
+    class_dual_quaternions,
+    class_rigid,
+    monomial_table,
     rigid_of_dual_quaternion,
     swing_transforms,
-    twist_dual_quaternions,
     twist_rig,
 )
 from bodyfit.models.errors import AssetError, BodyfitError, ShapeError
@@ -173,67 +174,15 @@ class SkinBlock(nn.Module):
         return blend_block(rest, self.weights_t, rotations[:, self.bodies], translations[:, self.bodies])
 
 
-class TwistBlock(nn.Module):
-    """One block of vertices, ``start:stop``, of a :class:`TwistSkin`: the bodies that carry them and their
-    weights on those bodies."""
-
-    bodies: torch.Tensor
-    weights_t: torch.Tensor
-
-    def __init__(self, start: int, stop: int, bodies: np.ndarray, weights_t: np.ndarray, dtype: torch.dtype):
-        """bodies (m,); weights_t (m, stop - start)."""
-        super().__init__()
-        self.start, self.stop = start, stop
-        self.register_buffer("bodies", torch.as_tensor(bodies, dtype=torch.long))
-        self.register_buffer("weights_t", torch.as_tensor(np.ascontiguousarray(weights_t)).to(dtype))
-
-    def forward(
-        self, twisted: torch.Tensor, rotations: torch.Tensor, translations: torch.Tensor
-    ) -> torch.Tensor:
-        """twisted (B, 3, V) the whole skin after its twist; rotations, translations: every body's swing
-        rows from :func:`blend_rows` -> (B, stop - start, 3)."""
-        rest = twisted[:, :, self.start : self.stop]
-        return blend_block(rest, self.weights_t, rotations[:, self.bodies], translations[:, self.bodies])
-
-
-class TwistSkin(nn.Module):
-    """The skin under swing-twist skinning: the template of every vertex, rest (B, 3, V) = [1, c] @ basis,
-    moved by the dual-quaternion blend of its twist classes' twists in one pass over the whole skin
-    (:func:`~bodyfit.models.body.swing_twist.blend_twist`), then blended linearly by the bodies' swings in
-    the blocks of :func:`blend_blocks`."""
-
-    basis: torch.Tensor
-    twist_t: torch.Tensor
-
-    def __init__(self, basis: np.ndarray, weights: np.ndarray, twist: np.ndarray, dtype: torch.dtype) -> None:
-        """basis (1 + K, 3, V); weights (V, n_body); twist (V, n_class) twist weights."""
-        super().__init__()
-        self.register_buffer("basis", torch.as_tensor(basis.reshape(len(basis), -1)).to(dtype))
-        self.register_buffer("twist_t", torch.as_tensor(np.ascontiguousarray(twist.T)).to(dtype))
-        blocks = blend_blocks(weights, max(1, round(weights.shape[0] / _BLOCK_VERTICES)))
-        self.blocks = nn.ModuleList(
-            TwistBlock(a, b, bodies, weights[a:b, bodies].T, dtype) for a, b, bodies in blocks
-        )
-
-    def forward(
-        self, coeffs: torch.Tensor, rotations: torch.Tensor, translations: torch.Tensor, twists: torch.Tensor
-    ) -> torch.Tensor:
-        """coeffs (B, 1 + K); rotations, translations: every body's swing rows from :func:`blend_rows`;
-        twists (B 8, n_class): every class's twist dual quaternion, batch then component -> (B, V, 3)."""
-        B, V = coeffs.shape[0], self.twist_t.shape[1]
-        rest = (coeffs @ self.basis).reshape(B, 3, V)
-        twisted = blend_twist(rest, (twists @ self.twist_t).reshape(B, 8, V))
-        return torch.cat([block(twisted, rotations, translations) for block in self.blocks], dim=1)
-
-
 def skin_blocks(
     basis: np.ndarray, weights: np.ndarray, dtype: torch.dtype, twist: np.ndarray | None = None
 ) -> nn.Module:
     """The skin split into :class:`SkinBlock` s (a ModuleList), or the :class:`TwistSkin` when twist weights
     (V, n_class) are given. basis (1 + K, 3, V); weights (V, n_body)."""
+    n_blocks = max(1, round(weights.shape[0] / _BLOCK_VERTICES))
     if twist is not None:
-        return TwistSkin(basis, weights, twist, dtype)
-    blocks = blend_blocks(weights, max(1, round(weights.shape[0] / _BLOCK_VERTICES)))
+        return TwistSkin(basis, weights, twist, dtype, n_blocks)
+    blocks = blend_blocks(weights, n_blocks)
     return nn.ModuleList(
         SkinBlock(bodies, weights[a:b, bodies].T, basis[:, :, a:b], dtype) for a, b, bodies in blocks
     )
@@ -256,8 +205,7 @@ class BodyDecoder(nn.Module):
     # skinning "lbs_dq" only (see _init_twist)
     twist_coordinate: torch.Tensor
     twist_bind: torch.Tensor
-    twist_axis: torch.Tensor
-    twist_centre: torch.Tensor
+    twist_table: torch.Tensor
     twist_chain: torch.Tensor
     body_class: torch.Tensor
 
@@ -301,13 +249,12 @@ class BodyDecoder(nn.Module):
 
     def _init_twist(self, rig: TwistRig, buf: Callable[[str, np.ndarray], None]) -> None:
         """Buffers of the twist joints and classes (:class:`~bodyfit.models.body.swing_twist.TwistRig`):
-        twist coordinates, their bind values, axes (3, K, 1), centres as [1, c_b] @ (1 + n_bone, 3 K) and the
-        classes' chains and bodies."""
+        twist coordinates, their bind values, the classes' chains, the table of their dual quaternions
+        (:func:`~bodyfit.models.body.swing_twist.monomial_table`) and the classes' bodies."""
         self._twist = rig.class_weights(self._weights)
         self.register_buffer("twist_coordinate", torch.as_tensor(rig.coordinate, dtype=torch.long))
         buf("twist_bind", rig.bind)
-        buf("twist_axis", rig.axis.T[..., None])
-        buf("twist_centre", rig.centre.reshape(len(rig.centre), -1))
+        buf("twist_table", monomial_table(rig))
         self.register_buffer("twist_chain", torch.as_tensor(rig.chain, dtype=torch.long))
         self.register_buffer("body_class", torch.as_tensor(rig.body_class, dtype=torch.long))
 
@@ -364,7 +311,7 @@ class BodyDecoder(nn.Module):
             return np.einsum("vj,bjik->bvik", self._weights, M)
         if q is None:
             raise BodyfitError('the skin\'s blended rotations under skinning "lbs_dq" need the coordinates q')
-        coeffs = torch.zeros(len(q), 1 + self.n_bone, dtype=self.twist_centre.dtype)
+        coeffs = torch.zeros(len(q), 1 + self.n_bone, dtype=self.twist_table.dtype)
         coeffs[:, 0] = 1.0  # the twists' rotations do not depend on the joint centres
         twists = self.class_twists(q.to(coeffs.dtype), coeffs).double()
         W = rigid_of_dual_quaternion(twists)[:, :3].permute(3, 2, 0, 1).numpy()  # (B, n_class, 3, 3)
@@ -398,19 +345,23 @@ class BodyDecoder(nn.Module):
     ) -> torch.Tensor:
         """Swing-twist skin (B, V, 3) of world frames (4, 4, n_body, B), skin coefficients [1, c]
         (B, 1 + n_shape), coordinates q (B, n_dof) and the bind shift of :meth:`_bind_shift`."""
-        twists = self.class_twists(q, coeffs)  # (8, n_class, B)
-        body_twists = rigid_of_dual_quaternion(twists)[:, :, self.body_class]
-        rows = blend_rows(swing_transforms(self._transforms(world, shift), body_twists))
-        flat = twists.permute(2, 0, 1).reshape(-1, twists.shape[1])  # (B 8, n_class)
-        return self.skin(coeffs, *rows, flat)
+        twists = self._class_twists(q, coeffs)  # (B, 8, n_class)
+        body_twists = class_rigid(twists)[:, :, self.body_class]  # (B, 12, n_body)
+        body_twists = body_twists.reshape(q.shape[0], 3, 4, -1).permute(1, 2, 3, 0)
+        transforms = self._transforms(world, shift)
+        swings = blend_rows(swing_transforms(transforms, body_twists))
+        return self.skin(coeffs, blend_rows(transforms), swings, twists)
 
     def class_twists(self, q: torch.Tensor, coeffs: torch.Tensor) -> torch.Tensor:
         """The twist classes' unit dual quaternions (8, n_class, B) of coordinates q (B, n_dof) and skin
         coefficients [1, c] (B, 1 + n_shape) (skinning "lbs_dq" only)."""
-        angle = (q[:, self.twist_coordinate] - self.twist_bind).T  # (K, B)
-        centre = coeffs[:, : 1 + self.n_bone] @ self.twist_centre
-        centre = centre.reshape(q.shape[0], -1, 3).permute(2, 1, 0)  # (3, K, B)
-        return class_twists(twist_dual_quaternions(angle, self.twist_axis, centre), self.twist_chain)
+        return self._class_twists(q, coeffs).permute(1, 2, 0)
+
+    def _class_twists(self, q: torch.Tensor, coeffs: torch.Tensor) -> torch.Tensor:
+        """:meth:`class_twists` batch first: (B, 8, n_class)."""
+        angle = q[:, self.twist_coordinate] - self.twist_bind
+        bone = coeffs[:, : 1 + self.n_bone]
+        return class_dual_quaternions(angle, bone, self.twist_chain, self.twist_table)
 
     def joints(self, frames: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
         """Anatomical joint centres (B, J, 3) of body frames (B, n_body, 4, 4) and segment scales

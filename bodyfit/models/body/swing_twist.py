@@ -33,11 +33,14 @@ Dual quaternions are stored component-major, (8, ...) = [w, x, y, z] real then [
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+from torch import nn
 
+from bodyfit.models.body.lbs import best_partition, blend_block, range_counts, range_cuts
 from bodyfit.models.skeleton.model import Skeleton
 
 # Coordinates that rotate a segment about its own long axis (OpenSim names without the side suffix).
@@ -279,30 +282,265 @@ def swing_transforms(transforms: torch.Tensor, twists: torch.Tensor) -> torch.Te
     return torch.cat([rot, shift.unsqueeze(1)], dim=1)
 
 
-def _shift(a: torch.Tensor, by: int) -> torch.Tensor:
-    """Components (axis 1, size 3) cyclically shifted by ``by``: a Gather of whole rows."""
-    return a.index_select(1, torch.tensor([(by + i) % 3 for i in range(3)]))
+def _hamilton(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product of two quaternions (4,) [w, x, y, z] in numpy."""
+    return HAMILTON @ np.outer(a, b).reshape(16)
 
 
-def blend_twist(rest: torch.Tensor, blended: torch.Tensor) -> torch.Tensor:
-    """Apply blended (not normalised) dual quaternions to points: DLB's normalisation and rigid map.
+def monomial_table(rig: TwistRig) -> np.ndarray:
+    """A (n_class 2^D (1 + n_bone), 8 n_class): every class's dual quaternion as one matrix product.
 
-    With r, d the blend's real and dual parts, the normalised rigid motion moves v to
-    ``v + 2 [r_v x (r_v x v + r_w v + d_v) + r_w d_v - d_w r_v] / |r|^2`` (KCvO08, algorithm 1, with the
-    rotation written as nested cross products). Components lie on axis 1 throughout so that every step is
-    one large elementwise operation.
+    A joint's twist is ``(cos h, sin h u) + eps sin h (0, m)`` with h the half angle, u the axis and the
+    moment m = p x u affine in the bone coefficients c_b (the centre p is). A class's twist, the product of
+    its chain's D joint twists, is therefore a sum over the 2^D products of one cosine or sine per joint
+    (the monomials), each times a constant quaternion (real part) or times [1, c_b] and a constant
+    quaternion (dual part): ``q = (monomials (x) [1, c_b]) @ A``, rows ordered (class, monomial with the
+    root's factor most significant, [1, c_b]), columns (component, class). The padding joint (index K of
+    the chain) has cos 1, sin 0.
+    """
+    K, (D, C), nb1 = len(rig.coordinate), rig.chain.shape, rig.centre.shape[0]
+    factor = np.zeros((K + 1, 2, 4))  # each joint's quaternion coefficient of cos h and sin h
+    factor[:, 0, 0] = 1.0
+    factor[:K, 1, 1:] = rig.axis
+    moment = np.zeros((K + 1, nb1, 4))
+    moment[:K, :, 1:] = np.cross(rig.centre, rig.axis[None]).transpose(1, 0, 2)
+    table = np.zeros((C, 2**D, nb1, 8))
+    for c in range(C):
+        joints = rig.chain[:, c]
+        for m, picks in enumerate(itertools.product((0, 1), repeat=D)):
+            parts = [factor[k, a] for k, a in zip(joints, picks, strict=True)]
+            table[c, m, 0, :4] = _product(parts)
+            for i in (i for i in range(D) if picks[i]):
+                for beta in range(nb1):
+                    table[c, m, beta, 4:] += _product([*parts[:i], moment[joints[i], beta], *parts[i + 1 :]])
+    out = np.zeros((C, 2**D, nb1, 8, C))
+    out[np.arange(C), ..., np.arange(C)] = table
+    return out.reshape(C * 2**D * nb1, 8 * C)
+
+
+def _product(quaternions: list[np.ndarray]) -> np.ndarray:
+    out = quaternions[0]
+    for q in quaternions[1:]:
+        out = _hamilton(out, q)
+    return out
+
+
+def class_dual_quaternions(
+    angle: torch.Tensor, bone: torch.Tensor, chain: torch.Tensor, table: torch.Tensor
+) -> torch.Tensor:
+    """The twist classes' unit dual quaternions from the twist angles, as :func:`class_twists` computes
+    them, in about fifteen operations (:func:`monomial_table`).
 
     Args:
-        rest: (B, 3, V) points; blended: (B, 8, V) the per-point weighted sums of unit dual quaternions.
+        angle: (B, K) twist angles (radians from the bind pose); bone: (B, 1 + n_bone) [1, c_b];
+            chain: (D, n_class); table: from :func:`monomial_table`.
     Returns:
-        (B, 3, V) moved points.
+        (B, 8, n_class), real parts in the hemisphere of the identity so that blends take the short way.
     """
-    r_w, r_v, d_w, d_v = blended[:, 0:1], blended[:, 1:4], blended[:, 4:5], blended[:, 5:8]
+    half = torch.nn.functional.pad(0.5 * angle, (0, 1))  # the padding joint: cos 1, sin 0
+    h = torch.stack([torch.cos(half), torch.sin(half)], dim=-1)  # (B, K + 1, 2)
+    monomials = h[:, chain[0]]
+    for level in range(1, chain.shape[0]):
+        monomials = (monomials.unsqueeze(-1) * h[:, chain[level]].unsqueeze(-2)).flatten(2)
+    features = (monomials.unsqueeze(-1) * bone[:, None, None]).flatten(1)
+    q = (features @ table).reshape(angle.shape[0], 8, -1)
+    return q * torch.where(q[:, :1] < 0, -1.0, 1.0).to(q.dtype)
 
-    def cross_1(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        return _shift(a, 1) * _shift(b, 2) - _shift(a, 2) * _shift(b, 1)
 
-    inner = cross_1(r_v, rest) + r_w * rest + d_v
-    step = cross_1(r_v, inner) + r_w * d_v - d_w * r_v
-    scale = 2.0 / (blended[:, 0:4] * blended[:, 0:4]).sum(1, keepdim=True)
-    return rest + step * scale
+def _pair_table() -> np.ndarray:
+    """P (13, 32) on the outer product q r^T (8 x 4, row-major) of a dual quaternion q and a real part r:
+    rows 0-11 the numerator of the rigid map as a 3 x 4 matrix, row-major (ROTATION on the real parts,
+    TRANSLATION on dual x real), row 12 the squared norm r . r."""
+    table = np.zeros((3, 4, 32))
+    table[:, :3, :16] = ROTATION.reshape(3, 3, 16)
+    table[:, 3, 16:] = TRANSLATION
+    norm = np.zeros((1, 32))
+    norm[0, [0, 5, 10, 15]] = 1.0
+    return np.concatenate([table.reshape(12, 32), norm])
+
+
+PAIR_TABLE = _pair_table()
+
+
+def class_rigid(q: torch.Tensor) -> torch.Tensor:
+    """Rigid transforms (B, 12, n_class), the 3 x 4 matrices row-major, of unit dual quaternions
+    (B, 8, n_class) (KCvO08, algorithm 1)."""
+    table = torch.as_tensor(PAIR_TABLE[:12], dtype=q.dtype)
+    return table @ (q.unsqueeze(2) * q[:, :4].unsqueeze(1)).flatten(1, 2)
+
+
+def pair_weights(twist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The class pairs a vertex's blend needs and their weights.
+
+    The normalised blend ``b = sum_c t_c q_c`` moves a point v to ``(R(b) v + T(b)) / |b_r|^2`` with R,
+    T and the norm quadratic in b: sums over pairs (a, c) of ``t_a t_c`` times a bilinear form of q_a and
+    q_c (:func:`pair_rows`, symmetrised, so a pair a < c counts once with t_a t_c and a pair (c, c) with
+    t_c^2 / 2).
+
+    Args:
+        twist: (V, n_class) twist weights.
+    Returns:
+        pairs (P, 2) with a <= c, every (c, c) first, then the pairs a < c that some vertex uses;
+        weights (V, P).
+    """
+    n = twist.shape[1]
+    used = twist != 0
+    pairs = [(c, c) for c in range(n)]
+    pairs += [(a, c) for a in range(n) for c in range(a + 1, n) if (used[:, a] & used[:, c]).any()]
+    index = np.asarray(pairs, np.int64)
+    weights = twist[:, index[:, 0]] * twist[:, index[:, 1]]
+    weights[:, :n] *= 0.5
+    return index, weights
+
+
+def pair_rows(q: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:
+    """Rotation, translation and norm numerators (B, 13, P) of the class pairs (P, 2): the symmetrised
+    ``PAIR_TABLE @ (q_a r_c^T + q_c r_a^T)`` of the classes' dual quaternions q (B, 8, n_class)."""
+    a, c = q[:, :, pairs[:, 0]], q[:, :, pairs[:, 1]]
+    outer = a.unsqueeze(2) * c[:, :4].unsqueeze(1) + c.unsqueeze(2) * a[:, :4].unsqueeze(1)
+    return torch.as_tensor(PAIR_TABLE, dtype=q.dtype) @ outer.flatten(1, 2)
+
+
+# Per-vertex cost of a block beyond its GEMMs' columns, in columns, for :func:`twist_blocks`: applying the
+# blended LBS matrices, and the twist's blend, normalisation and rigid map on top.
+_APPLY_COST = 8.0
+_TWIST_COST = 10.0
+
+
+def twist_blocks(
+    weights: np.ndarray, twist: np.ndarray, n_blocks: int, step: int = 64
+) -> list[tuple[int, int, np.ndarray, np.ndarray | None]]:
+    """Split the vertices into ``n_blocks`` contiguous ranges for :class:`TwistSkin`.
+
+    A range whose vertices each have their twist weights on one class is skinned by plain LBS (exactly:
+    its bodies' swings times that class's twist are their transforms); a range with a vertex that blends
+    classes needs the twist first. Its cost is (vertices) x (bodies + apply), plus (class pairs + twist)
+    for a twisted range; the ranges (cut at multiples of ``step``) minimise the sum by dynamic programming
+    (:func:`~bodyfit.models.body.lbs.best_partition`).
+
+    Args:
+        weights: (V, n_body) skinning weights; twist: (V, n_class) twist weights.
+    Returns:
+        [(start, stop, bodies, pairs)] covering 0..V in order; bodies: indices of the bodies with weight in
+        ``start:stop`` (at least one); pairs: indices into :func:`pair_weights`'s pairs used in the range,
+        or None for a plain range.
+    """
+    cuts = range_cuts(weights.shape[0], step)
+    pair_used = pair_weights(twist)[1] != 0
+    bodies, pairs = range_counts(weights != 0, cuts), range_counts(pair_used, cuts)
+    mixed = range_counts(((twist != 0).sum(axis=1) > 1)[:, None], cuts)[:, 0]
+    m = len(cuts)
+    cost = np.full((m, m), np.inf)
+    for i in range(m - 1):
+        size = cuts[i + 1 :] - cuts[i]
+        plain = np.maximum(((bodies[i + 1 :] - bodies[i]) > 0).sum(axis=1), 1) + _APPLY_COST
+        twisted = ((pairs[i + 1 :] - pairs[i]) > 0).sum(axis=1) + _TWIST_COST
+        cost[i, i + 1 :] = size * np.where(mixed[i + 1 :] > mixed[i], plain + twisted, plain)
+    blocks = []
+    for i, j in best_partition(cost, n_blocks):
+        a, b = int(cuts[i]), int(cuts[j])
+        used = np.flatnonzero((weights[a:b] != 0).any(axis=0))
+        twisted_pairs = np.flatnonzero(pair_used[a:b].any(axis=0)) if mixed[j] > mixed[i] else None
+        blocks.append((a, b, used if len(used) else np.zeros(1, np.int64), twisted_pairs))
+    return blocks
+
+
+class TwistBlock(nn.Module):
+    """One block of vertices of a :class:`TwistSkin`: their template basis, the bodies that carry them,
+    their weights on those bodies and, for a twisted block, the class pairs of their blends and their
+    weights on those pairs."""
+
+    basis: torch.Tensor
+    bodies: torch.Tensor
+    weights_t: torch.Tensor
+    pairs: torch.Tensor
+    pair_weights_t: torch.Tensor
+
+    def __init__(
+        self,
+        basis: np.ndarray,
+        bodies: np.ndarray,
+        weights_t: np.ndarray,
+        twist: tuple[np.ndarray, np.ndarray] | None,
+        dtype: torch.dtype,
+    ) -> None:
+        """basis (1 + K, 3, V_k); bodies (m,); weights_t (m, V_k); twist: None for a plain block, else the
+        pairs (P_k,) (indices into the skin's pairs) and their weights (P_k, V_k)."""
+        super().__init__()
+        self.twisted = twist is not None
+        if twist is not None:
+            # A fourth coordinate, 1 for every shape, so that one product applies the blend's 3 x 4 map.
+            one = np.zeros((len(basis), 1, basis.shape[2]))
+            one[0] = 1.0
+            basis = np.concatenate([basis, one], axis=1)
+            self.register_buffer("pairs", torch.as_tensor(twist[0], dtype=torch.long))
+            self.register_buffer("pair_weights_t", torch.as_tensor(np.ascontiguousarray(twist[1])).to(dtype))
+        self.register_buffer("basis", torch.as_tensor(basis.reshape(len(basis), -1)).to(dtype))
+        self.register_buffer("bodies", torch.as_tensor(bodies, dtype=torch.long))
+        self.register_buffer("weights_t", torch.as_tensor(np.ascontiguousarray(weights_t)).to(dtype))
+
+    def forward(
+        self,
+        coeffs: torch.Tensor,
+        transforms: tuple[torch.Tensor, torch.Tensor],
+        swings: tuple[torch.Tensor, torch.Tensor],
+        blends: tuple[torch.Tensor, torch.Tensor],
+    ) -> torch.Tensor:
+        """coeffs (B, 1 + K); transforms, swings: every body's rows of its transform and of its swing from
+        :func:`~bodyfit.models.body.lbs.blend_rows`; blends: every class pair's numerator rows (B 12, P)
+        and norms (B, P) (:func:`pair_rows`) -> (B, V_k, 3)."""
+        B, V = coeffs.shape[0], self.weights_t.shape[1]
+        if not self.twisted:
+            rest = (coeffs @ self.basis).reshape(B, 3, V)
+            rotations, translations = transforms
+            return blend_block(rest, self.weights_t, rotations[:, self.bodies], translations[:, self.bodies])
+        rest = (coeffs @ self.basis).reshape(B, 1, 4, V)
+        numerator = (blends[0][:, self.pairs] @ self.pair_weights_t).reshape(B, 3, 4, V)
+        norm = (blends[1][:, self.pairs] @ self.pair_weights_t).unsqueeze(1)
+        twisted = (numerator * rest).sum(2) / norm  # (KCvO08, algorithm 1)
+        rotations, translations = swings
+        return blend_block(twisted, self.weights_t, rotations[:, self.bodies], translations[:, self.bodies])
+
+
+class TwistSkin(nn.Module):
+    """The skin under swing-twist skinning, in the blocks of :func:`twist_blocks`.
+
+    A twisted block moves its template, rest (B, 3, V_k) = [1, c] @ basis, by the normalised dual-quaternion
+    blend of each vertex's twist classes, ``(R v + T) / n`` with the numerator and norm products
+    (B 12, P_k) @ (P_k, V_k) and (B, P_k) @ (P_k, V_k) of its class pairs' rows (:func:`pair_rows`,
+    :func:`pair_weights`), then blends the bodies' swings linearly; a plain block is linear blend skinning.
+    """
+
+    pairs: torch.Tensor
+
+    def __init__(
+        self, basis: np.ndarray, weights: np.ndarray, twist: np.ndarray, dtype: torch.dtype, n_blocks: int
+    ) -> None:
+        """basis (1 + K, 3, V); weights (V, n_body); twist (V, n_class) twist weights."""
+        super().__init__()
+        pairs, pair_w = pair_weights(twist)
+        self.register_buffer("pairs", torch.as_tensor(pairs))
+        self.blocks = nn.ModuleList(
+            TwistBlock(
+                basis[:, :, a:b],
+                bodies,
+                weights[a:b, bodies].T,
+                None if used is None else (used, pair_w[a:b, used].T),
+                dtype,
+            )
+            for a, b, bodies, used in twist_blocks(weights, twist, n_blocks)
+        )
+
+    def forward(
+        self,
+        coeffs: torch.Tensor,
+        transforms: tuple[torch.Tensor, torch.Tensor],
+        swings: tuple[torch.Tensor, torch.Tensor],
+        twists: torch.Tensor,
+    ) -> torch.Tensor:
+        """coeffs (B, 1 + K); transforms, swings: every body's rows of its transform and of its swing from
+        :func:`~bodyfit.models.body.lbs.blend_rows`; twists (B, 8, n_class): every class's twist dual
+        quaternion -> (B, V, 3)."""
+        rows = pair_rows(twists, self.pairs)
+        blends = rows[:, :12].flatten(0, 1), rows[:, 12]
+        return torch.cat([block(coeffs, transforms, swings, blends) for block in self.blocks], dim=1)
