@@ -6,7 +6,10 @@ What is measured
   ../shared/data/anthropometry when present, else the 200-per-sex and 500-per-sex extracts in
   tests/data/anthropometry. Subjects are split 80/20 per sex with seed 39; scores are on the test split.
 * Prior: bodies are built under a Gaussian prior over the shape coefficients per sex, learned from the
-  bodies built (under the mean ANSUR II body of the sex) for 400 training subjects (60 with ``--quick``).
+  bodies built (under the mean ANSUR II body of the sex) for 400 training subjects (60 with ``--quick``),
+  its precision scaled by :data:`REPRO_PRIOR` for bodies built from full rows and by
+  :data:`PREDICT_PRIOR` for bodies built from the six inputs (chosen on training subjects held out of the
+  prior, never on the test split; docs/anthropometry.md).
 * ``repro_*``: a body built (``fit_measurements``) from all of a test subject's
   measurements that have an ANSUR II column; mean absolute error of its measurements against the subject's,
   over heights, lengths and breadths (``repro_mae_length_mm``), circumferences (``repro_mae_circ_mm``)
@@ -29,6 +32,8 @@ Usage::
     python benchmarks/anthropometry.py [--quick] [--json]
     python benchmarks/anthropometry.py figure docs/anthropometry_tapes.png
     python benchmarks/anthropometry.py calibrate     # print the definitions' calibration (calibration.py)
+    python benchmarks/anthropometry.py priors        # the prior weights on held-out training subjects
+    python benchmarks/anthropometry.py bootstrap OUT.npz [--per-sex N] [--rounds R] [--full]
     python benchmarks/anthropometry.py populations   # rebuild bodyfit/models/anthropometry/populations.npz
 """
 
@@ -62,6 +67,13 @@ EXTRACTS = REPO / "tests" / "data" / "anthropometry"
 SEED = 39
 SEXES = ("male", "female")
 INPUTS = ("stature", "weightkg", "chestcircumference", "waistcircumference", "buttockcircumference")
+# The prior's weight per use, chosen on 80 training subjects per sex held out of the prior (``priors``;
+# docs/anthropometry.md): a full row is met best under a tenth of the population's precision (the rows
+# ask for more than the shape space holds, and the population's covariance is that of bodies built under
+# a prior already); six inputs predict the rest best under four times it (what the inputs cannot all
+# meet is left to the population's correlations rather than to a distorted body).
+REPRO_PRIOR = 0.1
+PREDICT_PRIOR = 4.0
 KS_KEYS = {
     "stature": "stature",
     "mass": "weightkg",
@@ -126,14 +138,17 @@ def linear_baseline(
 Prior = tuple[np.ndarray, np.ndarray]
 
 
-def _fit(model: BodyModel, targets: np.ndarray, sexes: np.ndarray, priors: dict[str, Prior]) -> np.ndarray:
+def _fit(
+    model: BodyModel, targets: np.ndarray, sexes: np.ndarray, priors: dict[str, Prior], weight: float = 1.0
+) -> np.ndarray:
     """Measurements (n, M) of the bodies built from ``targets`` (n, M; NaN = not given) under each sex's
-    prior (mean, precision)."""
+    prior (mean, precision), its precision times ``weight``."""
     out = np.empty_like(targets)
     for s in SEXES:
         rows = np.flatnonzero(sexes == s)
         if len(rows):
-            out[rows] = fit_measurements(model, targets[rows], *priors[s])[1]
+            mean, precision = priors[s]
+            out[rows] = fit_measurements(model, targets[rows], mean, weight * precision)[1]
     return out
 
 
@@ -163,7 +178,7 @@ def scores(
     sex_train = np.concatenate([np.full(len(train_rows[s]), s) for s in SEXES])
     sex_test = np.concatenate([np.full(len(test_rows[s]), s) for s in SEXES])
     out: dict[str, Any] = {"test_subjects": len(test), "prior_subjects": 2 * n_prior}
-    reproduced = _fit(model, test, sex_test, priors)
+    reproduced = _fit(model, test, sex_test, priors, REPRO_PRIOR)
     out.update(_mae_by_kind(reproduced, test))
     err = np.abs(reproduced - test)
     per = np.nansum(err, 0) / np.maximum(np.isfinite(err).sum(0), 1)  # 0 where ANSUR II has no column
@@ -171,7 +186,7 @@ def scores(
     out["repro_worst_mm"] = {NAMES[k]: round(float(per[k]) * 1000, 1) for k in worst}
     given = np.isin(NAMES, INPUTS)
     others = ~given & np.isfinite(test).all(0)
-    predicted = _fit(model, np.where(given, test, np.nan), sex_test, priors)
+    predicted = _fit(model, np.where(given, test, np.nan), sex_test, priors, PREDICT_PRIOR)
     baseline = linear_baseline(train, test, sex_train == "male", sex_test == "male")
     out["predict_mae_mm"] = float(np.mean(np.abs(predicted - test)[:, others]) * 1000)
     out["baseline_mae_mm"] = float(np.mean(np.abs(baseline - test)[:, others]) * 1000)
@@ -179,7 +194,7 @@ def scores(
     mass = NAMES.index("weightkg")
     no_weight = test.copy()
     no_weight[:, mass] = np.nan
-    from_volume = _fit(model, no_weight, sex_test, priors)[:, mass]
+    from_volume = _fit(model, no_weight, sex_test, priors, REPRO_PRIOR)[:, mass]
     out["mass_from_volume_mae_kg"] = float(np.mean(np.abs(from_volume - test[:, mass])))
     out["implied_density"] = float(DENSITY * np.median(test[:, mass] / from_volume))
     return out
@@ -211,6 +226,63 @@ def ks_scores(model: BodyModel, nhanes: dict[str, dict[str, np.ndarray]], n: int
         out |= {f"{k}_{s}": v for k, v in drawn.items()}
         out |= {f"{k}_{s}": v for k, v in _ks(model, anny, nhanes[s], "ks_anny_").items()}
     return out
+
+
+def prior_weights(n_prior: int = 400, n_held: int = 80) -> None:
+    """Print reproduction and prediction on ``n_held`` training subjects per sex held out of the prior
+    (learned from ``n_prior`` others, as in :func:`scores`) for a range of prior weights: how
+    :data:`REPRO_PRIOR` and :data:`PREDICT_PRIOR` were chosen without the test split."""
+    torch.set_num_threads(1)
+    model = BodyModel.load()
+    ansur, _, _ = load_surveys()
+    fit_rows, held_rows = {}, {}
+    for s in SEXES:
+        train, _ = split(len(ansur[s]["stature"]))
+        rows = table(ansur[s], train)
+        held = np.random.default_rng(SEED).permutation(len(rows))[:n_held]
+        fit_rows[s], held_rows[s] = np.delete(rows, held, axis=0), rows[held]
+    priors = learn_priors(model, fit_rows, n_prior)
+    train, held = np.concatenate(list(fit_rows.values())), np.concatenate(list(held_rows.values()))
+    sex_train = np.concatenate([np.full(len(fit_rows[s]), s) for s in SEXES])
+    sex_held = np.concatenate([np.full(len(held_rows[s]), s) for s in SEXES])
+    for weight in (1.0, 0.3, 0.1, 0.03):
+        print(
+            f"reproduction, prior x{weight}:", _mae_by_kind(_fit(model, held, sex_held, priors, weight), held)
+        )
+    given = np.isin(NAMES, INPUTS)
+    others = ~given & np.isfinite(held).all(0)
+    baseline = linear_baseline(train, held, sex_train == "male", sex_held == "male")
+    base = np.mean(np.abs(baseline - held)[:, others])
+    for weight in (1.0, 2.0, 4.0, 8.0):
+        predicted = _fit(model, np.where(given, held, np.nan), sex_held, priors, weight)
+        ratio = np.mean(np.abs(predicted - held)[:, others]) / base
+        print(f"prediction, prior x{weight}: ratio {ratio:.4f}")
+
+
+def bootstrap(args: list[str]) -> None:
+    """Grow the shape space from ANSUR II training subjects (bodyfit.models.anthropometry.bootstrap) and
+    score it as the benchmark does: ``bootstrap OUT.npz [--per-sex N] [--rounds R] [--full]`` writes the
+    grown space's ``body.npz`` arrays to OUT.npz (never to assets/) and prints its rounds and scores (the
+    quick run's test subjects, or all with ``--full``), under the shipped calibration."""
+    from bodyfit.models.anthropometry.bootstrap import bootstrap_space
+
+    torch.set_num_threads(1)
+    out = Path(args[0])
+    per_sex = int(args[args.index("--per-sex") + 1]) if "--per-sex" in args else 300
+    rounds = int(args[args.index("--rounds") + 1]) if "--rounds" in args else 1
+    model = BodyModel.load()
+    ansur, _, _ = load_surveys()
+    rows = {}
+    for s in SEXES:
+        train, _ = split(len(ansur[s]["stature"]))
+        pick = np.random.default_rng(SEED + 1).permutation(len(train))[:per_sex]
+        rows[s] = table(ansur[s], train[pick])
+    grown = bootstrap_space(model, rows, rounds=rounds)
+    np.savez(out, allow_pickle=False, **grown.data)
+    print("rounds:", grown.rounds)
+    full = "--full" in args
+    result = scores(BodyModel(model.skeleton, grown.data), ansur, None if full else 40, 400 if full else 60)
+    print({k: round(v, 3) if isinstance(v, float) else v for k, v in result.items()})
 
 
 def calibrate(per_sex: int = 200) -> None:
@@ -378,6 +450,12 @@ def main(argv: list[str] | None = None) -> None:
     args = sys.argv[1:] if argv is None else argv
     if args[:1] == ["calibrate"]:
         calibrate()
+        return
+    if args[:1] == ["bootstrap"]:
+        bootstrap(args[1:])
+        return
+    if args[:1] == ["priors"]:
+        prior_weights()
         return
     if args[:1] == ["populations"]:
         build(args[1:])

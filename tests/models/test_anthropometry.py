@@ -318,3 +318,31 @@ def test_calibration_scale_is_shrunk_towards_one() -> None:
     assert np.allclose(_slope(x, y, 1.0), (1.1, 0.15), atol=0.01)  # halfway to one
     scale, offset = _slope(x, y, np.inf)  # an offset alone: the mean difference
     assert scale == 1.0 and offset == pytest.approx(np.mean(y - x))
+
+
+def test_bootstrap_fields_widen_the_space_symmetrically(body: BodyModel) -> None:
+    from bodyfit.models.anthropometry.bootstrap import FIELD_SIZE, smooth_fields, widened
+    from bodyfit.models.spaces.population import rest_meshes
+
+    fields = smooth_fields(body, 2)
+    assert 2 <= len(fields) <= 6 and fields.shape[1:] == (body.n_vertices, 3)
+    assert np.allclose(np.linalg.norm(fields, axis=2).max(1), FIELD_SIZE)
+    mirror = np.asarray(body.data["mirror"])
+    assert np.allclose(fields[:, mirror] * np.array([1.0, 1.0, -1.0]), fields, atol=1e-9)  # symmetric
+    flat = fields.reshape(len(fields), -1)
+    gram = flat @ flat.T
+    assert np.allclose(gram - np.diag(np.diag(gram)), 0.0, atol=1e-9)  # independent directions
+    wide = widened(body, fields)
+    assert wide.n_shape == body.n_shape + len(fields)
+    c = np.zeros((2, wide.n_shape))
+    c[1, body.n_shape + 1] = 1.5
+    moved = rest_meshes(wide.data, c)
+    assert np.allclose(moved[1] - moved[0], 1.5 * fields[1], atol=1e-5)
+
+
+def test_bootstrap_accepts_within_one_deviation_of_the_best() -> None:
+    from bodyfit.models.anthropometry.bootstrap import accepted
+
+    misfit = np.array([1.0, 1.2, 1.5, 5.0, 9.0])
+    threshold = 1.0 + misfit.std()  # 3.97
+    assert accepted(misfit).tolist() == (misfit <= threshold).tolist() == [True, True, True, False, False]
