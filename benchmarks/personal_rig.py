@@ -16,14 +16,17 @@ What is measured
   own shape and pose, :class:`RegisteredFitter`); ``personal_mm``: the rig fitted to them (pose only,
   :func:`bodyfit.models.rig.fit.fit_registered`); ``ratio`` the second over the first.
 * ``raw_offsets_0`` (full run only): the rig of the first offsets subject built from raw scans instead,
-  20,000 points sampled on each of the six build meshes and fitted as raw scans by the service
-  (:func:`bodyfit.service.subjects.build_subject`); held-out poses scored as above.
+  20,000 points sampled on each of the six build meshes, each registered as the service registers a raw
+  scan (:func:`bodyfit.service.subjects.registrations`), the rig then built from the registrations and
+  refined by closest points against all six scans' points (``build_rig(..., points=...)``); held-out poses
+  scored as above; ``build_s`` there includes the six scan fits.
 * Keys: ``rig_ratio`` and ``rig_param_mm`` the worst subject's; ``rig_build_s`` the slowest build from
   registered meshes (wall clock, one torch thread).
 
 Usage::
 
     python benchmarks/personal_rig.py [--quick] [--json]
+    python benchmarks/personal_rig.py --render docs/rig_anny.png     # the figure of docs/rigs.md
 """
 
 from __future__ import annotations
@@ -104,17 +107,19 @@ def anny_subject(model: BodyModel, name: str, seed: int) -> np.ndarray:
 
 
 def raw_build(model: BodyModel, build: np.ndarray) -> RigBuild:
-    """The rig of meshes (K, V, 3) given as raw scans: points sampled on each, fitted by the service."""
+    """The rig of meshes (K, V, 3) given as raw scans: points sampled on each, registered by the service,
+    the rig refined against the points."""
     from bodyfit.io.scans import Scan, sample_surface
     from bodyfit.service.core import BodyService
-    from bodyfit.service.subjects import build_subject
+    from bodyfit.service.jobs import Job
+    from bodyfit.service.subjects import registrations
 
     service = BodyService.load(fitters=False)
-    scans = [
-        Scan(sample_surface(v, model.faces, RAW_POINTS, seed=k)[0], None, None, "m", RAW_POINTS)
-        for k, v in enumerate(build)
-    ]
-    return build_subject(service, scans, [f"raw{k}" for k in range(len(build))])
+    points = [sample_surface(v, model.faces, RAW_POINTS, seed=k)[0] for k, v in enumerate(build)]
+    scans = [Scan(p, None, None, "m", RAW_POINTS) for p in points]
+    names = [f"raw{k}" for k in range(len(build))]
+    x = registrations(service, scans, names, Job(), None)
+    return build_rig(model, x, names, points=points)
 
 
 def rig_case(model: BodyModel, bodies: np.ndarray, raw: bool = False) -> dict[str, float]:
@@ -158,11 +163,57 @@ def run(quick: bool) -> dict[str, Any]:
     }
 
 
+def render_rig(out: str) -> None:
+    """The old, heavy anny subject in two held-out poses: the scan, the generic model's fit and the rig's,
+    each skin see-through over its skeleton (the rig's with the person's joints), and the error (mm) in
+    the column title (PNG ``out``)."""
+    from render import RenderMesh, label_grid, render, save_png, tile  # benchmarks/ is on sys.path
+
+    torch.set_num_threads(1)
+    model = BodyModel.load()
+    bodies = anny_subject(model, "anny_old_heavy", 0)
+    held = bodies[N_BUILD : N_BUILD + 2]
+    subject = build_rig(model, bodies[:N_BUILD]).subject
+    generic = RegisteredFitter(model).fit(held)
+    personal = fit_registered(model, subject, held)
+    skin, bone = (0.85, 0.65, 0.55), (0.93, 0.89, 0.80)
+    images: list[np.ndarray] = []
+    titles = ["scan (anny's own rig)"]
+    for name, fit in (("generic", generic), ("rig", personal)):
+        mm = np.linalg.norm(fit.vertices - held, axis=-1).mean() * 1000.0
+        titles.append(f"{name} fit, {mm:.2f} mm")
+    lo, hi = held.reshape(-1, 3).min(0) - 0.03, held.reshape(-1, 3).max(0) + 0.03
+    for k in range(len(held)):
+        images.append(render([RenderMesh(held[k], model.faces, skin)], "front", (300, 440), bounds=(lo, hi)))
+        for fit, decoder in (
+            (generic, model.decoder(torch.float64)),
+            (personal, subject.decoder(model, torch.float64)),
+        ):
+            with torch.no_grad():
+                c, q, r = (torch.as_tensor(a[k : k + 1]) for a in (fit.shape, fit.coordinates, fit.root))
+                _, _, frames, scales = decoder(c, q, r)
+                bones = model.pose_bones(frames, scales)[0].numpy()
+            meshes = [
+                RenderMesh(bones, model.skeleton.bone_mesh().faces, bone),
+                RenderMesh(fit.vertices[k], model.faces, skin, opacity=0.35),
+            ]
+            images.append(render(meshes, "front", (300, 440), bounds=(lo, hi)))
+    rows = [f"held-out pose {k + 1}" for k in range(len(held))]
+    save_png(
+        label_grid(tile(images, 3), [titles], rows, "anny, old and heavy: a rig from six other poses"), out
+    )
+
+
 if __name__ == "__main__":
+    import sys
+
     from bench_cli import bench_main  # benchmarks/ is on sys.path
 
-    bench_main(
-        run,
-        "Personal rigs: subjects outside the shape space, six scans each.",
-        "one offsets subject, one anny",
-    )
+    if sys.argv[1:2] == ["--render"]:
+        render_rig(sys.argv[2])
+    else:
+        bench_main(
+            run,
+            "Personal rigs: subjects outside the shape space, six scans each.",
+            "one offsets subject, one anny",
+        )
