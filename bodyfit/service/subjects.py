@@ -50,7 +50,8 @@ def build_subject(
     hints: ScanHints | None = None,
     config: RigConfig | None = None,
 ) -> RigBuild:
-    """One person's rig from their scans (any topology; ``hints`` go with every raw scan's fit).
+    """One person's rig from their scans (any topology; ``hints`` go with every raw scan's fit); the rig is
+    refined against the raw scans' own points, in the frame of their registrations (the scan's).
 
     Raises:
         InvalidInputError: fewer than the rig's minimum or more than :data:`MAX_SCANS` scans, a scan that
@@ -70,8 +71,9 @@ def build_subject(
             field="files",
         )
     x = registrations(service, scans, names, job, hints)
+    points = [None if service.route(scan) == REGISTERED else scan.points for scan in scans]
     job.report("rig", len(scans), len(scans) + 1, "building the rig")
     with invalid_input("files"):
-        built = build_rig(service.model, x, names, config=cfg)
+        built = build_rig(service.model, x, names, config=cfg, points=points)
     job.report("rig", len(scans) + 1, len(scans) + 1, "done")
     return built

@@ -99,6 +99,16 @@ def test_the_subject_file_round_trips_and_refuses_what_it_is_not(model: BodyMode
     np.savez(old, **{**arrays, "format": np.array("bodyfit-subject-1")})
     with pytest.raises(SubjectError, match=r"older bodyfit .*rebuild it with `bodyfit rig`"):
         Subject.from_bytes(old.getvalue())
+    with pytest.raises(SubjectError, match="not a subject file"):
+        Subject.from_bytes(data[: len(data) // 2])  # cut short
+    from bodyfit.models.rig.subject import _digest
+
+    lacking = {k: v for k, v in arrays.items() if k not in ("weights", "sha256")}
+    lacking["offsets"] = lacking["offsets"] / 1.01
+    short = io.BytesIO()
+    np.savez(short, sha256=np.array(_digest(lacking)), **lacking)
+    with pytest.raises(SubjectError, match="lacks weights"):
+        Subject.from_bytes(short.getvalue())
 
 
 def test_too_few_scans_and_other_people_are_refused(

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,6 +19,13 @@ from bodyfit.models.errors import BodyfitError
 FORMAT = "bodyfit-subject-2"
 OLD_FORMATS = ("bodyfit-subject-1",)
 FINGERPRINT_ARRAYS = ("faces", "vertices_mean", "weights", "scale_mean", "scale_basis", "identity_basis")
+
+
+ARRAYS = (
+    "shape", "offsets", "model", "poses", "roots", "scans", "report_keys", "report_values", "weights",
+    "scale_offsets",
+)  # fmt: skip
+"""The arrays a subject file holds besides its format and sha256."""
 
 
 class SubjectError(BodyfitError):
@@ -128,7 +136,7 @@ class Subject:
         try:
             with np.load(io.BytesIO(data), allow_pickle=False) as npz:
                 arrays = {k: npz[k] for k in npz.files}
-        except (OSError, ValueError, EOFError) as exc:
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
             raise SubjectError(f"not a subject file (an .npz written by `bodyfit rig`): {exc}") from None
         found = str(arrays.pop("format", ""))
         if found in OLD_FORMATS:
@@ -145,6 +153,9 @@ class Subject:
             raise SubjectError(
                 "the subject file's contents do not match its sha256: it was altered or damaged"
             )
+        missing = sorted(set(ARRAYS) - set(arrays))
+        if missing:
+            raise SubjectError(f"the subject file lacks {', '.join(missing)}: rebuild it with `bodyfit rig`")
         subject = cls(
             shape=arrays["shape"],
             offsets=arrays["offsets"],
