@@ -490,16 +490,21 @@ class TwistBlock(nn.Module):
         :func:`~bodyfit.models.body.lbs.blend_rows`; blends: every class pair's numerator rows (B 12, P)
         and norms (B, P) (:func:`pair_rows`) -> (B, V_k, 3)."""
         B, V = coeffs.shape[0], self.weights_t.shape[1]
-        if not self.twisted:
+        if self.twisted:
+            rest = (coeffs @ self.basis).reshape(B, 1, 4, V)
+            numerator = (blends[0].index_select(1, self.pairs) @ self.pair_weights_t).reshape(B, 3, 4, V)
+            norm = (blends[1].index_select(1, self.pairs) @ self.pair_weights_t).unsqueeze(1)
+            rest = (numerator * rest).sum(2) / norm  # (KCvO08, algorithm 1)
+            rotations, translations = swings
+        else:
             rest = (coeffs @ self.basis).reshape(B, 3, V)
             rotations, translations = transforms
-            return blend_block(rest, self.weights_t, rotations[:, self.bodies], translations[:, self.bodies])
-        rest = (coeffs @ self.basis).reshape(B, 1, 4, V)
-        numerator = (blends[0][:, self.pairs] @ self.pair_weights_t).reshape(B, 3, 4, V)
-        norm = (blends[1][:, self.pairs] @ self.pair_weights_t).unsqueeze(1)
-        twisted = (numerator * rest).sum(2) / norm  # (KCvO08, algorithm 1)
-        rotations, translations = swings
-        return blend_block(twisted, self.weights_t, rotations[:, self.bodies], translations[:, self.bodies])
+        return blend_block(
+            rest,
+            self.weights_t,
+            rotations.index_select(1, self.bodies),
+            translations.index_select(1, self.bodies),
+        )
 
 
 class TwistSkin(nn.Module):
