@@ -21,13 +21,6 @@ OLD_FORMATS = ("bodyfit-subject-1",)
 FINGERPRINT_ARRAYS = ("faces", "vertices_mean", "weights", "scale_mean", "scale_basis", "identity_basis")
 
 
-ARRAYS = (
-    "shape", "offsets", "model", "poses", "roots", "scans", "report_keys", "report_values", "weights",
-    "scale_offsets",
-)  # fmt: skip
-"""The arrays a subject file holds besides its format and sha256."""
-
-
 class SubjectError(BodyfitError):
     """A subject file that cannot be used: unreadable, altered, or built for another body model."""
 
@@ -153,22 +146,12 @@ class Subject:
             raise SubjectError(
                 "the subject file's contents do not match its sha256: it was altered or damaged"
             )
-        missing = sorted(set(ARRAYS) - set(arrays))
-        if missing:
-            raise SubjectError(f"the subject file lacks {', '.join(missing)}: rebuild it with `bodyfit rig`")
-        subject = cls(
-            shape=arrays["shape"],
-            offsets=arrays["offsets"],
-            model=str(arrays["model"]),
-            poses=arrays["poses"],
-            roots=arrays["roots"],
-            scans=tuple(str(s) for s in arrays["scans"]),
-            report=dict(
-                zip(map(str, arrays["report_keys"]), map(float, arrays["report_values"]), strict=True)
-            ),
-            weights=arrays["weights"] if arrays["weights"].size else None,
-            scale_offsets=arrays["scale_offsets"] if arrays["scale_offsets"].size else None,
-        )
+        try:
+            subject = cls._from_arrays(arrays)
+        except KeyError as missing:
+            raise SubjectError(
+                f"the subject file lacks {missing.args[0]}: rebuild it with `bodyfit rig`"
+            ) from None
         if model is not None:
             subject.check_model(model)
             generic = PersonalParts.generic(model)
@@ -183,6 +166,23 @@ class Subject:
             ):
                 raise SubjectError("the subject's arrays do not match the body model's sizes")
         return subject
+
+    @classmethod
+    def _from_arrays(cls, arrays: dict[str, np.ndarray]) -> Subject:
+        """The subject held by a file's arrays (format and sha256 removed); KeyError for a missing one."""
+        return cls(
+            shape=arrays["shape"],
+            offsets=arrays["offsets"],
+            model=str(arrays["model"]),
+            poses=arrays["poses"],
+            roots=arrays["roots"],
+            scans=tuple(str(s) for s in arrays["scans"]),
+            report=dict(
+                zip(map(str, arrays["report_keys"]), map(float, arrays["report_values"]), strict=True)
+            ),
+            weights=arrays["weights"] if arrays["weights"].size else None,
+            scale_offsets=arrays["scale_offsets"] if arrays["scale_offsets"].size else None,
+        )
 
     @classmethod
     def load(cls, path: str | Path, model: BodyModel | None = None) -> Subject:
