@@ -9,8 +9,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from bodyfit.cli.common import fail, reported
-from bodyfit.wire.hints import FACING_HELP, HEIGHT_HELP, POSE_HELP, SEX_HELP, UP_HELP
+from bodyfit.cli.common import FacingHint, HeightHint, PoseHint, SexHint, UnitsOption, UpHint, fail, reported
 
 if TYPE_CHECKING:
     from bodyfit.clients.batch import BatchReport
@@ -69,22 +68,21 @@ def batch_fit(
     out: Annotated[Path, typer.Argument(help="Output folder (the folder's layout is kept).")],
     concurrency: Annotated[int, typer.Option(min=1, help="Scans in flight at once.")] = 1,
     backend: Annotated[str, typer.Option(help=BACKEND_HELP)] = "local",
-    units: Annotated[str, typer.Option(help="Unit of every scan's coordinates: auto, m or mm.")] = "auto",
-    up: Annotated[str | None, typer.Option(help=f"Hint for every scan: {UP_HELP}.")] = None,
-    facing: Annotated[str | None, typer.Option(help=f"Hint for every scan: {FACING_HELP}.")] = None,
-    pose: Annotated[str | None, typer.Option(help=f"Hint for every scan: {POSE_HELP}.")] = None,
-    sex: Annotated[str | None, typer.Option(help=f"Hint for every scan: {SEX_HELP}.")] = None,
-    height_m: Annotated[float | None, typer.Option(help=f"Hint for every scan: {HEIGHT_HELP}.")] = None,
+    units: UnitsOption = "auto",
+    up: UpHint = None,
+    facing: FacingHint = None,
+    pose: PoseHint = None,
+    sex: SexHint = None,
+    height_m: HeightHint = None,
 ) -> None:
     """Fit every scan in a folder tree; resumes (finished scans are skipped) and reports failures at the end
-    without stopping. Writes <out>/<relative path>.npz (parameters, registration, joints, to_model), .ply
-    (the registration in the scan's frame) and .json (the fit report) per scan."""
+    without stopping; the units and hints apply to every scan. Writes <out>/<relative path>.npz
+    (parameters, registration, joints, to_model), .ply (the registration in the scan's frame) and .json
+    (the fit report) per scan."""
     from bodyfit.cli.backends import fitter
     from bodyfit.clients.batch_fit import batch_fit as run
     from bodyfit.clients.errors import BodyfitClientError
 
-    if units not in ("auto", "m", "mm"):
-        fail(f"--units must be auto, m or mm; got {units!r}")
     with reported():
         from bodyfit.service.hints import ScanHints
 

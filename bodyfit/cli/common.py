@@ -5,9 +5,11 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import NoReturn
+from typing import Annotated, Literal, NoReturn
 
 import typer
+
+from bodyfit.wire.hints import FACING_HELP, HEIGHT_HELP, POSE_HELP, SEX_HELP, UP_HELP, PoseClass, Sex
 
 ASSETS_HELP = "Asset folder (default: assets/ of the checkout, or $BODYFIT_ASSETS)."
 OUT_HELP = "Output folder (created when missing)."
@@ -20,6 +22,27 @@ SUBJECT_HELP = (
     "A subject file (the subject.npz of `bodyfit rig`): the body is that person's, their shape and template "
     "held fixed; only the pose is fitted."
 )
+
+
+UNITS_HELP = (
+    "Unit of the input coordinates: m (metres), mm (millimetres) or auto (whichever gives a human-sized "
+    "body)."
+)
+SCAN_UP_HELP = f"Hint: {UP_HELP}, e.g. +z."
+SCAN_FACING_HELP = f"Hint: {FACING_HELP}, e.g. +x."
+SCAN_POSE_HELP = f"Hint: {POSE_HELP}."
+SCAN_SEX_HELP = f"Hint: {SEX_HELP}."
+SCAN_HEIGHT_HELP = f"Hint: {HEIGHT_HELP}."
+
+Units = Literal["auto", "m", "mm"]
+# The options of every command that fits raw scans (`fit scan`, `batch-fit`, `rig`): one declaration, so
+# their names, checks and help texts cannot drift apart.
+UnitsOption = Annotated[Units, typer.Option(help=UNITS_HELP)]
+UpHint = Annotated[str | None, typer.Option(help=SCAN_UP_HELP)]
+FacingHint = Annotated[str | None, typer.Option(help=SCAN_FACING_HELP)]
+PoseHint = Annotated[PoseClass | None, typer.Option(help=SCAN_POSE_HELP)]
+SexHint = Annotated[Sex | None, typer.Option(help=SCAN_SEX_HELP)]
+HeightHint = Annotated[float | None, typer.Option(help=SCAN_HEIGHT_HELP)]
 
 
 def fail(exc: BaseException | str) -> NoReturn:

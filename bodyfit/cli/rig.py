@@ -9,8 +9,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from bodyfit.cli.common import OUT_HELP, fail, note, reported
-from bodyfit.wire.hints import FACING_HELP, POSE_HELP, UP_HELP
+from bodyfit.cli.common import OUT_HELP, FacingHint, PoseHint, UnitsOption, UpHint, fail, note, reported
 
 if TYPE_CHECKING:
     from bodyfit.models.body.model import BodyModel
@@ -28,7 +27,7 @@ def rig(
         ),
     ],
     out: Annotated[Path, typer.Option(help=OUT_HELP)],
-    units: Annotated[str, typer.Option(help="Unit of the scans' coordinates: auto, m or mm.")] = "auto",
+    units: UnitsOption = "auto",
     allow_undetermined: Annotated[
         bool,
         typer.Option(
@@ -36,9 +35,9 @@ def rig(
             "shape space alone)."
         ),
     ] = False,
-    up: Annotated[str | None, typer.Option(help=f"Hint for every raw scan: {UP_HELP}.")] = None,
-    facing: Annotated[str | None, typer.Option(help=f"Hint for every raw scan: {FACING_HELP}.")] = None,
-    pose: Annotated[str | None, typer.Option(help=f"Hint for every raw scan: {POSE_HELP}.")] = None,
+    up: UpHint = None,
+    facing: FacingHint = None,
+    pose: PoseHint = None,
     onnx: Annotated[
         bool, typer.Option(help="Also write the subject's ONNX decoder (about 6 MB; local builds).")
     ] = True,
@@ -48,11 +47,10 @@ def rig(
     ] = None,
 ) -> None:
     """Build one person's rig: each scan is registered, then one shape and the person's rest-pose template
-    offsets are fitted to all of them. Writes <out>/subject.npz (the portable subject file: `--subject` /
-    `subject=` elsewhere), subject.json (errors per scan, generic against personal, mm), rest.ply (the
-    person standing) and subject.onnx (shape, coordinates, root -> vertices, joints; not with --server)."""
-    if units not in ("auto", "m", "mm"):
-        fail(f"--units must be auto, m or mm; got {units!r}")
+    offsets are fitted to all of them (the units and hints apply to every raw scan). Writes
+    <out>/subject.npz (the portable subject file: `--subject` / `subject=` elsewhere), subject.json (errors
+    per scan, generic against personal, mm), rest.ply (the person standing) and subject.onnx (shape,
+    coordinates, root -> vertices, joints; not with --server)."""
     if server is not None:
         _on_server(server, scans, out, units, allow_undetermined, (up, facing, pose))
         return

@@ -64,7 +64,7 @@ def test_batch_fit_in_this_process(tmp_path: Path) -> None:
     [
         (["--backend", "nope"], "error: unknown backend 'nope'"),
         (["--up", "sideways"], "error: "),
-        (["--units", "cm"], "error: --units must be auto, m or mm"),
+        (["--units", "cm"], "Invalid value for '--units'"),
         (["--up", "+z", "--facing", "-z"], "facing must be perpendicular to up"),
     ],
 )

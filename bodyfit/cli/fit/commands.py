@@ -10,11 +10,30 @@ from typing import Annotated, Any, Literal
 import typer
 from typer.core import TyperGroup
 
-from bodyfit.cli.common import OUT_HELP, SUBJECT_HELP, fail, note, reported
+from bodyfit.cli.common import (
+    OUT_HELP,
+    SCAN_FACING_HELP,
+    SCAN_HEIGHT_HELP,
+    SCAN_POSE_HELP,
+    SCAN_SEX_HELP,
+    SCAN_UP_HELP,
+    SUBJECT_HELP,
+    UNITS_HELP,
+    FacingHint,
+    HeightHint,
+    PoseHint,
+    SexHint,
+    Units,
+    UnitsOption,
+    UpHint,
+    fail,
+    note,
+    reported,
+)
 from bodyfit.cli.fit.kinds import DESCRIPTION, Kind, single_kind, wrong_kind
 from bodyfit.cli.fit.markers import MarkerOptions
 from bodyfit.cli.fit.scan import HELPER_SCANS
-from bodyfit.wire.hints import FACING_HELP, HEIGHT_HELP, POSE_HELP, SEX_HELP, UP_HELP, PoseClass, Sex
+from bodyfit.wire.hints import PoseClass, Sex
 
 AUTO = "auto"
 
@@ -43,10 +62,6 @@ app = typer.Typer(
 )
 
 Out = Annotated[Path, typer.Option(help=OUT_HELP)]
-UNITS_HELP = (
-    "Unit of the input coordinates: m (metres), mm (millimetres) or auto (whichever gives a human-sized "
-    "body)."
-)
 PROCESSES_HELP = (
     "1 or 2 processes: 2 fits raw scans with a helper process on a second core (about 20% faster per scan "
     f"once it has started, 0.5 GB more memory). Default: 2 when {HELPER_SCANS} or more inputs are raw "
@@ -64,14 +79,8 @@ CALIBRATION_HELP = (
 )
 MARKER_SET_HELP = "Marker protocol: auto (from the marker names), gait2392 or rajagopal."
 MARKER_UP_HELP = "The lab's up axis: x, y or z with an optional sign (e.g. z, -y)."
-SCAN_UP_HELP = f"Hint: {UP_HELP}, e.g. +z."
-SCAN_FACING_HELP = f"Hint: {FACING_HELP}, e.g. +x."
-SCAN_POSE_HELP = f"Hint: {POSE_HELP}."
-SCAN_SEX_HELP = f"Hint: {SEX_HELP}."
-SCAN_HEIGHT_HELP = f"Hint: {HEIGHT_HELP}."
 FORWARD_HELP = "The lab's forward (walking) axis: x, y or z with an optional sign."
 FPS_HELP = "Frames per second (Hz) of the sequence, for the times in the .mot."
-Units = Literal["auto", "m", "mm"]
 Calibration = Literal["auto", "static", "motion"]
 OPTION_KINDS: dict[str, tuple[Kind, ...]] = {
     "--units": ("scan",),
@@ -164,13 +173,13 @@ def scan(
         ),
     ],
     out: Out = Path("out/fit"),
-    units: Annotated[Units, typer.Option(help=UNITS_HELP)] = "auto",
+    units: UnitsOption = "auto",
     processes: Annotated[int | None, typer.Option(min=1, max=2, help=PROCESSES_HELP)] = None,
-    up: Annotated[str | None, typer.Option(help=SCAN_UP_HELP)] = None,
-    facing: Annotated[str | None, typer.Option(help=SCAN_FACING_HELP)] = None,
-    pose: Annotated[PoseClass | None, typer.Option(help=SCAN_POSE_HELP)] = None,
-    sex: Annotated[Sex | None, typer.Option(help=SCAN_SEX_HELP)] = None,
-    height_m: Annotated[float | None, typer.Option(help=SCAN_HEIGHT_HELP)] = None,
+    up: UpHint = None,
+    facing: FacingHint = None,
+    pose: PoseHint = None,
+    sex: SexHint = None,
+    height_m: HeightHint = None,
     subject: Subject = None,
 ) -> None:
     """Fit meshes and scans, any placement.
