@@ -220,3 +220,13 @@ def test_manifest_hashes_match_every_file() -> None:
     assert metrics["population"]["bodies"] >= 2000 and metrics["population"]["held_out"] >= 200
     assert metrics["template"]["landmarks"] >= 40
     assert metrics["skinning_heldout_mm"]["after_mean"] < metrics["skinning_heldout_mm"]["before_mean"]
+
+
+def test_each_vertex_belongs_to_the_body_at_its_place(body: BodyModel) -> None:
+    """The highest template vertex is the head's, the lowest a foot's, the widest on each side that hand's;
+    every index names a skeleton body."""
+    v, owner, names = body.data["vertices_mean"], body.vertex_bodies, body.skeleton.body_names
+    assert owner.shape == (body.n_vertices,) and 0 <= owner.min() and owner.max() < len(names)
+    assert names[owner[v[:, 1].argmax()]] == "head"
+    assert names[owner[v[:, 1].argmin()]] in ("calcn_r", "calcn_l", "toes_r", "toes_l")
+    assert names[owner[v[:, 2].argmax()]] == "hand_r" and names[owner[v[:, 2].argmin()]] == "hand_l"

@@ -498,6 +498,12 @@ class BodyModel:
         return int(self.data["vertices_mean"].shape[0])
 
     @property
+    def vertex_bodies(self) -> np.ndarray:
+        """(V,) int: for each template vertex, the index (into ``skeleton.body_names``) of the skeleton body
+        whose skinning weight on it is largest: the body a vertex belongs to."""
+        return np.asarray(self.data["weights"]).argmax(axis=1)
+
+    @property
     def dof_names(self) -> list[str]:
         return self.skeleton.dof_names
 

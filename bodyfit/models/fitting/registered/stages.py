@@ -151,7 +151,7 @@ def farthest_point_subset(points: np.ndarray, n: int) -> np.ndarray:
 def vertex_sets(model: BodyModel, config: RegisteredFitConfig) -> dict[str, np.ndarray]:
     """Each :data:`VertexSet`'s sorted vertex indices (V_set,) into the model's template."""
     template = model.data["vertices_mean"]
-    body_of_vertex = np.argmax(model.data["weights"], axis=1)
+    body_of_vertex = model.vertex_bodies
     trunk_ids = [model.skeleton.body_names.index(b) for b in TRUNK_BODIES]
     cfg = config
     spread = farthest_point_subset(template, max(cfg.dense_size, cfg.subset_size, cfg.coarse_size))

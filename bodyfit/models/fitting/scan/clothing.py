@@ -93,7 +93,7 @@ BARE_BODIES = ("head", "hand")  # skeleton bodies (name prefixes) whose skin loo
 def bare_vertices(model: BodyModel) -> np.ndarray:
     """(V,) bool: the template vertices whose skin loose clothing leaves bare, by the skeleton body that
     weighs most on each (:data:`BARE_BODIES`)."""
-    owner = np.argmax(np.asarray(model.data["weights"]), axis=1)
+    owner = model.vertex_bodies
     bare = np.array([name.startswith(BARE_BODIES) for name in model.skeleton.body_names])
     return bare[owner]
 

@@ -111,7 +111,7 @@ class HypothesisSteps:
         self.model, self.fitter, self.normals = model, fitter, normals
         self.faces = np.asarray(model.data["faces"], np.int64)
         self.pelvis = [model.skeleton.dof_index(n) for n in PELVIS_ROTATIONS]
-        owner = np.argmax(model.data["weights"], axis=1)  # each vertex's body
+        owner = model.vertex_bodies
         names = model.skeleton.body_names
         distal = []
         self.distal_parts = []  # each distal chain's vertices, then those of no chain

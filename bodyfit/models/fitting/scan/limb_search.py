@@ -210,7 +210,7 @@ class LimbSearch:
         self.fitter = fitter
         model = fitter.model
         names = model.skeleton.body_names
-        owner = np.argmax(model.data["weights"], axis=1)[fitter.index["subset"]]  # each vertex's body
+        owner = model.vertex_bodies[fitter.index["subset"]]  # each subset vertex's body
         self.vertices = [
             np.flatnonzero(np.isin(owner, [names.index(b) for b in bodies])) for bodies, _ in LIMB_SEARCH
         ]
