@@ -10,13 +10,15 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from bodyfit.wire.arrays import Base64Bytes
+from bodyfit.wire.measure import MeasureSex
 
 Format = Literal["npz", "ply", "obj", "glb", "json"]
 Matrix = list[list[float]]
 
 
 class SynthesizeRequest(BaseModel):
-    """Parameters of B bodies. Every field is optional: nothing gives the mean body in the zero pose."""
+    """Parameters of B bodies, or measurements to build the body from. Every field is optional: nothing
+    gives the mean body in the zero pose."""
 
     model_config = ConfigDict(
         extra="forbid",
@@ -25,6 +27,11 @@ class SynthesizeRequest(BaseModel):
             "examples": [
                 {"coordinates": {"knee_angle_r": 1.0, "hip_flexion_r": 0.5}, "format": "npz"},
                 {"shape": [[0.5] * 32], "root": [[0.0, 0.95, 0.0]], "skeleton": True, "format": "glb"},
+                {
+                    "measurements": {"stature": 1.8, "mass": 80.0, "waist": 0.9},
+                    "sex": "male",
+                    "format": "glb",
+                },
             ]
         },
     )
@@ -54,4 +61,13 @@ class SynthesizeRequest(BaseModel):
         default=None,
         description="Instead of shape: a subject file (the .npz of POST /v1/subjects or `bodyfit rig`), "
         "base64; every body is that person's (their shape and template). Not with shape or measurements.",
+    )
+    measurements: dict[str, float] | None = Field(
+        default=None,
+        description="Instead of shape: build the body from these {name: value} in metres (kilograms for "
+        "the mass), ANSUR II names or aliases (stature, mass, waist, ...; docs/anthropometry.md), any "
+        "subset. The response header Bodyfit-Measurements holds what was requested and achieved.",
+    )
+    sex: MeasureSex | None = Field(
+        default=None, description="With measurements: the plausible ranges and the prior of the built body."
     )

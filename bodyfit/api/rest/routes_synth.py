@@ -7,16 +7,14 @@ import asyncio
 
 from fastapi import APIRouter, Response
 from fastapi.concurrency import run_in_threadpool
-from pydantic import ConfigDict, Field
 
-from bodyfit.api import schemas
 from bodyfit.api.rest.openapi import PROBLEMS
 from bodyfit.api.rest.state import Service
+from bodyfit.api.schemas import SynthesizeRequest
 from bodyfit.service.core import SynthRequest
 from bodyfit.service.formats import MEDIA_TYPES, encode_bodies
 from bodyfit.service.synthesis import rows_array
 from bodyfit.wire import SynthesisJSON
-from bodyfit.wire.measure import MeasureSex
 
 router = APIRouter(prefix="/v1", tags=["synthesis"])
 
@@ -25,34 +23,6 @@ BUILT_HEADER = "Bodyfit-Measurements"
 :class:`~bodyfit.wire.measure.Measurements` document (requested, achieved, residuals, unmet) as JSON,
 without the per-name descriptions (docs/anthropometry.md) so that it stays within 4 KB, the smallest
 response-header buffer of common proxies."""
-
-
-class SynthesizeRequest(schemas.SynthesizeRequest):
-    """Parameters of B bodies, or measurements to build the body from. Every field is optional: nothing
-    gives the mean body in the zero pose."""
-
-    model_config = ConfigDict(
-        json_schema_extra={
-            "examples": [
-                {"coordinates": {"knee_angle_r": 1.0, "hip_flexion_r": 0.5}, "format": "npz"},
-                {
-                    "measurements": {"stature": 1.8, "mass": 80.0, "waist": 0.9},
-                    "sex": "male",
-                    "format": "glb",
-                },
-            ]
-        },
-    )
-
-    measurements: dict[str, float] | None = Field(
-        default=None,
-        description="Instead of shape: build the body from these {name: value} in metres (kilograms for "
-        "the mass), ANSUR II names or aliases (stature, mass, waist, ...; docs/anthropometry.md), any "
-        "subset. The response header Bodyfit-Measurements holds what was requested and achieved.",
-    )
-    sex: MeasureSex | None = Field(
-        default=None, description="With measurements: the plausible ranges and the prior of the built body."
-    )
 
 
 @router.post(
