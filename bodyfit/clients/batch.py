@@ -124,7 +124,7 @@ def batch_upgrade(
     dataset_dir: str | os.PathLike[str],
     out_dir: str | os.PathLike[str],
     concurrency: int = 1,
-    backend: str | Upgrader = "local",
+    backend: str | Upgrader = "http://127.0.0.1:8000",
     smpl_model: str | os.PathLike[str] | None = None,
     progress: bool = True,
     up: str | None = None,
@@ -134,8 +134,9 @@ def batch_upgrade(
 
     Args:
         concurrency: sequences in flight at once (requests or threads).
-        backend: a server URL or any :class:`Upgrader` callable (``"local"`` and ``"ray"``: deprecated,
-            see the module docstring).
+        backend: a server URL (default: a server on this machine, as ``bodyfit serve`` starts it, the
+            same default as ``batch_fit``) or any :class:`Upgrader` callable (``"local"`` and ``"ray"``:
+            deprecated, see the module docstring).
         smpl_model: the SMPL-family model file of the deprecated in-process back-ends (default
             $BODYFIT_SMPL_MODEL); a server uses its own.
         progress: show a tqdm bar.

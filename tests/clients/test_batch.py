@@ -112,5 +112,7 @@ def test_the_up_axis_goes_to_the_server(tmp_path: Path, monkeypatch: pytest.Monk
     assert sent == ["+z", "+z"] and report.done
     assert server_upgrader("http://server:8000")(root / "subject_a" / "walk.npz") == Answer.files
     assert sent[-1] is None  # no axis: the server detects it
+    batch_upgrade(root, tmp_path / "out3", progress=False)
+    assert sent[-2:] == [None, None]  # the default back-end is the SDK's client of a local server
     with pytest.raises(ValueError, match="needs a server URL"):
         batch_upgrade(root, tmp_path / "out2", backend=lambda p: {}, progress=False, up="+z")
