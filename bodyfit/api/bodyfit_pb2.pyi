@@ -251,18 +251,20 @@ class SequenceChunk(_message.Message):
     def __init__(self, start: _Optional[int] = ..., stop: _Optional[int] = ..., coordinates: _Optional[_Union[Array, _Mapping]] = ..., root: _Optional[_Union[Array, _Mapping]] = ..., vertices: _Optional[_Union[Array, _Mapping]] = ..., joints: _Optional[_Union[Array, _Mapping]] = ..., error_mm: _Optional[_Union[Array, _Mapping]] = ...) -> None: ...
 
 class SequenceSummary(_message.Message):
-    __slots__ = ("shape", "dof_names", "joint_names", "stats_json", "limit_violations")
+    __slots__ = ("shape", "dof_names", "joint_names", "stats_json", "limit_violations", "confident_frames")
     SHAPE_FIELD_NUMBER: _ClassVar[int]
     DOF_NAMES_FIELD_NUMBER: _ClassVar[int]
     JOINT_NAMES_FIELD_NUMBER: _ClassVar[int]
     STATS_JSON_FIELD_NUMBER: _ClassVar[int]
     LIMIT_VIOLATIONS_FIELD_NUMBER: _ClassVar[int]
+    CONFIDENT_FRAMES_FIELD_NUMBER: _ClassVar[int]
     shape: Array
     dof_names: _containers.RepeatedScalarFieldContainer[str]
     joint_names: _containers.RepeatedScalarFieldContainer[str]
     stats_json: str
     limit_violations: int
-    def __init__(self, shape: _Optional[_Union[Array, _Mapping]] = ..., dof_names: _Optional[_Iterable[str]] = ..., joint_names: _Optional[_Iterable[str]] = ..., stats_json: _Optional[str] = ..., limit_violations: _Optional[int] = ...) -> None: ...
+    confident_frames: int
+    def __init__(self, shape: _Optional[_Union[Array, _Mapping]] = ..., dof_names: _Optional[_Iterable[str]] = ..., joint_names: _Optional[_Iterable[str]] = ..., stats_json: _Optional[str] = ..., limit_violations: _Optional[int] = ..., confident_frames: _Optional[int] = ...) -> None: ...
 
 class FitSequenceEvent(_message.Message):
     __slots__ = ("progress", "chunk", "result")
@@ -313,7 +315,7 @@ class UpgradeChunk(_message.Message):
     def __init__(self, start: _Optional[int] = ..., stop: _Optional[int] = ..., coordinates: _Optional[_Union[Array, _Mapping]] = ..., root: _Optional[_Union[Array, _Mapping]] = ..., joints: _Optional[_Union[Array, _Mapping]] = ..., error_mm: _Optional[_Union[Array, _Mapping]] = ..., bad_frames: _Optional[_Union[Array, _Mapping]] = ...) -> None: ...
 
 class UpgradeSummary(_message.Message):
-    __slots__ = ("dof_names", "joint_names", "shape", "scales", "summary_json", "files")
+    __slots__ = ("dof_names", "joint_names", "shape", "scales", "summary_json", "files", "segment_names")
     class FilesEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -327,13 +329,15 @@ class UpgradeSummary(_message.Message):
     SCALES_FIELD_NUMBER: _ClassVar[int]
     SUMMARY_JSON_FIELD_NUMBER: _ClassVar[int]
     FILES_FIELD_NUMBER: _ClassVar[int]
+    SEGMENT_NAMES_FIELD_NUMBER: _ClassVar[int]
     dof_names: _containers.RepeatedScalarFieldContainer[str]
     joint_names: _containers.RepeatedScalarFieldContainer[str]
     shape: Array
     scales: Array
     summary_json: str
     files: _containers.ScalarMap[str, bytes]
-    def __init__(self, dof_names: _Optional[_Iterable[str]] = ..., joint_names: _Optional[_Iterable[str]] = ..., shape: _Optional[_Union[Array, _Mapping]] = ..., scales: _Optional[_Union[Array, _Mapping]] = ..., summary_json: _Optional[str] = ..., files: _Optional[_Mapping[str, bytes]] = ...) -> None: ...
+    segment_names: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, dof_names: _Optional[_Iterable[str]] = ..., joint_names: _Optional[_Iterable[str]] = ..., shape: _Optional[_Union[Array, _Mapping]] = ..., scales: _Optional[_Union[Array, _Mapping]] = ..., summary_json: _Optional[str] = ..., files: _Optional[_Mapping[str, bytes]] = ..., segment_names: _Optional[_Iterable[str]] = ...) -> None: ...
 
 class UpgradeEvent(_message.Message):
     __slots__ = ("progress", "chunk", "result")

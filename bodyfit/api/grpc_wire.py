@@ -134,6 +134,7 @@ def sequence_event(e: w.SequenceChunkEvent | w.SequenceResultEvent) -> pb.FitSeq
         joint_names=e.joint_names,
         stats_json=json_text(e.stats),
         limit_violations=e.limit_violations,
+        confident_frames=e.confident_frames,
         **array_fields(e.arrays),
     )
     return pb.FitSequenceEvent(result=summary)
@@ -146,6 +147,7 @@ def upgrade_event(e: w.UpgradeChunkEvent | w.UpgradeResultEvent) -> pb.UpgradeEv
     summary = pb.UpgradeSummary(
         dof_names=e.dof_names,
         joint_names=e.joint_names,
+        segment_names=e.segment_names,
         summary_json=json_text(e.summary),
         files=e.files,
         **array_fields(e.arrays),

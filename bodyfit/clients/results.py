@@ -190,7 +190,9 @@ class MeshFitResult:
 @dataclass(frozen=True)
 class SequenceResult:
     """A fitted sequence of T frames: shape (n_shape,); coordinates (T, n_dof); root (T, 3); vertices
-    (T, V, 3); joints (T, J, 3); error_mm (T,) per-frame mean distance; stats (fps, jitter, ...)."""
+    (T, V, 3); joints (T, J, 3); error_mm (T,) per-frame mean distance; stats (fps, jitter, ...);
+    confident_frames: how many frames' fits the server reports confident (None from a server that does not
+    say)."""
 
     shape: np.ndarray
     coordinates: np.ndarray
@@ -202,6 +204,7 @@ class SequenceResult:
     joint_names: tuple[str, ...]
     stats: dict[str, Any] = field(default_factory=dict)
     limit_violations: int = 0
+    confident_frames: int | None = None
 
     @classmethod
     def from_events(cls, chunks: Sequence[w.SequenceChunk], result: w.SequenceFit) -> SequenceResult:
@@ -213,6 +216,7 @@ class SequenceResult:
             joint_names=result.joint_names,
             stats=result.stats.model_dump(mode="json"),
             limit_violations=result.limit_violations,
+            confident_frames=result.confident_frames,
             **arrays,
         )
 
@@ -288,9 +292,9 @@ class EventCollector:
 @dataclass(frozen=True)
 class UpgradeOutput:
     """An upgraded SMPL-format sequence of T frames: coordinates (T, n_dof) named by ``dof_names``; root
-    (T, 3); joints (T, J, 3); error_mm (T,) per frame; bad_frames (T,); shape (n_shape,); scales (n_seg, 3);
-    summary (path, v2v, frames/s, limit violations, largest frame jump, notes); files: the server's npz,
-    json, osim and mot as bytes (:meth:`save` writes them)."""
+    (T, 3); joints (T, J, 3); error_mm (T,) per frame; bad_frames (T,); shape (n_shape,); scales (n_seg, 3),
+    one row per ``segment_names``; summary (path, v2v, frames/s, limit violations, largest frame jump,
+    notes); files: the server's npz, json, osim and mot as bytes (:meth:`save` writes them)."""
 
     coordinates: np.ndarray
     root: np.ndarray
@@ -303,6 +307,7 @@ class UpgradeOutput:
     joint_names: tuple[str, ...]
     summary: dict[str, Any]
     files: dict[str, bytes]
+    segment_names: tuple[str, ...] = ()
 
     def save(self, folder: str | Path, name: str) -> dict[str, Path]:
         """Write ``name``.npz / .json / .osim / .mot into ``folder``; returns the paths."""
@@ -323,6 +328,7 @@ class UpgradeOutput:
             scales=result.arrays.scales.to_numpy(),
             dof_names=result.dof_names,
             joint_names=result.joint_names,
+            segment_names=result.segment_names,
             summary=result.summary.model_dump(mode="json"),
             files=dict(result.files),
             **arrays,

@@ -233,8 +233,8 @@ class SequenceArrays(WireModel):
 
 
 class SequenceFit(WireModel):
-    """What a sequence fit ends with (the per-frame arrays came in the chunks). ``confident_frames`` is
-    not on the gRPC wire (null there)."""
+    """What a sequence fit ends with (the per-frame arrays came in the chunks); ``confident_frames``: how
+    many frames' fits are reported confident."""
 
     dof_names: tuple[str, ...]
     joint_names: tuple[str, ...]
@@ -310,8 +310,8 @@ class UpgradeArrays(WireModel):
 
 class UpgradeResult(WireModel):
     """What an upgrade ends with: names, shape and scales, the summary and the files (``npz``, ``json``,
-    ``osim``, ``mot``; base64 in JSON, bytes over gRPC). ``segment_names`` is not on the gRPC wire
-    (empty there)."""
+    ``osim``, ``mot``; base64 in JSON, bytes over gRPC). ``segment_names`` names the rows of
+    ``arrays.scales``."""
 
     dof_names: tuple[str, ...]
     joint_names: tuple[str, ...]

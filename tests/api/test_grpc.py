@@ -191,7 +191,7 @@ def test_fit_sequence_reassembles_chunks(client: GrpcClient, body_service: BodyS
     seq = client.fit_sequence(frames, chunk=2)
     assert seq.coordinates.shape == (5, 46) and seq.vertices.shape == (5, 13348, 3)
     assert np.abs(seq.coordinates[:, seq.dof_names.index("knee_angle_l")] - knee).max() < 0.1
-    assert seq.limit_violations == 0 and seq.stats["frames"] == 5
+    assert seq.limit_violations == 0 and seq.stats["frames"] == 5 and seq.confident_frames == 5
 
 
 def test_health_and_reflection(target: str) -> None:
@@ -266,6 +266,7 @@ def test_upgrade_over_grpc(client: GrpcClient, target: str, tmp_path: Path) -> N
     out = client.upgrade(sequence, chunk=16)
     assert out.coordinates.shape == (60, 46) and out.summary["path"] == "a"
     assert out.summary["limit_violations"] == 0 and set(out.files) == {"npz", "json", "osim", "mot"}
+    assert len(out.segment_names) == len(out.scales) > 10 and "pelvis" in out.segment_names
     assert np.allclose(np.load(out.save(tmp_path, "walk")["npz"])["coordinates"], out.coordinates)
     hinted = client.upgrade(sequence, height_m=1.7)  # the hints reach the server (path a ignores them)
     assert any("hints were not used" in note for note in hinted.summary["notes"])

@@ -180,6 +180,7 @@ def rest_answers() -> dict[str, Callable[[httpx.Request], httpx.Response]]:
                 **names,
                 "stats": STATS,
                 "limit_violations": 2,
+                "confident_frames": 3,
                 "arrays": {"shape": b64(F32["shape"])},
             },
         ),
@@ -188,6 +189,7 @@ def rest_answers() -> dict[str, Callable[[httpx.Request], httpx.Response]]:
             {
                 "event": "result",
                 **names,
+                "segment_names": ["pelvis", "femur_r"],
                 "summary": SUMMARY,
                 "arrays": {"shape": b64(F32["shape"]), "scales": b64(F32["scales"])},
                 "files": {k: base64.b64encode(v).decode() for k, v in FILES.items()},
@@ -257,7 +259,12 @@ def grpc_answers() -> dict[str, Callable[[Any], Any]]:
             *seq,
             pb.FitSequenceEvent(
                 result=pb.SequenceSummary(
-                    shape=a["shape"], stats_json=json.dumps(STATS), limit_violations=2, **names
+                    shape=a["shape"],
+                    stats_json=json.dumps(STATS),
+                    limit_violations=2,
+                    confident_frames=3,
+                    dof_names=names["dof_names"],
+                    joint_names=names["joint_names"],
                 )
             ),
         ],
@@ -279,6 +286,7 @@ def grpc_answers() -> dict[str, Callable[[Any], Any]]:
                     scales=a["scales"],
                     summary_json=json.dumps(SUMMARY),
                     files=FILES,
+                    segment_names=["pelvis", "femur_r"],
                     **names,
                 )
             ),
@@ -463,6 +471,7 @@ def test_rest_sync_and_async_give_identical_results() -> None:
     assert np.array_equal(scan.to_model, F32["to_model"]) and scan.report["scan_to_model"]["max"] == 480.0
     assert scan.report["extra"]["hints"]["up"]["used"] is True
     assert np.array_equal(seq.coordinates, F32["seq_q"]) and seq.limit_violations == 2
+    assert seq.confident_frames == 3
     assert up.files == FILES and up.bad_frames.tolist() == [False, True, False]
 
 

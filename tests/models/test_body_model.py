@@ -226,7 +226,7 @@ def test_each_vertex_belongs_to_the_body_at_its_place(body: BodyModel) -> None:
     """The highest template vertex is the head's, the lowest a foot's, the widest on each side that hand's;
     every index names a skeleton body."""
     v, owner, names = body.data["vertices_mean"], body.vertex_bodies, body.skeleton.body_names
-    assert owner.shape == (body.n_vertices,) and 0 <= owner.min() and owner.max() < len(names)
+    assert owner.shape == (body.n_vertices,) and owner.min() >= 0 and owner.max() < len(names)
     assert names[owner[v[:, 1].argmax()]] == "head"
     assert names[owner[v[:, 1].argmin()]] in ("calcn_r", "calcn_l", "toes_r", "toes_l")
     assert names[owner[v[:, 2].argmax()]] == "hand_r" and names[owner[v[:, 2].argmin()]] == "hand_l"
