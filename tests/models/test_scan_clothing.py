@@ -101,3 +101,23 @@ def test_a_body_in_loose_clothing_is_fitted_inside_the_cloth(
     summary = fit.report.extra["clothing"]
     assert summary["clothed_fraction"] > 0.3 and 10.0 < summary["clothing_mean_mm"] < 30.0, summary
     assert fit.report.limit_violations == 0
+
+
+def test_a_layer_over_the_head_and_hands_too_is_not_taken_for_clothing(
+    model: BodyModel, body: tuple[np.ndarray, np.ndarray]
+) -> None:
+    """A 3 cm layer over the whole body, head and hands as well, stands off like cloth, but cloth leaves
+    those bare: the fit under it is tried (its iterations are counted) and undone, so the answer is the fit
+    without the clothing model, and the report neither claims clothing nor lists the undone phase's
+    score."""
+    truth, _ = body
+    grown = truth + 0.03 * vertex_normals(truth, model.faces)
+    points, _ = sample_surface(grown, model.faces, 30_000, seed=5)
+    config = ScanFitConfig()
+    assert config.clothing is not None
+    fit = ScanFitter(model, config).fit(points, orientation=np.eye(3))
+    bare = ScanFitter(model, ScanFitConfig(clothing=None)).fit(points, orientation=np.eye(3))
+    assert fit.report.iterations > bare.report.iterations  # the fit under the layer ran
+    np.testing.assert_allclose(fit.registration, bare.registration, atol=1e-9)
+    assert "clothing" not in fit.report.extra
+    assert fit.report.extra["phase_scores"] == bare.report.extra["phase_scores"]

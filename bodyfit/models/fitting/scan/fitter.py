@@ -354,7 +354,7 @@ class ScanFitter:
         """When the scan stands off the fitted body like loose clothing (:func:`.clothing.looks_clothed`),
         fit the body inside it (the one-sided ``config.clothing.phases``, reported as further steps); returns
         the iterations run, each phase's score and the clothing's offset over the body fitted under it
-        (None when the scan does not look clothed)."""
+        (no scores and None when the scan does not look clothed, or when the fit under it is undone)."""
         cfg = self.config.clothing
         if cfg is None:
             return 0, {}, None
@@ -371,7 +371,7 @@ class ScanFitter:
             with torch.no_grad():
                 for tensor, kept in zip(hyp.state, before, strict=True):
                     tensor.copy_(kept)
-            return n_iter, losses, None
+            return n_iter, {}, None
         return n_iter, losses, under
 
     def progress_steps(self, partial: bool = False) -> int:
