@@ -33,7 +33,7 @@ from bodyfit.models.fitting.registered.fitter import BodyFit, FixedBody, Registe
 from bodyfit.models.fitting.registered.smpl_topology import SMPL_VERTICES, fit_smpl_mesh
 from bodyfit.models.fitting.scan.config import ScanFitConfig
 from bodyfit.models.fitting.scan.fitter import ScanFit, ScanFitter
-from bodyfit.models.fitting.scan.phases import prepare_scan
+from bodyfit.models.fitting.scan.phases import PreparedScan, prepare_scan
 from bodyfit.models.fitting.sequence.fitter import SequenceFit, SequenceFitter, SequenceFrames
 from bodyfit.models.rig.subject import Subject
 from bodyfit.models.upgrade.axes import up_axis_name
@@ -417,18 +417,19 @@ class BodyService:
             return SMPL_TOPOLOGY
         return RAW_SCAN
 
-    def check_scan(self, scan: Scan) -> None:
+    def check_scan(self, scan: Scan) -> Scan | PreparedScan:
         """Check, before any fitting, that ``scan`` can be the body :meth:`fit_mesh` fits it as
-        (:func:`bodyfit.service.validation.check_scan`: a whole body for our topology and SMPL's).
+        (:func:`bodyfit.service.validation.check_scan`: a whole body for our topology and SMPL's). Returns
+        it ready to fit: pass that to :meth:`fit_mesh`, which then neither checks nor cleans it again.
 
         Raises:
             InvalidInputError: what is wrong (degenerate, not human-sized, the wrong units) and the fix.
         """
-        check_scan(scan, whole_body=self.route(scan) != RAW_SCAN)
+        return check_scan(scan, whole_body=self.route(scan) != RAW_SCAN)
 
     def fit_mesh(
         self,
-        scan: Scan,
+        scan: Scan | PreparedScan,
         job: Job | None = None,
         hints: ScanHints | None = None,
         body: FixedBody | None = None,
@@ -444,7 +445,7 @@ class BodyService:
         difference over :data:`~bodyfit.service.hints.HEIGHT_TOLERANCE_M` makes the fit not confident);
         sex is recorded. The report's ``extra["hints"]`` says how each given hint was used. ``body``: a
         subject's (:meth:`subject_body`), whose shape and template are held fixed: only the orientation,
-        pose and root are fitted.
+        pose and root are fitted. ``scan`` may be :meth:`check_scan`'s answer (checked and cleaned once).
 
         Raises:
             InvalidInputError: a scan that cannot be a body (:meth:`check_scan`), found so during the
@@ -454,7 +455,8 @@ class BodyService:
             DeadlineExceededError: ``job`` ran past its time limit.
         """
         job = job or Job(timeout_s=self.limits.max_seconds)
-        self.check_scan(scan)
+        ready = scan if isinstance(scan, PreparedScan) else self.check_scan(scan)
+        scan = _source(ready)
         with self._slot(), invalid_input("file"):
             fitters = self.fitters
             route = self.route(scan)
@@ -467,7 +469,7 @@ class BodyService:
                 total = steps
                 job.report("fit", done, steps, line)
 
-            fit = _fit_routed(fitters, route, scan, progress, hints or ScanHints(), body)
+            fit = _fit_routed(fitters, route, ready, progress, hints or ScanHints(), body)
             check_finite_result(
                 "fit",
                 {**fit.arrays(), "report distances": np.array(fit.report.distances.mean)},
@@ -659,7 +661,7 @@ def _for_body(fitters: _Fitters, body: FixedBody) -> _Fitters:
 
 def _personal_refinement(
     scanner: ScanFitter,
-    scan: Scan,
+    scan: Scan | PreparedScan,
     start: ScanFit,
     body: FixedBody,
     progress: Callable[[int, int, str], None],
@@ -679,7 +681,7 @@ def _personal_refinement(
         return scanner.fit(scan, progress=progress)
     turn = start.scan_to_body
     R, t = turn[:3, :3], turn[:3, 3]
-    person, _, _, _ = prepare_scan(scan, scanner.config)
+    person = prepare_scan(scan, scanner.config).points
     fit = scanner.refine(person @ R.T + t, body.shape, start.coordinates, start.root, progress)
 
     def back(x: np.ndarray) -> np.ndarray:
@@ -706,10 +708,17 @@ def _posed(
         return body.decoder(torch.float32)(*args)
 
 
+def _source(ready: Scan | PreparedScan) -> Scan:
+    """The scan a :meth:`BodyService.check_scan` answer was made from."""
+    scan = ready.source if isinstance(ready, PreparedScan) else ready
+    assert isinstance(scan, Scan)  # the service prepares Scans only
+    return scan
+
+
 def _fit_routed(
     fitters: _Fitters,
     route: FittedAs,
-    scan: Scan,
+    ready: Scan | PreparedScan,
     progress: Callable[[int, int, str], None],
     hints: ScanHints,
     body: FixedBody | None = None,
@@ -717,7 +726,9 @@ def _fit_routed(
     """Fit ``scan`` the way ``route`` says (:meth:`BodyService.route`), with ``hints`` where the route can
     use them, in the input's frame (:class:`MeshFit`); ``progress`` (done, steps, line) gets the scan
     fitter's steps. ``body``: a subject's, held fixed (:func:`_for_body`); a mesh in our topology and a raw
-    scan of a whole body are placed by the population's fit first (:func:`_personal_refinement`)."""
+    scan of a whole body are placed by the population's fit first (:func:`_personal_refinement`).
+    ``ready``: the scan or its preparation (:meth:`BodyService.check_scan`), which a raw scan's fit reuses."""
+    scan = _source(ready)
     orientation = hints.orientation()
     start = hints.start(fitters.scan.model)
     personal = fitters if body is None else _for_body(fitters, body)
@@ -736,9 +747,9 @@ def _fit_routed(
         up = None
     else:
         up = hints.up_only()  # up without facing: the search keeps it
-        f = fitters.scan.fit(scan, progress=progress, orientation=orientation, start=start, up=up)
+        f = fitters.scan.fit(ready, progress=progress, orientation=orientation, start=start, up=up)
         if body is not None:
-            f = _personal_refinement(personal.scan, scan, f, body, progress)
+            f = _personal_refinement(personal.scan, ready, f, body, progress)
     fit = MeshFit(route, f.shape, f.coordinates, f.root, f.registration, f.joints, f.report, f.scan_to_body)
     used = (orientation is not None, start is not None, up is not None)
     return _with_hints(fit, fitters.scan.model, hints, *used)

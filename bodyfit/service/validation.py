@@ -14,7 +14,7 @@ import numpy as np
 from bodyfit.io.scans import Scan
 from bodyfit.models.errors import BodyfitError
 from bodyfit.models.fitting.scan.config import ScanFitConfig
-from bodyfit.models.fitting.scan.phases import prepare_scan
+from bodyfit.models.fitting.scan.phases import PreparedScan, prepare_scan
 from bodyfit.models.fitting.scan.scene import NoPersonError
 from bodyfit.service.errors import InvalidInputError
 
@@ -262,12 +262,14 @@ def invalid_input(field_name: str) -> Iterator[None]:
         raise InvalidInputError(str(exc), field=field_name) from exc
 
 
-def check_scan(scan: Scan, whole_body: bool) -> None:
+def check_scan(scan: Scan, whole_body: bool) -> Scan | PreparedScan:
     """Check, before any fitting, that ``scan`` can be the body it is fitted as: with ``whole_body`` (a mesh
     in our topology or SMPL's) a whole body (:func:`check_frames`), else at least
     :data:`SCAN_MIN_EXTENT_M` across with a person in it (a raw scan: cleaned and split from its scene as
     the fit does it, :func:`bodyfit.models.fitting.scan.phases.prepare_scan` with the default
     :class:`~bodyfit.models.fitting.scan.config.ScanFitConfig`; a room, a box or a chair alone is refused).
+    Returns the scan ready to fit: a mesh as it is, a raw scan as that preparation (which a fit with the
+    same settings does not redo).
 
     Raises:
         InvalidInputError: what is wrong (degenerate, not human-sized, the wrong units, no person found) and
@@ -284,7 +286,7 @@ def check_scan(scan: Scan, whole_body: bool) -> None:
                 f"{exc.detail} (the mesh was{read_as}: send units=m or auto when the file is in metres)",
                 field="units",
             ) from None
-        return
+        return scan
     extent = float(np.ptp(scan.points, axis=0).max())
     if extent < SCAN_MIN_EXTENT_M:
         raise InvalidInputError(
@@ -294,6 +296,6 @@ def check_scan(scan: Scan, whole_body: bool) -> None:
             field="units" if read_as else "file",
         )
     try:
-        prepare_scan(scan, ScanFitConfig())
+        return prepare_scan(scan, ScanFitConfig())
     except NoPersonError as exc:
         raise InvalidInputError(str(exc), field="file") from None

@@ -72,9 +72,8 @@ def test_a_scan_with_no_person_is_a_422_naming_what_was_found(
     assert found in doc["detail"] and doc["field"] == "file"
 
 
-def test_the_service_check_passes_a_person_in_a_cluttered_scene(body_service: BodyService) -> None:
-    """A body with a floor under it and a box beside it passes the check (the fit separates it); the box
-    alone does not."""
+def cluttered(body_service: BodyService) -> tuple[np.ndarray, np.ndarray]:
+    """A body with a floor under it and a box beside it (N, 3), and the box alone."""
     rng = np.random.default_rng(1)
     body = body_service.synthesize(SynthRequest(coordinates={"knee_angle_l": 0.5})).vertices[0]
     lo = body.min(axis=0)
@@ -83,6 +82,36 @@ def test_the_service_check_passes_a_person_in_a_cluttered_scene(body_service: Bo
         [lo[0] - 1.0 + 2.0 * a[:, 0], np.full(len(a), lo[1]), lo[2] - 1.0 + 2.0 * a[:, 1]]
     )
     side = box(rng) + np.array([lo[0], lo[1], body[:, 2].max() + 0.3])
-    body_service.check_scan(scan_from_arrays(np.concatenate([body[::2], floor, side]), units="m"))
+    return np.concatenate([body[::2], floor, side]), side
+
+
+def test_the_service_check_passes_a_person_in_a_cluttered_scene(body_service: BodyService) -> None:
+    """A body with a floor under it and a box beside it passes the check (the fit separates it); the box
+    alone does not."""
+    scene, side = cluttered(body_service)
+    body_service.check_scan(scan_from_arrays(scene, units="m"))
     with pytest.raises(InvalidInputError, match="no person found"):
         body_service.check_scan(scan_from_arrays(side, units="m"))
+
+
+def test_a_fit_over_rest_separates_the_person_once(
+    client: TestClient, body_service: BodyService, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The check before streaming separates the person from the scene, and the fit reuses it: one
+    separation per request, and the report still says what was removed."""
+    from bodyfit.models.fitting.scan import phases
+
+    calls = []
+    separate = phases.separate_person
+
+    def counted(*args: Any, **kwargs: Any) -> Any:
+        calls.append(1)
+        return separate(*args, **kwargs)
+
+    monkeypatch.setattr(phases, "separate_person", counted)
+    scene, _ = cluttered(body_service)
+    files = {"file": ("scene.npz", npz(points=scene))}
+    r = client.post("/v1/fit/scan", files=files, data={"units": "m", "up": "+y", "facing": "+x"})
+    assert r.status_code == 200, r.text
+    assert len(calls) == 1
+    assert r.json()["report"]["extra"]["scene"]["planes"]

@@ -256,18 +256,22 @@ def test_the_kinect_cloud_is_segmented_to_its_person() -> None:
 
 def test_prepare_scan_keeps_the_persons_raw_points_and_says_what_went(model: BodyModel) -> None:
     """The fitter's cleaning step: with the scene option the raw points of the floor go too and the summary
-    is returned; without it every point stays; a refinement (``scene=False``) skips it."""
+    is returned; without it every point stays; a refinement (``scene=False``) skips it. A preparation is
+    reused as it is by the same settings, and redone from its source by others."""
     rng = np.random.default_rng(12)
     person, v = body(model, seated=False, n=20_000)
     lo = v.min(axis=0)
     floor = rectangle(np.array([lo[0] - 1.0, lo[1], lo[2] - 0.8]), [2.0, 0, 0], [0, 0, 2.0], 40_000, rng)
     points = np.concatenate([person, floor])
-    raw, clean, order, summary = prepare_scan(points, ScanFitConfig())
-    assert summary is not None and len(summary["planes"]) == 1
-    assert len(person) * 0.97 < len(raw) <= len(person) and sorted(order) == list(range(len(clean)))
+    ready = prepare_scan(points, ScanFitConfig())
+    assert ready.scene is not None and len(ready.scene["planes"]) == 1
+    assert len(person) * 0.97 < len(ready.points) <= len(person)
+    assert sorted(ready.order) == list(range(len(ready.cleaned)))
+    assert prepare_scan(ready, ScanFitConfig(workers=1)) is ready  # settings the cleaning does not use
     for cfg, scene in ((ScanFitConfig(scene=None), True), (ScanFitConfig(), False)):
-        raw, _, _, summary = prepare_scan(points, cfg, scene=scene)
-        assert summary is None and len(raw) == len(points)
+        for scan in (points, ready):
+            again = prepare_scan(scan, cfg, scene=scene)
+            assert again.scene is None and len(again.points) == len(points)
     with pytest.raises(NoPersonError):
         prepare_scan(floor, ScanFitConfig())
     with pytest.raises(ValueError, match="person_extent_m"):

@@ -52,11 +52,12 @@ async def fit_scan(
             "the file name has no suffix; give format= (ply, obj, stl, pcd or npz)", "format"
         )
     scan = await run_in_threadpool(service.read_scan, data, fmt, units)
-    await run_in_threadpool(service.check_scan, scan)  # a scan that cannot be a body: 422 before streaming
+    # a scan that cannot be a body: 422 before streaming; the fit reuses the check's cleaning
+    ready = await run_in_threadpool(service.check_scan, scan)
     info = service.info()
 
     def work(job: Job) -> list[w.MeshFitEvent]:
-        fit = service.fit_mesh(scan, job, hints, body)
+        fit = service.fit_mesh(ready, job, hints, body)
         return [results.mesh_fit_result(fit, list(info.dof_names), list(info.joint_names))]
 
     return await answer(request, work, Job(timeout_s=service.limits.max_seconds))

@@ -140,6 +140,7 @@ from bodyfit.models.fitting.scan.losses import (
 )
 from bodyfit.models.fitting.scan.phases import (
     PhaseRun,
+    PreparedScan,
     Progress,
     branch_bounds,
     clean_points,
@@ -227,7 +228,7 @@ class ScanFitter:
 
     def fit(
         self,
-        scan: Scan | np.ndarray,
+        scan: Scan | np.ndarray | PreparedScan,
         progress: Progress | None = None,
         orientation: np.ndarray | None = None,
         start: np.ndarray | None = None,
@@ -236,7 +237,8 @@ class ScanFitter:
         """Fit one scan.
 
         Args:
-            scan: a :class:`Scan` from ``load_scan``, or (N, 3) points in metres.
+            scan: a :class:`Scan` from ``load_scan``, (N, 3) points in metres, or a
+                :class:`~.phases.PreparedScan` (a service's check made it; not prepared again).
             progress: called with (steps done, steps in all, a line) once the scan is cleaned (0 done),
                 then after each phase of each branch (:meth:`progress_steps` steps in all).
             orientation: (3, 3) rotation from the scan's axes to the body's (+X forward, +Y up, +Z right)
@@ -246,7 +248,8 @@ class ScanFitter:
                 the search then tries eight headings about it instead of 24 frames.
         """
         began = time.perf_counter()
-        points, cleaned, order, scene = prepare_scan(scan, self.config)
+        prepared = prepare_scan(scan, self.config)
+        points, cleaned, order, scene = prepared.points, prepared.cleaned, prepared.order, prepared.scene
         cfg = self.config
         extent = principal_extent(cleaned)
         partial = extent < cfg.partial_extent
@@ -288,7 +291,8 @@ class ScanFitter:
         """
         began = time.perf_counter()
         c, q, r, phases = refine_start(self.config, self.model, shape, coordinates, root)
-        points, cleaned, order, _ = prepare_scan(scan, self.config, scene=False)  # a body, already placed
+        placed = prepare_scan(scan, self.config, scene=False)  # a body, already placed
+        points, cleaned, order = placed.points, placed.cleaned, placed.order
         state = self.fitter.start_state(q[None], r[None], c[None])
         hyp = Hypotheses(np.eye(3)[None], np.zeros(3), np.zeros((1, 0, 3)), state, False)
         with ThreadPoolExecutor(self.config.workers) as pool:

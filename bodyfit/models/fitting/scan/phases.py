@@ -59,18 +59,46 @@ def clean_points(points: np.ndarray, voxel: float, neighbours: int, cutoff: floa
     return thin[spread <= median + cutoff * 1.4826 * mad + 1e-12]
 
 
+@dataclass(frozen=True)
+class PreparedScan:
+    """A scan cleaned and split from its scene (:func:`prepare_scan`): points (N, 3) its raw points that
+    belong to the person; cleaned (M, 3) the cleaned points; order (M,) their random order; scene what the
+    separation removed (None when it did not run); source the scan it was made from; made_with the settings
+    it was made with (:func:`preparation`), so that a fitter with other settings prepares the source again.
+    A service checks a scan by preparing it, and passes this on to the fit, which then does not redo it."""
+
+    points: np.ndarray
+    cleaned: np.ndarray
+    order: np.ndarray
+    scene: dict[str, Any] | None
+    source: Scan | np.ndarray
+    made_with: tuple[Any, ...]
+
+
+def preparation(cfg: ScanFitConfig, scene: bool = True) -> tuple[Any, ...]:
+    """The settings of ``cfg`` that :func:`prepare_scan` depends on (with ``scene``: the separation's)."""
+    return (cfg.voxel, cfg.neighbours, cfg.outlier_cutoff, cfg.seed, cfg.scene if scene else None)
+
+
 def prepare_scan(
-    scan: Scan | np.ndarray, cfg: ScanFitConfig, scene: bool = True
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any] | None]:
-    """A scan's raw points (N, 3), its cleaned points (M, 3), their random order (M,) and what was removed
-    as scene clutter, by ``cfg``. With ``scene`` and ``cfg.scene``, the person is separated from planes,
-    objects and fragments (:func:`.scene.separate_person`): the cleaned points and the raw points are the
-    person's only, and the summary says what was removed (else None).
+    scan: Scan | np.ndarray | PreparedScan, cfg: ScanFitConfig, scene: bool = True
+) -> PreparedScan:
+    """A scan's raw points, its cleaned points, their random order and what was removed as scene clutter,
+    by ``cfg`` (:class:`PreparedScan`). With ``scene`` and ``cfg.scene``, the person is separated from
+    planes, objects and fragments (:func:`.scene.separate_person`): the cleaned points and the raw points
+    are the person's only, and the summary says what was removed (else None). A :class:`PreparedScan`
+    made with the same settings is returned as it is; one made with others is prepared again from its
+    source.
 
     Raises:
         ScanError: not a finite (N, 3) array, or too few points left after cleaning.
         NoPersonError: ``scene`` and nothing in the scan looks like a person.
     """
+    made_with = preparation(cfg, scene)
+    if isinstance(scan, PreparedScan):
+        if scan.made_with == made_with:
+            return scan
+        scan = scan.source
     points = scan.points if isinstance(scan, Scan) else np.asarray(scan, np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or not np.isfinite(points).all():
         raise ScanError(f"scan points must be a finite (N, 3) array in metres; got shape {points.shape}")
@@ -86,7 +114,8 @@ def prepare_scan(
         points = points[raw_points_kept(points, cleaned, split.keep)]
         cleaned = cleaned[split.keep]
         summary = split.summary()
-    return points, cleaned, np.random.default_rng(cfg.seed).permutation(len(cleaned)), summary
+    order = np.random.default_rng(cfg.seed).permutation(len(cleaned))
+    return PreparedScan(points, cleaned, order, summary, scan, made_with)
 
 
 def principal_extent(cleaned: np.ndarray) -> float:
