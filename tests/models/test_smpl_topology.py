@@ -23,8 +23,11 @@ from bodyfit.models.fitting.registered.smpl_topology import (
 )
 from bodyfit.models.fitting.scan.fitter import ScanFitter
 
-# Measured when the asset was built (BENCHMARKS.md): 10.4 / 9.4 mm mean SMPL-vertex-to-surface distance.
-MEAN_MM = 12.0
+# Measured when the asset was built: 6.2 / 5.6 mm mean SMPL-vertex-to-surface distance.
+MEAN_MM = 8.0
+# The two sides of a symmetric rest pose read alike; a map that twists one limb reads it up to 28 degrees
+# apart at the forearm's pro_sup and 8-11 at the ankles.
+SIDE_GAP_DEG = {"pro_sup": 6.0, "arm_rot": 12.0, "elbow_flex": 4.0, "ankle_angle": 4.0, "knee_angle": 4.0}
 
 
 @pytest.fixture(scope="module")
@@ -63,15 +66,21 @@ def test_the_cc_by_bodies_fit_through_the_map(
     assert all(r.limit_violations == 0 for r in fit.reports)
     # parameters in our frame (+Y up): the highest joint is above the pelvis
     assert (fit.joints[:, :, 1].max(axis=1) > fit.root[:, 1]).all()
+    skel = model.skeleton
+    for name, limit in SIDE_GAP_DEG.items():
+        gap = np.degrees(
+            fit.coordinates[:, skel.dof_index(f"{name}_l")] - fit.coordinates[:, skel.dof_index(f"{name}_r")]
+        )
+        assert (np.abs(gap) < limit).all(), (name, gap)
 
 
 def test_a_fit_refined_on_the_mesh_surface_follows_its_hands_and_feet(
     model: BodyModel, bodies: list[tuple[np.ndarray, np.ndarray]]
 ) -> None:
     """The CC BY woman placed through the map, then refined on her mesh's surface: her vertices lie within
-    4 mm of the registration on average (10 mm from the registered fit, whose hands and feet the map's
-    correspondences hold off the surface), the parametric body itself is closer too, in our frame, within
-    the limits, and the steps are reported."""
+    4 mm of the registration on average (5.6 mm from the registered fit, whose hands and feet the map's
+    correspondences hold off the surface), the parametric body itself is closer too (5.0 mm), in our frame,
+    within the limits, and the steps are reported."""
     fitter = RegisteredFitter(model)
     verts, faces = bodies[1]
     placed, before = fit_smpl_meshes(fitter, verts)
@@ -83,7 +92,7 @@ def test_a_fit_refined_on_the_mesh_surface_follows_its_hands_and_feet(
     after = point_to_surface(body, refined.registration, model.faces)
     parametric = point_to_surface(body, refined.vertices, model.faces)
     assert after.mean() < 4e-3 and np.percentile(after, 95) < 20e-3, (after.mean(), before.mean())
-    assert parametric.mean() < 0.75 * before.mean() and refined.report.limit_violations == 0
+    assert parametric.mean() < 0.95 * before.mean() and refined.report.limit_violations == 0
     np.testing.assert_array_equal(refined.scan_to_body, np.eye(4))  # the points were in our frame
     assert [(d, t) for d, t, _ in steps] == [(0, 2), (1, 2), (2, 2)] and "refining" in steps[0][2]
     assert "orientation was searched" not in " ".join(refined.report.reasons)
