@@ -21,6 +21,8 @@ from bodyfit.models.body.swing_twist import (
     monomial_table,
     pair_rows,
     pair_weights,
+    plain_columns,
+    prune_twist_weights,
     quaternion_multiply,
     rigid_of_dual_quaternion,
     swing_transforms,
@@ -126,21 +128,42 @@ def test_the_classes_twists_from_one_table_product_equal_their_chains_products(m
 
 
 def test_plain_blocks_hold_only_vertices_on_one_twist_class(model: BodyModel) -> None:
-    """Skinning a block by plain LBS is exact only where every vertex's twist weights lie in one class."""
+    """Skinning a block by plain LBS is exact only where every vertex's twist weights lie in one class; its
+    columns carry each vertex's bodies, those of another class through that class's twist."""
     rig = twist_rig(model.skeleton, model.data)
-    weights = np.asarray(model.data["weights"])
+    weights = np.asarray(model.data["weights"], np.float64)
     twist = rig.class_weights(weights)
-    blocks = twist_blocks(weights, twist, 12)
+    extra, plain = plain_columns(weights, twist, rig.body_class)
+    n_body = weights.shape[1]
+    main = np.argmax(twist, axis=1)
+    mixed = (twist != 0).sum(axis=1) > 1
+    assert len(extra) and (rig.body_class[extra[:, 0]] != extra[:, 1]).all()
+    assert np.allclose(plain.sum(axis=1), weights.sum(axis=1))
+    folded = plain[~mixed, n_body:] != 0
+    assert folded.any() and (extra[np.nonzero(folded)[1], 1] == main[~mixed][np.nonzero(folded)[0]]).all()
+    blocks = twist_blocks(weights, plain, twist, 12)
     assert blocks[0][0] == 0 and blocks[-1][1] == len(weights)
     assert all(a[1] == b[0] for a, b in itertools.pairwise(blocks))
-    mixed = (twist != 0).sum(axis=1) > 1
     assert not any(mixed[a:b].any() for a, b, _, pairs in blocks if pairs is None)
     assert any(pairs is None for *_, pairs in blocks) and any(pairs is not None for *_, pairs in blocks)
     used = pair_weights(twist)[1] != 0
-    for a, b, bodies, pairs in blocks:
-        assert (weights[a:b][:, np.setdiff1d(np.arange(weights.shape[1]), bodies)] == 0).all()
+    for a, b, columns, pairs in blocks:
+        table = weights if pairs is not None else plain
+        assert (table[a:b][:, np.setdiff1d(np.arange(table.shape[1]), columns)] == 0).all()
         if pairs is not None:
             assert not used[a:b][:, np.setdiff1d(np.arange(used.shape[1]), pairs)].any()
+
+
+def test_small_twist_weights_are_folded_into_the_main_class() -> None:
+    """Classes below the floor leave the blend and their weight goes to the vertex's main class, continuously
+    in the weights; weights above it are lowered by the floor."""
+    twist = np.array([[0.97, 0.03, 0.0], [0.5, 0.45, 0.05], [0.2, 0.0, 0.8], [1.0, 0.0, 0.0]])
+    pruned = prune_twist_weights(twist, 0.05)
+    assert np.allclose(pruned.sum(axis=1), 1.0)
+    assert np.allclose(pruned, [[1.0, 0.0, 0.0], [0.6, 0.4, 0.0], [0.15, 0.0, 0.85], [1.0, 0.0, 0.0]])
+    assert np.array_equal(prune_twist_weights(twist, 0.0), twist)
+    near = prune_twist_weights(np.array([[0.95, 0.0501], [0.95, 0.0499]]), 0.05)
+    assert np.abs(near[0] - near[1]).max() < 1e-3
 
 
 def test_the_twist_joints_and_classes_come_from_the_skeleton(model: BodyModel) -> None:

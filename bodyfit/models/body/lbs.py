@@ -57,10 +57,18 @@ def blend_block(
     Returns:
         (B, V, 3) posed vertices.
     """
+    return blend_linear(rest, weights_t, rotations, translations).permute(1, 2, 0)
+
+
+def blend_linear(
+    rest: torch.Tensor, weights_t: torch.Tensor, rotations: torch.Tensor, translations: torch.Tensor
+) -> torch.Tensor:
+    """:func:`blend_block` with the posed vertices coordinates first, (3, B, V): the layout the GEMMs give,
+    before the one transpose to the output's."""
     B, _, V = rest.shape
     linear = (rotations @ weights_t).reshape(3, B, 3, V)
     shift = (translations @ weights_t).reshape(3, B, V)
-    return ((linear * rest).sum(2) + shift).permute(1, 2, 0)
+    return (linear * rest).sum(2) + shift
 
 
 def linear_blend(

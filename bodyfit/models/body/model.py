@@ -35,10 +35,9 @@ from bodyfit.models.body.swing_twist import (
     TwistRig,
     TwistSkin,
     class_dual_quaternions,
-    class_rigid,
+    class_twist_weights,
     monomial_table,
     rigid_of_dual_quaternion,
-    swing_transforms,
     twist_rig,
 )
 from bodyfit.models.errors import AssetError, BodyfitError, ShapeError
@@ -175,13 +174,17 @@ class SkinBlock(nn.Module):
 
 
 def skin_blocks(
-    basis: np.ndarray, weights: np.ndarray, dtype: torch.dtype, twist: np.ndarray | None = None
+    basis: np.ndarray,
+    weights: np.ndarray,
+    dtype: torch.dtype,
+    twist: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> nn.Module:
-    """The skin split into :class:`SkinBlock` s (a ModuleList), or the :class:`TwistSkin` when twist weights
-    (V, n_class) are given. basis (1 + K, 3, V); weights (V, n_body)."""
+    """The skin split into :class:`SkinBlock` s (a ModuleList), or the :class:`TwistSkin` when the twist
+    weights (V, n_class) and each body's twist class (n_body,) are given. basis (1 + K, 3, V); weights
+    (V, n_body)."""
     n_blocks = max(1, round(weights.shape[0] / _BLOCK_VERTICES))
     if twist is not None:
-        return TwistSkin(basis, weights, twist, dtype, n_blocks)
+        return TwistSkin(basis, weights, *twist, dtype, n_blocks)
     blocks = blend_blocks(weights, n_blocks)
     return nn.ModuleList(
         SkinBlock(bodies, weights[a:b, bodies].T, basis[:, :, a:b], dtype) for a, b, bodies in blocks
@@ -236,7 +239,7 @@ class BodyDecoder(nn.Module):
         self._twist: np.ndarray | None = None
         if skinning == "lbs_dq":
             self._init_twist(twist_rig(skeleton, data), buf)
-        self.skin = skin_blocks(self._basis, self._weights, dtype, self._twist)
+        self.skin = skin_blocks(self._basis, self._weights, dtype, self._twist_of(self._twist))
         # inv(bind) = [Rb^T, -Rb^T tb]: Rb^T is fixed and Rb^T tb = [1, c_b] @ bind_shift.
         base, delta = bind_frames_affine(skeleton, data)
         rot_t = base[:, :3, :3].transpose(0, 2, 1)
@@ -258,6 +261,10 @@ class BodyDecoder(nn.Module):
         self.register_buffer("twist_chain", torch.as_tensor(rig.chain, dtype=torch.long))
         self.register_buffer("body_class", torch.as_tensor(rig.body_class, dtype=torch.long))
 
+    def _twist_of(self, twist: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
+        """Twist weights (V, n_class) with the bodies' classes, as :func:`skin_blocks` takes them."""
+        return None if twist is None else (twist, self.body_class.numpy())
+
     def restricted(self, vertices: np.ndarray) -> BodyDecoder:
         """A decoder that outputs only ``vertices`` (V',) template indices, sharing every other buffer.
         Fitting runs its early iterations on such a subset."""
@@ -265,7 +272,9 @@ class BodyDecoder(nn.Module):
         sub = copy.copy(self)
         sub._modules = dict(self._modules)
         twist = None if self._twist is None else self._twist[index]
-        sub.skin = skin_blocks(self._basis[:, :, index], self._weights[index], self.bind_rot_t.dtype, twist)
+        sub.skin = skin_blocks(
+            self._basis[:, :, index], self._weights[index], self.bind_rot_t.dtype, self._twist_of(twist)
+        )
         return sub
 
     def with_offsets(self, offsets: np.ndarray) -> BodyDecoder:
@@ -279,7 +288,7 @@ class BodyDecoder(nn.Module):
         out._modules = dict(self._modules)
         out._basis = self._basis.copy()
         out._basis[0] += d.T
-        out.skin = skin_blocks(out._basis, self._weights, self.bind_rot_t.dtype, self._twist)
+        out.skin = skin_blocks(out._basis, self._weights, self.bind_rot_t.dtype, self._twist_of(self._twist))
         return out
 
     def with_weights(self, weights: np.ndarray) -> BodyDecoder:
@@ -295,8 +304,8 @@ class BodyDecoder(nn.Module):
         out._modules = dict(self._modules)
         out._weights = w.copy()
         if self._twist is not None:
-            out._twist = w @ np.eye(self._twist.shape[1])[self.body_class.numpy()]
-        out.skin = skin_blocks(self._basis, out._weights, self.bind_rot_t.dtype, out._twist)
+            out._twist = class_twist_weights(w, self.body_class.numpy(), self._twist.shape[1])
+        out.skin = skin_blocks(self._basis, out._weights, self.bind_rot_t.dtype, self._twist_of(out._twist))
         return out
 
     def blended_rotations(self, frames: torch.Tensor, q: torch.Tensor | None = None) -> np.ndarray:
@@ -345,12 +354,7 @@ class BodyDecoder(nn.Module):
     ) -> torch.Tensor:
         """Swing-twist skin (B, V, 3) of world frames (4, 4, n_body, B), skin coefficients [1, c]
         (B, 1 + n_shape), coordinates q (B, n_dof) and the bind shift of :meth:`_bind_shift`."""
-        twists = self._class_twists(q, coeffs)  # (B, 8, n_class)
-        body_twists = class_rigid(twists)[:, :, self.body_class]  # (B, 12, n_body)
-        body_twists = body_twists.reshape(q.shape[0], 3, 4, -1).permute(1, 2, 3, 0)
-        transforms = self._transforms(world, shift)
-        swings = blend_rows(swing_transforms(transforms, body_twists))
-        return self.skin(coeffs, blend_rows(transforms), swings, twists)
+        return self.skin(coeffs, self._transforms(world, shift), self._class_twists(q, coeffs))
 
     def class_twists(self, q: torch.Tensor, coeffs: torch.Tensor) -> torch.Tensor:
         """The twist classes' unit dual quaternions (8, n_class, B) of coordinates q (B, n_dof) and skin

@@ -40,12 +40,21 @@ import numpy as np
 import torch
 from torch import nn
 
-from bodyfit.models.body.lbs import best_partition, blend_block, range_counts, range_cuts
+from bodyfit.models.body.lbs import (
+    best_partition,
+    blend_block,
+    blend_linear,
+    blend_rows,
+    range_counts,
+    range_cuts,
+)
 from bodyfit.models.skeleton.model import Skeleton
 
 # Coordinates that rotate a segment about its own long axis (OpenSim names without the side suffix).
 TWIST_COORDINATES = ("hip_rotation", "arm_rot", "pro_sup", "neck_rotation")
 SKINNING_MODES = ("lbs", "lbs_dq")
+# Twist weight below which a class is dropped from a vertex's blend (prune_twist_weights).
+TWIST_FLOOR = 0.02
 
 
 @dataclass(frozen=True)
@@ -71,9 +80,31 @@ class TwistRig:
         return int(self.chain.shape[1])
 
     def class_weights(self, weights: np.ndarray) -> np.ndarray:
-        """Twist weights (V, n_class): skinning weights (V, n_body) summed over each class's bodies."""
-        one_hot = np.eye(self.n_class)[self.body_class]
-        return np.asarray(weights, np.float64) @ one_hot
+        """Twist weights (V, n_class) of skinning weights (V, n_body) (:func:`class_twist_weights`)."""
+        return class_twist_weights(weights, self.body_class, self.n_class)
+
+
+def class_twist_weights(
+    weights: np.ndarray, body_class: np.ndarray, n_class: int, floor: float = TWIST_FLOOR
+) -> np.ndarray:
+    """Twist weights (V, n_class): skinning weights (V, n_body) summed over each class's bodies (body_class
+    (n_body,)), the classes below ``floor`` pruned (:func:`prune_twist_weights`)."""
+    summed = np.asarray(weights, np.float64) @ np.eye(n_class)[body_class]
+    return prune_twist_weights(summed, floor)
+
+
+def prune_twist_weights(twist: np.ndarray, floor: float) -> np.ndarray:
+    """Twist weights (V, n_class) with every class's weight outside a vertex's largest lowered by ``floor``
+    (at least to zero) and the difference given to the largest: a vertex whose weight outside its main class
+    is a few hundredths (the head's on the thorax, the buttock's on both thighs) turns rigidly with that
+    class instead of blending. Continuous in the weights (no jump between neighbouring vertices); the
+    identity for ``floor`` 0."""
+    t = np.asarray(twist, np.float64)
+    rows, main = np.arange(len(t)), np.argmax(t, axis=1)
+    out = np.maximum(t - floor, 0.0)
+    out[rows, main] = 0.0
+    out[rows, main] = 1.0 - out.sum(axis=1)
+    return out
 
 
 def _twist_joints(skeleton: Skeleton) -> list[tuple[int, int, int]]:
@@ -401,6 +432,36 @@ def pair_rows(q: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:
     return torch.as_tensor(PAIR_TABLE, dtype=q.dtype) @ outer.flatten(1, 2)
 
 
+def plain_columns(
+    weights: np.ndarray, twist: np.ndarray, body_class: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The columns of the plain blocks and every vertex's weights on them.
+
+    A vertex whose twist weights lie on one class c moves by ``sum_j w_j S_j W_c``: by its bodies'
+    transforms ``M_j = S_j W_{c(j)}`` where a body is in c, by ``S_j W_c`` where a body is in another class
+    (its twist pruned away, :func:`prune_twist_weights`). The columns are the n_body transforms M_j, then
+    every such pair (body j, class c) some vertex needs.
+
+    Args:
+        weights: (V, n_body) skinning weights; twist: (V, n_class); body_class: (n_body,).
+    Returns:
+        extra (E, 2) the (body, class) of the columns after the bodies'; plain (V, n_body + E) each
+        vertex's weights on the columns (a vertex that blends classes keeps its weights on its bodies).
+    """
+    V, n_body = weights.shape
+    main = np.argmax(twist, axis=1)
+    single = (twist != 0).sum(axis=1) == 1
+    v, j = np.nonzero(weights)
+    other = single[v] & (body_class[j] != main[v])
+    extra = np.unique(np.c_[j[other], main[v[other]]], axis=0).reshape(-1, 2)
+    column = np.full((n_body, twist.shape[1]), -1, np.int64)
+    column[extra[:, 0], extra[:, 1]] = n_body + np.arange(len(extra))
+    plain = np.zeros((V, n_body + len(extra)))
+    plain[v[~other], j[~other]] = weights[v[~other], j[~other]]
+    plain[v[other], column[j[other], main[v[other]]]] = weights[v[other], j[other]]
+    return extra, plain
+
+
 # Per-vertex cost of a block beyond its GEMMs' columns, in columns, for :func:`twist_blocks`: applying the
 # blended LBS matrices, and the twist's blend, normalisation and rigid map on top.
 _APPLY_COST = 8.0
@@ -408,50 +469,57 @@ _TWIST_COST = 10.0
 
 
 def twist_blocks(
-    weights: np.ndarray, twist: np.ndarray, n_blocks: int, step: int = 64
+    weights: np.ndarray, plain: np.ndarray, twist: np.ndarray, n_blocks: int, step: int = 64
 ) -> list[tuple[int, int, np.ndarray, np.ndarray | None]]:
     """Split the vertices into ``n_blocks`` contiguous ranges for :class:`TwistSkin`.
 
-    A range whose vertices each have their twist weights on one class is skinned by plain LBS (exactly:
-    its bodies' swings times that class's twist are their transforms); a range with a vertex that blends
-    classes needs the twist first. Its cost is (vertices) x (bodies + apply), plus (class pairs + twist)
-    for a twisted range; the ranges (cut at multiples of ``step``) minimise the sum by dynamic programming
-    (:func:`~bodyfit.models.body.lbs.best_partition`).
+    A range whose vertices each have their twist weights on one class is skinned by plain LBS over the
+    columns of :func:`plain_columns` (exactly); a range with a vertex that blends classes needs the twist
+    first, then LBS by the bodies' swings. Its cost is (vertices) x (columns + apply), with the bodies and
+    class pairs as the columns of a twisted range plus the twist's own; the ranges (cut at multiples of
+    ``step``) minimise the sum by dynamic programming (:func:`~bodyfit.models.body.lbs.best_partition`).
 
     Args:
-        weights: (V, n_body) skinning weights; twist: (V, n_class) twist weights.
+        weights: (V, n_body) skinning weights; plain: (V, n_column) from :func:`plain_columns`; twist:
+            (V, n_class) twist weights.
     Returns:
-        [(start, stop, bodies, pairs)] covering 0..V in order; bodies: indices of the bodies with weight in
-        ``start:stop`` (at least one); pairs: indices into :func:`pair_weights`'s pairs used in the range,
-        or None for a plain range.
+        [(start, stop, columns, pairs)] covering 0..V in order; columns: indices of the plain columns with
+        weight in ``start:stop``, or of the bodies for a twisted range (at least one); pairs: indices into
+        :func:`pair_weights`'s pairs used in a twisted range, or None for a plain range.
     """
     cuts = range_cuts(weights.shape[0], step)
     pair_used = pair_weights(twist)[1] != 0
-    bodies, pairs = range_counts(weights != 0, cuts), range_counts(pair_used, cuts)
+    columns, bodies = range_counts(plain != 0, cuts), range_counts(weights != 0, cuts)
+    pairs = range_counts(pair_used, cuts)
     mixed = range_counts(((twist != 0).sum(axis=1) > 1)[:, None], cuts)[:, 0]
     m = len(cuts)
     cost = np.full((m, m), np.inf)
     for i in range(m - 1):
-        size = cuts[i + 1 :] - cuts[i]
-        plain = np.maximum(((bodies[i + 1 :] - bodies[i]) > 0).sum(axis=1), 1) + _APPLY_COST
-        twisted = ((pairs[i + 1 :] - pairs[i]) > 0).sum(axis=1) + _TWIST_COST
-        cost[i, i + 1 :] = size * np.where(mixed[i + 1 :] > mixed[i], plain + twisted, plain)
+
+        def count(prefix: np.ndarray, i: int = i) -> np.ndarray:
+            return np.maximum(((prefix[i + 1 :] - prefix[i]) > 0).sum(axis=1), 1)
+
+        twisted = count(bodies) + count(pairs) + _TWIST_COST
+        cost[i, i + 1 :] = (cuts[i + 1 :] - cuts[i]) * (
+            _APPLY_COST + np.where(mixed[i + 1 :] > mixed[i], twisted, count(columns))
+        )
     blocks = []
     for i, j in best_partition(cost, n_blocks):
         a, b = int(cuts[i]), int(cuts[j])
-        used = np.flatnonzero((weights[a:b] != 0).any(axis=0))
-        twisted_pairs = np.flatnonzero(pair_used[a:b].any(axis=0)) if mixed[j] > mixed[i] else None
+        twisted_range = mixed[j] > mixed[i]
+        used = np.flatnonzero(((weights if twisted_range else plain)[a:b] != 0).any(axis=0))
+        twisted_pairs = np.flatnonzero(pair_used[a:b].any(axis=0)) if twisted_range else None
         blocks.append((a, b, used if len(used) else np.zeros(1, np.int64), twisted_pairs))
     return blocks
 
 
 class TwistBlock(nn.Module):
-    """One block of vertices of a :class:`TwistSkin`: their template basis, the bodies that carry them,
-    their weights on those bodies and, for a twisted block, the class pairs of their blends and their
-    weights on those pairs."""
+    """One block of vertices of a :class:`TwistSkin`: their template basis, the columns that carry them
+    (plain columns, or the bodies of a twisted block), their weights on those columns and, for a twisted
+    block, the class pairs of their blends and their weights on those pairs."""
 
     basis: torch.Tensor
-    bodies: torch.Tensor
+    columns: torch.Tensor
     weights_t: torch.Tensor
     pairs: torch.Tensor
     pair_weights_t: torch.Tensor
@@ -459,93 +527,112 @@ class TwistBlock(nn.Module):
     def __init__(
         self,
         basis: np.ndarray,
-        bodies: np.ndarray,
+        columns: np.ndarray,
         weights_t: np.ndarray,
         twist: tuple[np.ndarray, np.ndarray] | None,
         dtype: torch.dtype,
     ) -> None:
-        """basis (1 + K, 3, V_k); bodies (m,); weights_t (m, V_k); twist: None for a plain block, else the
+        """basis (1 + K, 3, V_k); columns (m,); weights_t (m, V_k); twist: None for a plain block, else the
         pairs (P_k,) (indices into the skin's pairs) and their weights (P_k, V_k)."""
         super().__init__()
         self.twisted = twist is not None
         if twist is not None:
-            # A fourth coordinate, 1 for every shape, so that one product applies the blend's 3 x 4 map.
-            one = np.zeros((len(basis), 1, basis.shape[2]))
-            one[0] = 1.0
-            basis = np.concatenate([basis, one], axis=1)
             self.register_buffer("pairs", torch.as_tensor(twist[0], dtype=torch.long))
             self.register_buffer("pair_weights_t", torch.as_tensor(np.ascontiguousarray(twist[1])).to(dtype))
         self.register_buffer("basis", torch.as_tensor(basis.reshape(len(basis), -1)).to(dtype))
-        self.register_buffer("bodies", torch.as_tensor(bodies, dtype=torch.long))
+        self.register_buffer("columns", torch.as_tensor(columns, dtype=torch.long))
         self.register_buffer("weights_t", torch.as_tensor(np.ascontiguousarray(weights_t)).to(dtype))
 
     def forward(
         self,
         coeffs: torch.Tensor,
-        transforms: tuple[torch.Tensor, torch.Tensor],
+        plain: tuple[torch.Tensor, torch.Tensor],
         swings: tuple[torch.Tensor, torch.Tensor],
-        blends: tuple[torch.Tensor, torch.Tensor],
+        blends: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
     ) -> torch.Tensor:
-        """coeffs (B, 1 + K); transforms, swings: every body's rows of its transform and of its swing from
-        :func:`~bodyfit.models.body.lbs.blend_rows`; blends: every class pair's numerator rows (B 12, P)
-        and norms (B, P) (:func:`pair_rows`) -> (B, V_k, 3)."""
+        """coeffs (B, 1 + K); plain: the plain columns' rows from :func:`~bodyfit.models.body.lbs.blend_rows`;
+        swings: every body's swing rows, rotations (3 3 B, n_body) ordered (row, column, batch) and
+        translations (3 B, n_body); blends: every class pair's numerator rows as
+        :func:`~bodyfit.models.body.lbs.blend_rows` lays them out and norms (B, P) (:func:`pair_rows`)
+        -> (B, V_k, 3)."""
         B, V = coeffs.shape[0], self.weights_t.shape[1]
-        if self.twisted:
-            rest = (coeffs @ self.basis).reshape(B, 1, 4, V)
-            numerator = (blends[0].index_select(1, self.pairs) @ self.pair_weights_t).reshape(B, 3, 4, V)
-            norm = (blends[1].index_select(1, self.pairs) @ self.pair_weights_t).unsqueeze(1)
-            rest = (numerator * rest).sum(2) / norm  # (KCvO08, algorithm 1)
-            rotations, translations = swings
-        else:
-            rest = (coeffs @ self.basis).reshape(B, 3, V)
-            rotations, translations = transforms
-        return blend_block(
-            rest,
-            self.weights_t,
-            rotations.index_select(1, self.bodies),
-            translations.index_select(1, self.bodies),
-        )
+        rest = (coeffs @ self.basis).reshape(B, 3, V)
+        if not self.twisted:
+            return blend_block(
+                rest,
+                self.weights_t,
+                plain[0].index_select(1, self.columns),
+                plain[1].index_select(1, self.columns),
+            )
+        pick = [rows.index_select(1, self.pairs) for rows in blends]
+        numerator = blend_linear(rest, self.pair_weights_t, pick[0], pick[1])  # (3, B, V)
+        twisted = numerator / (pick[2] @ self.pair_weights_t)  # (KCvO08, algorithm 1)
+        # The swings applied to the twisted rest vertices in the layout they come in, coordinates first.
+        linear = (swings[0].index_select(1, self.columns) @ self.weights_t).reshape(3, 3, B, V)
+        shift = (swings[1].index_select(1, self.columns) @ self.weights_t).reshape(3, B, V)
+        return ((linear * twisted).sum(1) + shift).permute(1, 2, 0)
+
+
+def _compose(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Rigid maps a after b, component-major (3, 4, ...) each -> (3, 4, ...)."""
+    rotation = (a[:, :3].unsqueeze(2) * b.unsqueeze(0)).sum(1)  # (3, 4, ...): R_a [R_b | t_b]
+    return torch.cat([rotation[:, :3], (rotation[:, 3] + a[:, 3]).unsqueeze(1)], dim=1)
 
 
 class TwistSkin(nn.Module):
     """The skin under swing-twist skinning, in the blocks of :func:`twist_blocks`.
 
     A twisted block moves its template, rest (B, 3, V_k) = [1, c] @ basis, by the normalised dual-quaternion
-    blend of each vertex's twist classes, ``(R v + T) / n`` with the numerator and norm products
-    (B 12, P_k) @ (P_k, V_k) and (B, P_k) @ (P_k, V_k) of its class pairs' rows (:func:`pair_rows`,
-    :func:`pair_weights`), then blends the bodies' swings linearly; a plain block is linear blend skinning.
+    blend of each vertex's twist classes, ``(R v + T) / n`` with the numerator and norm products of its
+    class pairs' rows (:func:`pair_rows`, :func:`pair_weights`) applied as
+    :func:`~bodyfit.models.body.lbs.blend_linear` applies LBS matrices, then blends the bodies' swings
+    linearly; a plain block is linear blend skinning over the columns of :func:`plain_columns`.
     """
 
     pairs: torch.Tensor
+    body_class: torch.Tensor
+    extra: torch.Tensor
 
     def __init__(
-        self, basis: np.ndarray, weights: np.ndarray, twist: np.ndarray, dtype: torch.dtype, n_blocks: int
+        self,
+        basis: np.ndarray,
+        weights: np.ndarray,
+        twist: np.ndarray,
+        body_class: np.ndarray,
+        dtype: torch.dtype,
+        n_blocks: int,
     ) -> None:
-        """basis (1 + K, 3, V); weights (V, n_body); twist (V, n_class) twist weights."""
+        """basis (1 + K, 3, V); weights (V, n_body); twist (V, n_class) twist weights; body_class (n_body,)
+        each body's class."""
         super().__init__()
         pairs, pair_w = pair_weights(twist)
+        extra, plain = plain_columns(weights, twist, body_class)
         self.register_buffer("pairs", torch.as_tensor(pairs))
+        self.register_buffer("body_class", torch.as_tensor(body_class, dtype=torch.long))
+        self.register_buffer("extra", torch.as_tensor(extra, dtype=torch.long))
         self.blocks = nn.ModuleList(
             TwistBlock(
                 basis[:, :, a:b],
-                bodies,
-                weights[a:b, bodies].T,
+                columns,
+                (weights if used is not None else plain)[a:b, columns].T,
                 None if used is None else (used, pair_w[a:b, used].T),
                 dtype,
             )
-            for a, b, bodies, used in twist_blocks(weights, twist, n_blocks)
+            for a, b, columns, used in twist_blocks(weights, plain, twist, n_blocks)
         )
 
-    def forward(
-        self,
-        coeffs: torch.Tensor,
-        transforms: tuple[torch.Tensor, torch.Tensor],
-        swings: tuple[torch.Tensor, torch.Tensor],
-        twists: torch.Tensor,
-    ) -> torch.Tensor:
-        """coeffs (B, 1 + K); transforms, swings: every body's rows of its transform and of its swing from
-        :func:`~bodyfit.models.body.lbs.blend_rows`; twists (B, 8, n_class): every class's twist dual
-        quaternion -> (B, V, 3)."""
-        rows = pair_rows(twists, self.pairs)
-        blends = rows[:, :12].flatten(0, 1), rows[:, 12]
-        return torch.cat([block(coeffs, transforms, swings, blends) for block in self.blocks], dim=1)
+    def forward(self, coeffs: torch.Tensor, transforms: torch.Tensor, twists: torch.Tensor) -> torch.Tensor:
+        """coeffs (B, 1 + K); transforms (3, 4, n_body, B): every body's skinning transform M_j,
+        component-major; twists (B, 8, n_class): every class's twist dual quaternion -> (B, V, 3)."""
+        B, n = twists.shape[0], transforms.shape[2]
+        rigid = class_rigid(twists).reshape(B, 3, 4, -1).permute(1, 2, 3, 0)  # (3, 4, n_class, B)
+        swings = swing_transforms(transforms, rigid.index_select(2, self.body_class))
+        extra = _compose(swings.index_select(2, self.extra[:, 0]), rigid.index_select(2, self.extra[:, 1]))
+        rows = pair_rows(twists, self.pairs)  # (B, 13, P)
+        blends = (*blend_rows(rows[:, :12].reshape(B, 3, 4, -1).permute(1, 2, 3, 0)), rows[:, 12])
+        swing_rows = (
+            swings[:, :3].permute(0, 1, 3, 2).reshape(-1, n),
+            swings[:, 3].permute(0, 2, 1).reshape(-1, n),
+        )
+        plain = blend_rows(torch.cat([transforms, extra], dim=2))
+        return torch.cat([block(coeffs, plain, swing_rows, blends) for block in self.blocks], dim=1)
