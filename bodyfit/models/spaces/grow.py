@@ -142,12 +142,13 @@ def grow_space(
         pending = [s for s in scans if s.name not in result.accepted]
         if not pending:
             break
-        # the first fit is already the projection into the original space: only a changed space re-projects
+        # every round projects: from the first fit's shape in the original space (a raw scan's first fit can
+        # stop short of the best shape in it), from the last registration in a grown one
         candidates = [
             register(
                 current,
                 s,
-                None if current is original else initial_shape(current.data, last[s.name]),
+                s.shape if current is original else initial_shape(current.data, last[s.name]),
                 cfg.nonrigid,
             )
             for s in pending

@@ -4,8 +4,9 @@ sections 3.2-3.4).
 The scan's pose comes from its first fit (``bodyfit batch-fit``) and is kept: each round re-projects only the
 shape into the current space (BLiSS eq. 1 with the pose held), then refines the posed body non-rigidly onto
 the scan (:func:`~bodyfit.models.fitting.common.nonrigid.refine_nonrigid`, in the role of BLiSS's neural
-Jacobian fields), and brings the refined registration back to the bind pose by inverting each vertex's
-blended skinning transform, where the shape space is learned.
+Jacobian fields), keeps only the refinement's offsets along the body's normals, and brings the refined
+registration back to the bind pose by inverting each vertex's blended skinning transform, where the shape
+space is learned.
 
 BLiSS: S. Muralikrishnan, C.-H. P. Huang, D. Ceylan and N. J. Mitra, "BLiSS: Bootstrapped Linear Shape
 Space", International Conference on 3D Vision (3DV), 2024.
@@ -24,6 +25,7 @@ from bodyfit.models.body.model import BodyModel
 from bodyfit.models.errors import BodyfitError
 from bodyfit.models.fitting.common.nearest import PointTree
 from bodyfit.models.fitting.common.nonrigid import NonRigidConfig, refine_nonrigid
+from bodyfit.models.fitting.common.surface import vertex_normals
 from bodyfit.models.spaces.population import rest_meshes, segment_scales, space_basis
 
 
@@ -94,11 +96,14 @@ def initial_shape(data: dict[str, np.ndarray], bind: np.ndarray) -> np.ndarray:
 
 
 def project_shape(
-    model: BodyModel, scan: PosedScan, start: np.ndarray, rounds: int = 3, steps: int = 10
+    model: BodyModel, scan: PosedScan, start: np.ndarray, rounds: int = 10, steps: int = 10
 ) -> np.ndarray:
     """Shape coefficients (n_shape,) of the body in ``model``'s space closest to the scan in the scan's fitted
     pose (BLiSS eq. 1 with the pose held): iterated closest points (both directions, pairs over 5 cm
-    dropped) with L-BFGS on the coefficients and a weak N(0, 1) prior, from ``start`` (n_shape,).
+    dropped) with L-BFGS on the coefficients and a weak N(0, 1) prior, from ``start`` (n_shape,): ``rounds``
+    passes of closest points, ``steps`` L-BFGS iterations each. Each pass moves the body only as far as its
+    pairs allow; on a raw scan (noise, holes) the coefficients are still changing after three passes and
+    settle within about ten.
 
     The closest-point scheme is that of P. J. Besl and N. D. McKay, "A Method for Registration of 3-D
     Shapes", IEEE Transactions on Pattern Analysis and Machine Intelligence 14(2), 1992; L-BFGS that of D. C.
@@ -171,23 +176,36 @@ def unpose(model: BodyModel, shape: np.ndarray, scan: PosedScan, posed: np.ndarr
 def register(
     model: BodyModel,
     scan: PosedScan,
-    start: np.ndarray | None = None,
+    start: np.ndarray,
     nonrigid: NonRigidConfig | None = None,
 ) -> Registration:
     """Register ``scan`` in ``model``'s space (see the module docstring): the shape projected from ``start``
-    (n_shape,; None: the scan's own fitted shape, which is already a projection into this space), refined
-    non-rigidly and unposed."""
-    shape = scan.shape if start is None else project_shape(model, scan, start)
+    (n_shape,), refined non-rigidly, its offsets kept across the surface (:func:`across_surface`) and
+    unposed."""
+    shape = project_shape(model, scan, start)
     with torch.no_grad():
         v = model.decoder(torch.float64, "lbs")(
             torch.as_tensor(shape[None]),
             torch.as_tensor(scan.coordinates[None]),
             torch.as_tensor(scan.root[None]),
         )[0][0].numpy()
-    posed = refine_nonrigid(v, model.faces, scan.points, nonrigid)
+    posed = across_surface(v, refine_nonrigid(v, model.faces, scan.points, nonrigid), model.faces)
     bind = unpose(model, shape, scan, posed)
     scales = segment_scales(model.data, shape[None])[0]
     return Registration(scan.name, bind, scales, posed, chamfer_mm(posed, scan.points))
+
+
+def across_surface(body: np.ndarray, refined: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The refined registration (V, 3) with its offsets from the projected ``body`` (V, 3) kept only along
+    the body's vertex normals (``faces`` (F, 3)).
+
+    A raw scan fixes where the surface is, not which vertex lies where on it: the offsets' part along the
+    surface is correspondence drift (closest points pull vertices along holes' rims and noisy patches),
+    which the re-learned PCA would take for shape. Soft tissue the space misses lies across the surface.
+    """
+    normals = vertex_normals(body, faces)
+    offsets = np.asarray(refined, np.float64) - body
+    return np.asarray(body + (offsets * normals).sum(1, keepdims=True) * normals)
 
 
 def seed_registrations(model: BodyModel, meshes: list[PosedScan]) -> tuple[np.ndarray, np.ndarray]:
