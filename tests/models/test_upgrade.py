@@ -296,14 +296,19 @@ def test_path_b_from_rotations_alone(model: BodyModel, proxy: SmplProxy) -> None
     assert result.extra["proxy_fit_mm"] < 5.0  # measured 2.9 mm: our body on the posed proxy
     truth = np.load(SEQUENCE_FILE)["truth_coordinates"]
     error = np.degrees(wrap_pelvis(result.coordinates, model.skeleton) - truth)
-    # The clip's rotations are relative to the CC BY body's own rest pose, the proxy's to SOMA's T-pose: the
-    # two differ by about constant angles (measured with the shape under the population prior, 0.6 SD: hip
-    # flexion -1 / -5, knee -10 / -12, elbow -7 degrees), while the motion itself is followed within 1-3
-    # degrees (standard deviation of the error).
+    # The clip's rotations are relative to the CC BY body's own rest pose, the proxy's to the rest pose read
+    # off the two CC BY bodies: they differ by about constant angles (measured: hip flexion -6 / -8, knee
+    # -2 / -5, elbow +3 / +2 degrees), while the motion itself is followed within 1-3 degrees (standard
+    # deviation of the error).
     assert np.abs(result.shape).max() <= 4.0  # a free shape reached 30 SD to follow the proxy's proportions
     for name in ("hip_flexion_r", "hip_flexion_l", "knee_angle_r", "knee_angle_l", "elbow_flex_r"):
         k = model.skeleton.dof_index(name)
-        assert np.abs(error[:, k]).mean() < 14.0 and error[:, k].std() < 4.0, name
+        assert np.abs(error[:, k]).mean() < 10.0 and error[:, k].std() < 4.0, name
+    for name in ("elbow_flex_r", "elbow_flex_l", "scapula_elevation_r", "scapula_elevation_l"):
+        assert np.abs(error[:, model.skeleton.dof_index(name)]).mean() < 5.0, name
+    # no coordinate held at a limit: the arms turn about SMPL's shoulder joints (the scapulae sat at their
+    # lowest in 85 % of the frames when they turned about SOMA's, 6 cm further in)
+    assert result.extra["at_limits"] == {}
 
 
 def test_path_b_shape_hints(model: BodyModel, proxy: SmplProxy) -> None:

@@ -66,6 +66,12 @@ SOMA_FOR_SMPL: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("right_hand", ("RightHandMiddle1", "RightHand*")),
 )
 SEX_GENDER = {"male": 0.0, "female": 1.0, "neutral": 0.5}  # anny's gender slider
+SHOULDER_ALONG_ARM = 0.25
+"""Where the proxy's shoulder joints sit: this fraction of the way from SOMA's arm bone head to its forearm
+bone head. SMPL's shoulder joint is the glenohumeral centre (our anatomical shoulder joint on the CC BY man
+lies 65 mm lateral of SOMA's arm head, a quarter of the 263 mm bone); SOMA's arm bone starts at the
+shoulder's medial end. Turned about that medial point, an arm brought down from SMPL's rest pose sinks
+5-7 cm lower than SMPL's, and the fit holds the scapula at its lowest to follow it."""
 
 
 class ShapeHintError(BodyfitError):
@@ -276,6 +282,16 @@ def _smpl_weights(soma: Any, keep: np.ndarray, labels: list[str]) -> np.ndarray:
     return weights
 
 
+def shoulder_pivots(heads: np.ndarray, labels: list[str], joints: np.ndarray) -> np.ndarray:
+    """SMPL's joints (n, 24, 3) read off the SOMA bone heads (n, n_soma, 3), with each shoulder moved
+    :data:`SHOULDER_ALONG_ARM` of the way down the SOMA arm bone (``labels`` names the heads)."""
+    out = joints.copy()
+    for side in ("left", "right"):
+        arm, forearm = (heads[:, labels.index(f"{side.title()}{bone}")] for bone in ("Arm", "ForeArm"))
+        out[:, SMPL_JOINTS.index(f"{side}_shoulder")] = arm + SHOULDER_ALONG_ARM * (forearm - arm)
+    return out
+
+
 def build_proxy(
     cache_dir: Path,
     faces: np.ndarray,
@@ -329,7 +345,7 @@ def build_proxy(
     V, H = np.concatenate(verts), np.concatenate(heads)
     v_mean, _ = t_posed(mean[None])
     dirs, gap = _shape_directions(t_posed, V, v_mean, P, P_test)  # (n_features, V * 3), (n_test, V)
-    joints = H[:, head_bone]
+    joints = shoulder_pivots(H, labels, H[:, head_bone])
     regressor = fit_joint_regressor(V, joints)
 
     arrays = {

@@ -31,11 +31,14 @@ LIMBS = (
 """Segments whose twist about their own axis a rigid alignment cannot read."""
 UNREAD = ("left_foot", "right_foot", "left_hand", "right_hand")
 """Segments whose alignment is unreliable (the toes of a flat foot, the fingers as one block): they turn with
-their parent, as does a segment with fewer than :data:`MIN_VERTICES` vertices of its own (some of the spine's,
-the collars and the wrists in the SOMA weights)."""
+their parent, as does a segment with fewer than :data:`MIN_VERTICES` vertices of its own (spine1 and spine2
+in the SOMA weights)."""
 MIN_VERTICES = 30
 MIRROR = np.diag([-1.0, 1.0, 1.0])  # SMPL's frame (+X to the body's left) mirrored left to right
-MIN_WEIGHT = 0.8  # a vertex belongs to the segment it is skinned to at least this much
+MIN_WEIGHT = 0.6
+"""A vertex belongs to the segment it is skinned to at least this much. SOMA skins only 11 vertices to each
+collar at 0.8 and 59 at 0.6: read there, SMPL's rest pose raises the collars by 8 degrees and lowers the arms
+by 11 against SOMA's T-pose, which a collar turning with the chest leaves out."""
 
 
 def segment_alignment(
