@@ -455,7 +455,8 @@ def test_nan_frames_do_not_move_the_shape(
     upgraded: tuple[UpgradeResult, SmplSequence], smpl: SmplModel, model: BodyModel
 ) -> None:
     """The subject's shape, fitted under the population prior, stays within 4 SD, and frames the input marks
-    bad (which change the frames the shape is fitted on) move it by less than 0.1 SD (measured 0.06)."""
+    bad (which change the frames the shape is fitted on) move it by less than 0.1 SD (0.01-0.02 with 3 % of
+    the frames NaN on this clip and on the whole trial)."""
     result, seq = upgraded
     assert result.extra["shape_max_sd"] == pytest.approx(np.abs(result.shape).max(), abs=1e-3)
     assert np.abs(result.shape).max() <= 4.0, np.abs(result.shape).max()

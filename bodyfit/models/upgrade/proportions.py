@@ -21,6 +21,10 @@ from bodyfit.models.body.model import BodyModel
 
 SAMPLES = 20_000
 COVERAGE = 0.998  # the central share of the population's proportions taken as its range
+MARGIN = 0.01
+"""A proportion is outside the range when it lies more than this share beyond it. Where a segment is often
+the body's median one its proportion is exactly 1 in much of the population, so the range ends at 1.00 and
+a body near the mean sits on that edge, a rounding error inside or outside."""
 AXES = "xyz"
 
 
@@ -48,10 +52,11 @@ class ProportionRange:
 
     def outliers(self, scales: np.ndarray) -> list[str]:
         """The segments (with axis and value, e.g. "tibia_r y 1.31 (population 1.07-1.25)") whose
-        proportion in scales (n_seg, 3) lies outside the range."""
+        proportion in scales (n_seg, 3) lies outside the range by more than :data:`MARGIN`."""
         ratio = proportions(scales[None])[0]
         out = []
-        for s, a in zip(*np.nonzero((ratio < self.low) | (ratio > self.high)), strict=True):
+        outside = (ratio < self.low * (1.0 - MARGIN)) | (ratio > self.high * (1.0 + MARGIN))
+        for s, a in zip(*np.nonzero(outside), strict=True):
             out.append(
                 f"{self.segments[s]} {AXES[a]} {ratio[s, a]:.2f} (population {self.low[s, a]:.2f}-"
                 f"{self.high[s, a]:.2f})"
