@@ -23,6 +23,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import torch
 
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.errors import BodyfitError, ShapeError
@@ -30,7 +31,7 @@ from bodyfit.models.fitting.registered.fitter import BodyFit, RegisteredFitter
 from bodyfit.models.fitting.registered.stages import DEFAULT_STAGES, RegisteredFitConfig
 from bodyfit.models.fitting.sequence.offsets import OffsetConfig, offsets_of_fit
 from bodyfit.models.rig.fit import with_decoder
-from bodyfit.models.rig.icp import ClosestConfig, closest_targets
+from bodyfit.models.rig.icp import ClosestConfig, closest_targets, fit_to_points
 from bodyfit.models.rig.joints import JointConfig, solve_joints
 from bodyfit.models.rig.subject import PersonalParts, Subject, model_fingerprint
 from bodyfit.models.rig.weights import (
@@ -189,12 +190,18 @@ def _alternate(
 ) -> tuple[BodyFit, PersonalParts]:
     """One shape and K poses (started from each scan's own fit, ``alone``), then ``rounds`` of: offsets
     against the residuals, weights, joints (each with the others fixed), and a refit of the shape and poses
-    with them. With raw ``points`` (one (N_k, 3) array or None per scan), ``cfg.closest.rounds`` rounds, each
-    scan's targets re-paired with its points first (:func:`.icp.closest_targets`)."""
-    fit = fitter.fit(x, w, init=alone, shared_shape=True)
-    parts = PersonalParts.generic(model)
-    solver = _PartSolver(model, cfg)
+    with them. With raw ``points`` (one (N_k, 3) array or None per scan), the shape prior is
+    ``cfg.closest.shape_prior``, the shape and poses are fitted to the raw scans' points together first
+    (:func:`.icp.fit_to_points`, the registered scans sitting at their own fit), and ``cfg.closest.rounds``
+    rounds follow, each scan's targets re-paired with its points first (:func:`.icp.closest_targets`)."""
     raw = points is not None and any(p is not None for p in points)
+    if raw:
+        fitter = RegisteredFitter(model, replace(fitter.config, shape_prior=cfg.closest.shape_prior))
+    fit = fitter.fit(x, w, init=alone, shared_shape=True)
+    solver = _PartSolver(model, cfg, cfg.closest.shape_prior if raw else None)
+    if raw and points is not None and cfg.closest.chamfer_iterations > 0:
+        fit = _fit_raw(fitter, fit, points, cfg.closest)
+    parts = PersonalParts.generic(model)
     for _ in range(cfg.closest.rounds if raw else cfg.rounds):
         targets, confidence = x, w
         if raw and points is not None:
@@ -203,6 +210,24 @@ def _alternate(
         personal = with_decoder(solver.refitter, parts.decoder(model, solver.refitter.config.dtype))
         fit = personal.fit(targets, confidence, init=fit, shared_shape=True)
     return fit, parts
+
+
+def _fit_raw(
+    fitter: RegisteredFitter, fit: BodyFit, points: Sequence[np.ndarray | None], config: ClosestConfig
+) -> BodyFit:
+    """``fit`` (shared shape) with its shape and the raw scans' poses fitted to their points together
+    (:func:`.icp.fit_to_points`); the scans given in our topology keep their poses (they carry their own
+    correspondence, which the refits that follow use)."""
+    scans = [(k, p) for k, p in enumerate(points) if p is not None]
+    raw = [k for k, _ in scans]
+    start = BodyFit(fit.shape[raw], fit.coordinates[raw], fit.root[raw], fit.vertices[raw], fit.joints[raw])
+    moved = fit_to_points(fitter, [p for _, p in scans], start, config)
+    q, r = fit.coordinates.copy(), fit.root.copy()
+    q[raw], r[raw] = moved.coordinates, moved.root
+    shape = np.tile(moved.shape[0], (len(q), 1))
+    with torch.no_grad():
+        v, joints, _, _ = fitter.model.decoder(torch.float64)(*(torch.as_tensor(a) for a in (shape, q, r)))
+    return replace(fit, shape=shape, coordinates=q, root=r, vertices=v.numpy(), joints=joints.numpy())
 
 
 def _closest(
@@ -226,11 +251,15 @@ def _closest(
 
 class _PartSolver:
     """One round's solves of the person's parts with the poses fixed: template offsets against the
-    residuals, then the skinning weights, then the joints (each with the others fixed)."""
+    residuals, then the skinning weights, then the joints (each with the others fixed); ``refitter`` the
+    shape and pose refits' fitter (its shape prior ``shape_prior``, None: the registered fitter's)."""
 
-    def __init__(self, model: BodyModel, cfg: RigConfig) -> None:
+    def __init__(self, model: BodyModel, cfg: RigConfig, shape_prior: float | None = None) -> None:
         self.model, self.cfg = model, cfg
-        self.refitter = RegisteredFitter(model, RegisteredFitConfig(stages=REFIT_STAGES))
+        fits = RegisteredFitConfig(stages=REFIT_STAGES)
+        self.refitter = RegisteredFitter(
+            model, fits if shape_prior is None else replace(fits, shape_prior=shape_prior)
+        )
         self.neighbours = adjacency(model.faces, model.n_vertices)
         self.candidates = None
         if cfg.weights is not None:

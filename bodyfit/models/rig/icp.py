@@ -12,29 +12,51 @@ vertex's target is moved along its normal only (point to plane: Y. Chen and G. M
 Registration of Multiple Range Images", Image and Vision Computing 10(3), 1992). The rig's shared offsets,
 weights and joints and every scan's pose are then solved against those targets (:mod:`.build`): the
 correspondence along the surface comes from the rig, which all scans share, not from any one scan.
+
+Before those rounds, the shared shape and every scan's pose are fitted to all scans' points at once
+(:func:`fit_to_points`), on the robust two-way Chamfer distance (H. G. Barrow, J. M. Tenenbaum, R. C. Bolles
+and H. C. Wolf, "Parametric correspondence and chamfer matching: Two new techniques for image matching",
+IJCAI 1977), point to plane from the scans' side, the pairs found again at every evaluation: unlike the
+rounds' targets, which hold each vertex where it is along the surface, this lets the shape and the poses
+slide the body along the scans, away from where the registrations' own correspondence left it.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from bodyfit.models.fitting.common.nearest import PointTree
 from bodyfit.models.fitting.common.nonrigid import geman_mcclure_weights
 from bodyfit.models.fitting.common.surface import vertex_normals
+from bodyfit.models.fitting.registered.fitter import BodyFit, DataTerm, RegisteredFitter
+from bodyfit.models.fitting.registered.stages import Stage
 
 
 @dataclass(frozen=True, kw_only=True)
 class ClosestConfig:
     """max_distance: pairs further apart (m) are ignored; sigma: the Geman-McClure scale (m); rounds: the
     alternation's rounds when raw scans are given (each re-pairs the points); tangential: the share of each
-    pull kept along the surface (0: across it only)."""
+    pull kept along the surface (0: across it only); chamfer_iterations: L-BFGS iterations of the joint
+    Chamfer fit before the rounds (0: none), chamfer_points: each scan's points in it (a seeded sample),
+    chamfer_sigma_mm: its Geman-McClure scale, chamfer_tangential: the weight of its in-plane distances;
+    shape_prior: the weight of |c|^2 in every fit of a build from raw scans (coefficients in population
+    standard deviations, against mm^2), far above a registered mesh's: a surface pins the shape's
+    coefficients far less than a correspondence does, and the identity coefficients otherwise run to
+    several standard deviations to absorb what lies beyond the shape space."""
 
     max_distance: float = 0.04
     sigma: float = 0.01
     rounds: int = 8
     tangential: float = 0.0
+    chamfer_iterations: int = 25
+    chamfer_points: int = 5000
+    chamfer_sigma_mm: float = 10.0
+    chamfer_tangential: float = 0.1
+    shape_prior: float = 1.0
 
 
 def closest_targets(
@@ -64,3 +86,59 @@ def closest_targets(
     pull = np.divide(pull, a[:, None], out=np.zeros((V, 3)), where=a[:, None] > 0)
     across = np.einsum("vi,vi->v", normals, pull)[:, None] * normals
     return vertices + across + cfg.tangential * (pull - across), np.clip(a / 2.0, 0.0, 1.0)
+
+
+def chamfer_term(
+    points: Sequence[np.ndarray], faces: np.ndarray, config: ClosestConfig, dtype: torch.dtype
+) -> DataTerm:
+    """The robust two-way Chamfer loss (K,) in mm^2 of K posed meshes (K, V, 3) in mm against each scan's
+    points (N_k, 3) metres (module docstring):
+
+        mean_i rho(d_plane(p_i, v_j(i))) + 0.5 mean_v min(rho(|v - s(v)|), rho(reach))
+
+    (rho(d) = d^2 s^2 / (d^2 + s^2), the Geman-McClure loss of ``chamfer_sigma_mm``)
+    with j(i) the vertex nearest the point p_i, d_plane its distance across the vertex's normal plus
+    ``chamfer_tangential`` of the in-plane part, s(v) the point nearest the vertex (both found again at every
+    evaluation), and ``reach`` = ``max_distance``: a vertex over a hole in the scan pulls no further."""
+    pts = [torch.as_tensor(p * 1000.0, dtype=dtype) for p in points]
+    trees = [PointTree(p) for p in points]
+    s2 = config.chamfer_sigma_mm**2
+    reach2 = (config.max_distance * 1000.0) ** 2
+    cap = reach2 * s2 / (reach2 + s2)
+    tangential = config.chamfer_tangential
+
+    def term(verts_mm: torch.Tensor) -> torch.Tensor:
+        v = verts_mm.detach().double().numpy() / 1000.0
+        out = []
+        for k, scan in enumerate(points):
+            pairs = torch.as_tensor(PointTree(v[k]).query(scan)[1])
+            nearest = torch.as_tensor(scan[trees[k].query(v[k])[1]] * 1000.0, dtype=dtype)
+            normals = torch.as_tensor(vertex_normals(v[k], faces), dtype=dtype)[pairs]
+            r = verts_mm[k][pairs] - pts[k]
+            along = (r * normals).sum(-1)
+            d2 = along**2 + tangential * ((r**2).sum(-1) - along**2)
+            m2 = ((verts_mm[k] - nearest) ** 2).sum(-1)
+            out.append((d2 * s2 / (d2 + s2)).mean() + 0.5 * (m2 * s2 / (m2 + s2)).clamp_max(cap).mean())
+        return torch.stack(out)
+
+    return term
+
+
+def fit_to_points(
+    fitter: RegisteredFitter, points: Sequence[np.ndarray], start: BodyFit, config: ClosestConfig
+) -> BodyFit:
+    """One shape and K poses fitted to K raw scans' points (N_k, 3) metres together (:func:`chamfer_term`),
+    on every vertex of ``fitter``'s decoder, from ``start`` (its first shape); ``config.chamfer_points`` of
+    each scan's points, a seeded sample. The answer carries no reports (it is not a fit to meshes)."""
+    rng = np.random.default_rng(0)
+    sample = [p[rng.choice(len(p), min(config.chamfer_points, len(p)), replace=False)] for p in points]
+    dtype = fitter.config.dtype
+    z = fitter.start_state(start.coordinates, start.root, start.shape[:1])
+    stage = Stage(
+        name="chamfer", coordinates="all", shape="all", vertices="all", iterations=config.chamfer_iterations
+    )
+    fitter.optimise(stage, z, chamfer_term(sample, fitter.model.faces, config, dtype))
+    c, q, r = fitter.parameters(z)
+    with torch.no_grad():
+        v, joints, _, _ = fitter.decoder(c.to(dtype), q.to(dtype), r.to(dtype))
+    return BodyFit(c.numpy(), q.numpy(), r.numpy(), v.double().numpy(), joints.double().numpy())
