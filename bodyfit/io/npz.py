@@ -19,6 +19,7 @@ from __future__ import annotations
 import io
 import math
 import os
+import tokenize
 import zipfile
 import zlib
 from collections.abc import Iterator, Mapping
@@ -38,8 +39,20 @@ _CHUNK = 2**20
 _METHODS = (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED)
 _METHOD_NAMES = {9: "deflate64", 12: "bzip2", 14: "lzma", 93: "zstandard", 98: "ppmd", 99: "AES encryption"}
 _SAVE = "save the arrays with numpy.savez or numpy.savez_compressed"
-# what a damaged archive raises while it is read (zlib: a corrupt deflate stream; EOFError: one cut short)
-_DAMAGED = (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, NotImplementedError, RuntimeError)
+DAMAGED = (
+    zipfile.BadZipFile,
+    zlib.error,
+    tokenize.TokenError,
+    SyntaxError,
+    EOFError,
+    OSError,
+    ValueError,
+    NotImplementedError,
+    RuntimeError,
+)
+"""What a damaged archive raises while it is read, by ``zipfile`` or ``numpy.load``: a corrupt deflate
+stream (``zlib.error``), a .npy header that no longer parses (``tokenize.TokenError``, ``SyntaxError``), a
+file cut short (``EOFError``)."""
 
 FLOAT, NUMBER, INTEGER, TEXT = "f", "fiu", "iu", "US"  # numpy dtype kinds
 _KINDS = {"f": "floats", "i": "integers", "u": "unsigned integers", "U": "text", "S": "text", "b": "booleans"}
@@ -176,7 +189,7 @@ def _open(source: Source, where: str) -> Iterator[zipfile.ZipFile]:
             )
         try:
             zf = zipfile.ZipFile(fp)
-        except _DAMAGED as exc:
+        except DAMAGED as exc:
             raise FileFormatError(
                 f"{where} is not a readable .npz (a zip archive of .npy arrays): not a zip file, or a "
                 f"truncated one ({exc}); {_SAVE}"
@@ -233,7 +246,7 @@ def _read_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, key: str, where: st
             shape, fortran, dtype = _npy_header(f, key, where)
     except FileFormatError:
         raise
-    except _DAMAGED as exc:
+    except DAMAGED as exc:
         raise FileFormatError(f"{key!r} in {where} is corrupt or truncated ({exc}); {_SAVE}", key) from None
     if any(n < 0 for n in shape):
         raise FileFormatError(f"{key!r} in {where} declares a negative size {shape}: a corrupt file", key)
@@ -331,7 +344,7 @@ def _read_data(zf: zipfile.ZipFile, header: _Header, key: str, where: str) -> np
                 pos += got
             if pos == n:
                 extra = f.read(1)  # also reaches the end, where zipfile checks the CRC
-    except _DAMAGED as exc:
+    except DAMAGED as exc:
         raise FileFormatError(f"{key!r} in {where} is corrupt or truncated ({exc}); {_SAVE}", key) from None
     declared = f"its header declares {header.shape} {header.dtype} = {header.nbytes:,} bytes"
     if pos < n:

@@ -4,12 +4,12 @@ fixed), and where a subject that cannot be used, or one that contradicts the req
 
 from __future__ import annotations
 
-import zipfile
 from collections.abc import Iterable
 
 import numpy as np
 import torch
 
+from bodyfit.io.npz import DAMAGED
 from bodyfit.models.body.model import BodyDecoder, BodyModel
 from bodyfit.models.fitting.registered.fitter import FixedBody
 from bodyfit.models.rig.subject import Subject, SubjectError
@@ -39,7 +39,7 @@ def read_subject(model: BodyModel, data: bytes | Subject) -> Subject:
         return Subject.from_bytes(bytes(data), model)
     except SubjectError as exc:
         raise InvalidInputError(str(exc), SUBJECT_FIELD) from None
-    except (zipfile.BadZipFile, KeyError, ValueError, OSError, EOFError) as exc:
+    except (*DAMAGED, KeyError) as exc:
         # a truncated archive or one without a subject's arrays, which the reader does not name itself
         raise InvalidInputError(
             f"not a usable subject file (a damaged or incomplete .npz: {exc}); {REBUILD}", SUBJECT_FIELD

@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import hashlib
 import io
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from bodyfit.io.npz import DAMAGED
 from bodyfit.models.body.model import BodyDecoder, BodyModel
 from bodyfit.models.errors import BodyfitError
 
@@ -129,7 +129,7 @@ class Subject:
         try:
             with np.load(io.BytesIO(data), allow_pickle=False) as npz:
                 arrays = {k: npz[k] for k in npz.files}
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        except DAMAGED as exc:
             raise SubjectError(f"not a subject file (an .npz written by `bodyfit rig`): {exc}") from None
         found = str(arrays.pop("format", ""))
         if found in OLD_FORMATS:
