@@ -118,6 +118,10 @@ def test_the_subject_file_round_trips_and_refuses_what_it_is_not(model: BodyMode
         Subject.from_bytes(old.getvalue())
     with pytest.raises(SubjectError, match="not a subject file"):
         Subject.from_bytes(data[: len(data) // 2])  # cut short
+    bomb = io.BytesIO()  # 2 MB compressed, 96 MB of zeros decompressed
+    np.savez_compressed(bomb, **{**arrays, "offsets": np.zeros((4_000_000, 3))})
+    with pytest.raises(SubjectError, match="MiB decompressed"):
+        Subject.from_bytes(bomb.getvalue())
     # corrupt deflate streams and headers that no longer parse are refused; a change the decompressor
     # never reads (a code length of an unused symbol) leaves the same arrays, which are then accepted
     for damaged in _damaged_members(data):

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,11 +19,35 @@ from bodyfit.models.errors import BodyfitError
 
 FORMAT = "bodyfit-subject-2"
 OLD_FORMATS = ("bodyfit-subject-1",)
+MAX_BYTES = 64 * 2**20
+"""The most a subject file's arrays may hold together, decompressed, as their zip entries declare them (a
+subject of our 13,348-vertex body holds about 3 MB; zipfile reads no member past its declared size). A
+small upload that would decompress to gigabytes is refused before any array is read."""
 FINGERPRINT_ARRAYS = ("faces", "vertices_mean", "weights", "scale_mean", "scale_basis", "identity_basis")
 
 
 class SubjectError(BodyfitError):
     """A subject file that cannot be used: unreadable, altered, or built for another body model."""
+
+
+def _read_arrays(data: bytes) -> dict[str, np.ndarray]:
+    """Every array of a subject file's bytes, once their declared sizes are within :data:`MAX_BYTES`.
+
+    Raises:
+        SubjectError: not an .npz, a damaged one, or one declaring more than :data:`MAX_BYTES`.
+    """
+    try:
+        with zipfile.ZipFile(io.BytesIO(data)) as archive:
+            declared = sum(info.file_size for info in archive.infolist())
+        if declared <= MAX_BYTES:
+            with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+                return {k: npz[k] for k in npz.files}
+    except DAMAGED as exc:
+        raise SubjectError(f"not a subject file (an .npz written by `bodyfit rig`): {exc}") from None
+    raise SubjectError(
+        f"not a subject file: its arrays declare {declared / 2**20:,.0f} MiB decompressed, more than the "
+        f"{MAX_BYTES / 2**20:.0f} MiB any subject holds (about 3 MiB): write it with `bodyfit rig`"
+    )
 
 
 def model_fingerprint(model: BodyModel) -> str:
@@ -126,11 +151,7 @@ class Subject:
         Raises:
             SubjectError: not a subject file, altered contents (hash mismatch), or another body model.
         """
-        try:
-            with np.load(io.BytesIO(data), allow_pickle=False) as npz:
-                arrays = {k: npz[k] for k in npz.files}
-        except DAMAGED as exc:
-            raise SubjectError(f"not a subject file (an .npz written by `bodyfit rig`): {exc}") from None
+        arrays = _read_arrays(data)
         found = str(arrays.pop("format", ""))
         if found in OLD_FORMATS:
             raise SubjectError(
