@@ -89,7 +89,7 @@ def build_topology(model: BodyModel) -> Topology:
     """Pick the regions, edges and candidate sets of ``model``'s template (see the module docstring)."""
     template = np.asarray(model.data["template"], np.float64)
     body_names = model.skeleton.spec.body_names
-    dominant = np.asarray(model.data["weights"]).argmax(1)
+    dominant = model.vertex_bodies
     regions: dict[str, np.ndarray] = {}
     for name, bodies in _REGION_BODIES.items():
         keep = np.isin(dominant, [body_names.index(b) for b in bodies if b in body_names])
