@@ -34,6 +34,7 @@ from bodyfit.models.fitting.common.nonrigid import geman_mcclure_weights
 from bodyfit.models.fitting.common.surface import vertex_normals
 from bodyfit.models.fitting.registered.fitter import BodyFit, DataTerm, RegisteredFitter
 from bodyfit.models.fitting.registered.stages import Stage
+from bodyfit.models.fitting.scan.losses import geman_mcclure
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -103,8 +104,7 @@ def chamfer_term(
     pts = [torch.as_tensor(p * 1000.0, dtype=dtype) for p in points]
     trees = [PointTree(p) for p in points]
     s2 = config.chamfer_sigma_mm**2
-    reach2 = (config.max_distance * 1000.0) ** 2
-    cap = reach2 * s2 / (reach2 + s2)
+    cap = geman_mcclure(torch.tensor((config.max_distance * 1000.0) ** 2, dtype=dtype), s2)
     tangential = config.chamfer_tangential
 
     def term(verts_mm: torch.Tensor) -> torch.Tensor:
@@ -118,7 +118,7 @@ def chamfer_term(
             along = (r * normals).sum(-1)
             d2 = along**2 + tangential * ((r**2).sum(-1) - along**2)
             m2 = ((verts_mm[k] - nearest) ** 2).sum(-1)
-            out.append((d2 * s2 / (d2 + s2)).mean() + 0.5 * (m2 * s2 / (m2 + s2)).clamp_max(cap).mean())
+            out.append(geman_mcclure(d2, s2).mean() + 0.5 * torch.minimum(geman_mcclure(m2, s2), cap).mean())
         return torch.stack(out)
 
     return term
