@@ -48,6 +48,7 @@ from bodyfit.models.body.lbs import (
     range_counts,
     range_cuts,
 )
+from bodyfit.models.rotations import cm_matmul, cm_matvec
 from bodyfit.models.skeleton.model import Skeleton
 
 # Coordinates that rotate a segment about its own long axis (OpenSim names without the side suffix).
@@ -308,8 +309,8 @@ def swing_transforms(transforms: torch.Tensor, twists: torch.Tensor) -> torch.Te
     """Swings ``S_j = M_j W_j^-1`` of skinning transforms M (3, 4, n, B) and their bodies' twists W
     (3, 4, n, B), component-major rigid maps -> (3, 4, n, B)."""
     R_t = twists[:, :3].transpose(0, 1)  # W's inverse rotation
-    rot = (transforms[:, :3].unsqueeze(2) * R_t.unsqueeze(0)).sum(1)
-    shift = transforms[:, 3] - (rot * twists[:, 3].unsqueeze(0)).sum(1)
+    rot = cm_matmul(transforms[:, :3], R_t)
+    shift = transforms[:, 3] - cm_matvec(rot, twists[:, 3])
     return torch.cat([rot, shift.unsqueeze(1)], dim=1)
 
 
@@ -575,7 +576,7 @@ class TwistBlock(nn.Module):
 
 def _compose(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Rigid maps a after b, component-major (3, 4, ...) each -> (3, 4, ...)."""
-    rotation = (a[:, :3].unsqueeze(2) * b.unsqueeze(0)).sum(1)  # (3, 4, ...): R_a [R_b | t_b]
+    rotation = cm_matmul(a[:, :3], b)  # (3, 4, ...): R_a [R_b | t_b]
     return torch.cat([rotation[:, :3], (rotation[:, 3] + a[:, 3]).unsqueeze(1)], dim=1)
 
 
