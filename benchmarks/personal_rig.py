@@ -133,6 +133,11 @@ def raw_build(service: Any, model: BodyModel, build: np.ndarray) -> RigBuild:
     return build_rig(model, x, names, points=[scan.points for scan in scans])
 
 
+def mean_mm(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean vertex distance (mm) between meshes a and b (..., V, 3) metres."""
+    return float(np.linalg.norm(a - b, axis=-1).mean() * 1000.0)
+
+
 def raw_peer(service: Any, model: BodyModel, built: RigBuild, held: np.ndarray) -> dict[str, float]:
     """Held-out meshes (B, V, 3) given as raw scans too, fitted by the service generically and with the
     subject (pose only): each registration's mean vertex error (mm) against the mesh, and their ratio."""
@@ -140,8 +145,7 @@ def raw_peer(service: Any, model: BodyModel, built: RigBuild, held: np.ndarray) 
     body = service.subject_body(built.subject)
     generic = np.stack([service.fit_mesh(scan).vertices for scan in scans])
     personal = np.stack([service.fit_mesh(scan, body=body).vertices for scan in scans])
-    g = float(np.linalg.norm(generic - held, axis=-1).mean() * 1000.0)
-    p = float(np.linalg.norm(personal - held, axis=-1).mean() * 1000.0)
+    g, p = mean_mm(generic, held), mean_mm(personal, held)
     return {"raw_generic_mm": round(g, 3), "raw_personal_mm": round(p, 3), "raw_ratio": round(p / g, 4)}
 
 
@@ -161,8 +165,7 @@ def rig_case(model: BodyModel, bodies: np.ndarray, raw: bool = False) -> dict[st
     build_s = time.perf_counter() - began
     generic = RegisteredFitter(model).fit(held)
     personal = fit_registered(model, built.subject, held)
-    g = float(np.linalg.norm(generic.vertices - held, axis=-1).mean() * 1000.0)
-    p = float(np.linalg.norm(personal.vertices - held, axis=-1).mean() * 1000.0)
+    g, p = mean_mm(generic.vertices, held), mean_mm(personal.vertices, held)
     out = {
         "generic_mm": round(g, 3),
         "personal_mm": round(p, 3),
