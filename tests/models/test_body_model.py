@@ -230,3 +230,17 @@ def test_each_vertex_belongs_to_the_body_at_its_place(body: BodyModel) -> None:
     assert names[owner[v[:, 1].argmax()]] == "head"
     assert names[owner[v[:, 1].argmin()]] in ("calcn_r", "calcn_l", "toes_r", "toes_l")
     assert names[owner[v[:, 2].argmax()]] == "hand_r" and names[owner[v[:, 2].argmin()]] == "hand_l"
+
+
+def test_derived_data_is_built_once_per_model_and_not_shared() -> None:
+    a, b = BodyModel.load(), BodyModel.load()
+    calls: list[int] = []
+
+    def build() -> list[int]:
+        calls.append(1)
+        return [len(calls)]
+
+    first = a.derived("test.value", build)
+    assert a.derived("test.value", build) is first
+    assert b.derived("test.value", build) == [2]
+    assert len(calls) == 2

@@ -16,7 +16,6 @@ Computation 19(92), 1965): one body evaluation per step, batched over many bodie
 
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -87,19 +86,17 @@ def evaluate(model: BodyModel, shapes: np.ndarray) -> np.ndarray:
     return np.concatenate(rows)
 
 
-# Per model, dropped with it.
-_JACOBIANS: weakref.WeakKeyDictionary[BodyModel, tuple[np.ndarray, np.ndarray]] = weakref.WeakKeyDictionary()
-
-
 def mean_jacobian(model: BodyModel) -> tuple[np.ndarray, np.ndarray]:
     """Measurements (M,) of the mean body and their Jacobian (M, n_shape) there, by central differences;
     cached per model."""
-    if model not in _JACOBIANS:
+
+    def build() -> tuple[np.ndarray, np.ndarray]:
         K = model.n_shape
         probes = np.concatenate([np.zeros((1, K)), _FD_STEP * np.eye(K), -_FD_STEP * np.eye(K)])
         f = evaluate(model, probes)
-        _JACOBIANS[model] = (f[0], (f[1 : K + 1] - f[K + 1 :]).T / (2 * _FD_STEP))
-    return _JACOBIANS[model]
+        return f[0], (f[1 : K + 1] - f[K + 1 :]).T / (2 * _FD_STEP)
+
+    return model.derived("anthropometry.mean_jacobian", build)
 
 
 def fit_measurements(
@@ -183,7 +180,6 @@ def gaussian_prior(shapes: np.ndarray, shrink: float = 0.1) -> tuple[np.ndarray,
     return c.mean(0), np.linalg.inv(cov)
 
 
-_SEX_MEANS: weakref.WeakKeyDictionary[BodyModel, dict[str, np.ndarray]] = weakref.WeakKeyDictionary()
 # The mean body is matched to within a few tolerances only: some definitions differ from ANSUR II's by more
 # than one (docs/anthropometry.md), and meeting them all would push the prior's mean to the edge of the
 # shape space.
@@ -193,12 +189,13 @@ _MEAN_SLACK = 4.0
 def sex_prior_mean(model: BodyModel, sex: str) -> np.ndarray:
     """(n_shape,) the shape of the mean ANSUR II man or woman (:data:`ANSUR_MEANS`) under the standard
     normal prior: the prior mean of bodies built for that sex. Cached per model."""
-    means = _SEX_MEANS.setdefault(model, {})
-    if sex not in means:
+
+    def build() -> np.ndarray:
         column = SEXES.index(sex)
         target = np.array([[ANSUR_MEANS[n][column] if n in ANSUR_MEANS else np.nan for n in NAMES]])
-        means[sex] = fit_measurements(model, target, tolerance=_MEAN_SLACK * _TOL)[0][0]
-    return means[sex]
+        return fit_measurements(model, target, tolerance=_MEAN_SLACK * _TOL)[0][0]
+
+    return model.derived(f"anthropometry.sex_prior_mean.{sex}", build)
 
 
 def shape_from_measurements(

@@ -25,7 +25,6 @@ populations``) and stored with the package in ``populations.npz``; :func:`sample
 
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -151,38 +150,33 @@ def build_populations(
     return out
 
 
-_LOADED: dict[Path, tuple[np.ndarray, dict[str, Population]]] = {}
-_CHECKED: weakref.WeakKeyDictionary[BodyModel, set[Path]] = weakref.WeakKeyDictionary()
-
-
 def load_populations(model: BodyModel, path: Path = POPULATION_FILE) -> dict[str, Population]:
-    """The populations stored at ``path`` (cached), checked against the model's shape space.
+    """The populations stored at ``path``, checked against the model's shape space; read once per model
+    and path.
 
     Raises:
         PopulationError: no file, or one built for another shape space.
     """
+    key = f"anthropometry.populations:{path.resolve()}"
+    return model.derived(key, lambda: _read_populations(model, path))
+
+
+def _read_populations(model: BodyModel, path: Path) -> dict[str, Population]:
     if not path.exists():
         raise PopulationError(f"no population file at {path}: python benchmarks/anthropometry.py populations")
-    if path not in _LOADED:
-        with np.load(path, allow_pickle=False) as f:
-            keys = {k.rsplit("_", 1)[0] for k in f.files if k != "probe"}
-            _LOADED[path] = (
-                f["probe"],
-                {
-                    k: Population(f[f"{k}_shapes"].astype(np.float64), f[f"{k}_weights"], f[f"{k}_spread"])
-                    for k in keys
-                },
-            )
-    probe, people = _LOADED[path]
-    checked = _CHECKED.setdefault(model, set())
-    if path not in checked:
-        ours = shape_space_probe(model)
-        if probe.shape != ours.shape or not np.allclose(probe, ours, atol=1e-4):
-            raise PopulationError(
-                f"{path.name} was built for another shape space; rebuild it: "
-                "python benchmarks/anthropometry.py populations"
-            )
-        checked.add(path)
+    with np.load(path, allow_pickle=False) as f:
+        keys = {k.rsplit("_", 1)[0] for k in f.files if k != "probe"}
+        probe = f["probe"]
+        people = {
+            k: Population(f[f"{k}_shapes"].astype(np.float64), f[f"{k}_weights"], f[f"{k}_spread"])
+            for k in keys
+        }
+    ours = shape_space_probe(model)
+    if probe.shape != ours.shape or not np.allclose(probe, ours, atol=1e-4):
+        raise PopulationError(
+            f"{path.name} was built for another shape space; rebuild it: "
+            "python benchmarks/anthropometry.py populations"
+        )
     return people
 
 

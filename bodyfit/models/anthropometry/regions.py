@@ -14,7 +14,6 @@ model's frame: metres, +x forward, +y up, +z the body's right.
 
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -74,15 +73,9 @@ class Topology:
         return self._local[name]
 
 
-# Per model, dropped with it (an id could be reused by a later model).
-_CACHE: weakref.WeakKeyDictionary[BodyModel, Topology] = weakref.WeakKeyDictionary()
-
-
 def topology(model: BodyModel) -> Topology:
     """The model's :class:`Topology`, built on first use and kept for the model's lifetime."""
-    if model not in _CACHE:
-        _CACHE[model] = build_topology(model)
-    return _CACHE[model]
+    return model.derived("anthropometry.topology", lambda: build_topology(model))
 
 
 def build_topology(model: BodyModel) -> Topology:

@@ -22,6 +22,7 @@ import copy
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, TypeVar, cast
 
 import numpy as np
 import torch
@@ -47,6 +48,7 @@ from bodyfit.models.skeleton.model import Skeleton, check_finite
 from bodyfit.models.skeleton.spec import SkeletonSpec
 
 BODY_ASSET = "body.npz"
+_T = TypeVar("_T")
 
 # Anatomical joints: name -> (joint of the skeleton, which side of it the centre is fixed to). "child" is
 # the joint's frame on the child body (it follows the child, e.g. through the knee's translations);
@@ -480,6 +482,7 @@ class BodyModel:
         self.landmark_names = [str(n) for n in data["landmark_names"]]
         self._decoders: dict[tuple[torch.dtype, str], BodyDecoder] = {}
         self._bone_vertices: np.ndarray | None = None
+        self._derived: dict[str, Any] = {}
 
     @classmethod
     def load(cls, folder: Path | None = None, skinning: str = "lbs") -> BodyModel:
@@ -515,6 +518,15 @@ class BodyModel:
     def bind_coordinates(self) -> np.ndarray:
         """(n_dof,) coordinates of the bind pose, in which the template is stored."""
         return np.asarray(self.data["bind_q"], np.float64)
+
+    def derived(self, key: str, build: Callable[[], _T]) -> _T:
+        """A value computed from this model alone (a measuring topology, a Jacobian, checked populations),
+        built by ``build()`` on first use under ``key`` and kept with the model: derived data lives and dies
+        with its model, never in module state. ``key`` is namespaced by its user
+        (``"anthropometry.topology"``)."""
+        if key not in self._derived:
+            self._derived[key] = build()
+        return cast(_T, self._derived[key])
 
     def decoder(self, dtype: torch.dtype = torch.float32, skinning: str | None = None) -> BodyDecoder:
         """The torch module for ``dtype`` and ``skinning`` (None: the model's); built once per pair."""
