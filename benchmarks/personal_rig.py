@@ -4,9 +4,10 @@ scans of them to build the rig from, six other poses held out.
 What is measured
 ----------------
 * Subjects outside the population the shape space was learned from:
-  ``offsets``: our body (coefficients 0.8 SD, seeded) with 10 mm (mean) of smooth random soft tissue
-  added to the template, posed by our skin; ``anny_*``: anny bodies at extreme phenotypes (old and heavy,
-  young and lean and short) posed by anny's own rig through our skeleton
+  ``offsets``: our body (coefficients 0.8 SD, seeded) with smooth random soft tissue added to the
+  template, as thick as tissue is where it is (:data:`TISSUE_MM`: 12 mm on the trunk and thighs, 2-3 mm
+  over the skull, hands and feet; 8 mm over the surface), posed by our skin; ``anny_*``: anny bodies at
+  extreme phenotypes (old and heavy, young and lean and short) posed by anny's own rig through our skeleton
   (:mod:`bodyfit.models.body.anny_posed`), in our topology.
 * Poses: uniform within half of every coordinate's range about its middle, pelvis upright; 12 per subject
   (seeded), the first 6 build the rig (:func:`bodyfit.models.rig.build.build_rig`), the last 6 are held
@@ -63,16 +64,43 @@ EXTREMES = {
 """anny phenotype sliders (0..1) and age in years of each extreme subject."""
 
 
-def soft_tissue(model: BodyModel, seed: int, mean_mm: float = 10.0) -> np.ndarray:
-    """(V, 3) smooth random soft tissue of mean thickness ``mean_mm`` (in or out) along the mean body's
-    normals: white noise diffused by the mesh Laplacian. Along the normal only, as tissue is: an offset
+TISSUE_MM = {
+    "pelvis": 12.0, "torso": 12.0, "thoracic_link": 12.0, "thorax": 12.0, "femur": 12.0,
+    "scapula": 8.0, "scapulothoracic_link": 8.0, "humerus": 8.0,
+    "cervical_link": 5.0, "tibia": 5.0, "patella": 5.0, "ulna": 5.0, "radius": 5.0,
+    "head": 3.0, "talus": 2.0, "calcn": 2.0, "toes": 2.0, "hand": 2.0,
+}  # fmt: skip
+"""Mean thickness (mm, in or out) of the random soft tissue on each body's skin, both sides alike: full on
+the trunk, pelvis and thighs, where subcutaneous fat and muscle differ most between people (abdominal,
+gluteal and thigh fat ranges over centimetres); two thirds of it on the upper arms and shoulders; under half
+on the neck, forearms and shanks (muscle over a bone close to the skin: the shin's front, the ulna); a few
+millimetres over bone: the skull and face, the feet and toes, the hands and fingers. Over the body's surface
+(area-weighted) the mean is about 8 mm (:func:`soft_tissue`)."""
+
+
+def tissue_profile(model: BodyModel) -> np.ndarray:
+    """(V,) mean thickness (mm) of the soft tissue at each template vertex: :data:`TISSUE_MM` of its bodies
+    blended by the model's skinning weights, so it changes smoothly across the joints."""
+    amplitude = np.array(
+        [TISSUE_MM[name.removesuffix("_r").removesuffix("_l")] for name in model.skeleton.spec.body_names]
+    )
+    return np.asarray(model.data["weights"], np.float64) @ amplitude
+
+
+def soft_tissue(model: BodyModel, seed: int) -> np.ndarray:
+    """(V, 3) smooth random soft tissue (in or out) along the mean body's normals: white noise diffused by
+    the mesh Laplacian, scaled to a mean magnitude of one and then by each vertex's
+    :func:`tissue_profile` (mm): 12 mm on the trunk, pelvis and thighs, 8 mm on the upper arms and
+    shoulders, 5 mm on the neck, forearms and shanks, 3 mm on the head, 2 mm on the hands, feet and toes;
+    8 mm over the body's surface (area-weighted; 7.6-8.4 mm for seeds 0-2) and 4.4 mm over its vertices,
+    two thirds of which lie on the head, hands and feet. Along the normal only, as tissue is: an offset
     along the surface would move no point of the skin, and no scan could see it."""
     V = model.n_vertices
     L = laplacian(model.faces, V)
     solve = spl.factorized((sp.identity(V) + 30.0 * (L.T @ L)).tocsc())
-    thickness = solve(np.random.default_rng(seed).normal(size=V))
-    normals = vertex_normals(model.data["vertices_mean"], model.faces)
-    return normals * (thickness * (mean_mm / 1000.0) / np.abs(thickness).mean())[:, None]
+    noise = solve(np.random.default_rng(seed).normal(size=V))
+    thickness = noise / np.abs(noise).mean() * tissue_profile(model) / 1000.0
+    return vertex_normals(model.data["vertices_mean"], model.faces) * thickness[:, None]
 
 
 def poses(model: BodyModel, n: int, seed: int) -> np.ndarray:
