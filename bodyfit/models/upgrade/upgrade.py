@@ -48,6 +48,7 @@ from bodyfit.models.upgrade.inputs import check_axis_angle
 from bodyfit.models.upgrade.proportions import ProportionRange
 from bodyfit.models.upgrade.proxy import ShapeHints, SmplProxy, load_proxy
 from bodyfit.models.upgrade.smpl_model import SmplModel, SmplModelError
+from bodyfit.models.upgrade.subject import subject_body
 
 UPGRADE_OFFSETS = OffsetConfig(smoothness=0.25)
 UPGRADE_SEQUENCE = SequenceConfig(
@@ -262,7 +263,8 @@ def _fit_posed(
 ) -> tuple[SequenceFit, np.ndarray]:
     """Fit the sequence's good frames as posed by ``smpl``, a chunk at a time; ``transfer`` (V, N) carries
     its vertices to our topology inside the forward pass (None: already ours); ``weight`` (V,) per vertex.
-    Returns the fit and the good frames' indices."""
+    With rest-pose offsets, the subject (shape and offsets) comes from :func:`.subject.subject_body` and
+    every frame is posed with it held fixed. Returns the fit and the good frames' indices."""
     good = np.flatnonzero(~sequence.bad_frames)
 
     def source(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -272,7 +274,11 @@ def _fit_posed(
         targets = mapped.astype(np.float64) @ SMPL_TO_BODY.T
         return targets, np.repeat(weight[None], len(targets), axis=0)
 
-    return fitter.fit_frames(source, len(good), progress=progress), good
+    if fitter.config.offsets is None or fitter.fitter.body is not None:
+        return fitter.fit_frames(source, len(good), progress=progress), good
+    body, offsets = subject_body(fitter, source, len(good))  # shape, and offsets at unbent poses
+    fit = fitter.for_body(body).fit_frames(source, len(good), progress=progress)
+    return replace(fit, offsets=offsets), good
 
 
 def _result(
