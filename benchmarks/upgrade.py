@@ -6,8 +6,9 @@ What is measured
   SMPL-format test model (``tests/data/smpl_format``, made from open data: see its SOURCES.md). Quick: the
   60-frame test sequence; full: trial 1 from ``../shared/data/cmu_bvh`` (all frames), made the same way.
 * Ours: :func:`bodyfit.models.upgrade.upgrade.upgrade_with_model` (SMPL forward pass, correspondence,
-  one shape per sequence, per-frame coordinates from warm-started keyframes), float32, torch's default
-  threads; time: the whole upgrade.
+  one shape per sequence, the rest-pose offsets fitted at poses read under a weak shape prior
+  (:mod:`bodyfit.models.upgrade.subject`), per-frame coordinates from warm-started keyframes), float32,
+  torch's default threads; time: the whole upgrade.
 * SKEL-style aligner (written here on our model, following SKEL's published recipe): batches of frames
   (``SKEL_BATCH``), 4 stages (root; + spine; + every coordinate; + shape shared by the batch), each
   torch L-BFGS (strong Wolfe) run as 10 steps of 20 iterations, squared vertex distance to the same
