@@ -4,8 +4,6 @@ and the ONNX export's parity."""
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 import pytest
 import torch
@@ -21,12 +19,11 @@ from bodyfit.models.body.swing_twist import (
     monomial_table,
     pair_rows,
     pair_weights,
-    plain_columns,
     prune_twist_weights,
     quaternion_multiply,
     rigid_of_dual_quaternion,
+    skin_columns,
     swing_transforms,
-    twist_blocks,
     twist_dual_quaternions,
     twist_rig,
 )
@@ -127,31 +124,48 @@ def test_the_classes_twists_from_one_table_product_equal_their_chains_products(m
     assert float((rows[:, :12] / rows[:, 12:] - rigid.permute(2, 0, 1).flatten(1)).abs().max()) < 1e-12
 
 
-def test_plain_blocks_hold_only_vertices_on_one_twist_class(model: BodyModel) -> None:
-    """Skinning a block by plain LBS is exact only where every vertex's twist weights lie in one class; its
-    columns carry each vertex's bodies, those of another class through that class's twist."""
+def test_the_skin_columns_carry_each_vertex_by_its_twist_class(model: BodyModel) -> None:
+    """A vertex whose twist lies in one class c is carried by its bodies' transforms S_j W_c (M_j where the
+    body is in c); a vertex that blends classes by its bodies' swings S_j W_0 (M_j where the body is in the
+    untwisted class 0). Each column holds the vertex's weight on that body."""
     rig = twist_rig(model.skeleton, model.data)
     weights = np.asarray(model.data["weights"], np.float64)
     twist = rig.class_weights(weights)
-    extra, plain = plain_columns(weights, twist, rig.body_class)
+    extra, columns = skin_columns(weights, twist, rig.body_class)
     n_body = weights.shape[1]
-    main = np.argmax(twist, axis=1)
     mixed = (twist != 0).sum(axis=1) > 1
+    target = np.where(mixed, 0, np.argmax(twist, axis=1))
     assert len(extra) and (rig.body_class[extra[:, 0]] != extra[:, 1]).all()
-    assert np.allclose(plain.sum(axis=1), weights.sum(axis=1))
-    folded = plain[~mixed, n_body:] != 0
-    assert folded.any() and (extra[np.nonzero(folded)[1], 1] == main[~mixed][np.nonzero(folded)[0]]).all()
-    blocks = twist_blocks(weights, plain, twist, 12)
-    assert blocks[0][0] == 0 and blocks[-1][1] == len(weights)
-    assert all(a[1] == b[0] for a, b in itertools.pairwise(blocks))
-    assert not any(mixed[a:b].any() for a, b, _, pairs in blocks if pairs is None)
-    assert any(pairs is None for *_, pairs in blocks) and any(pairs is not None for *_, pairs in blocks)
-    used = pair_weights(twist)[1] != 0
-    for a, b, columns, pairs in blocks:
-        table = weights if pairs is not None else plain
-        assert (table[a:b][:, np.setdiff1d(np.arange(table.shape[1]), columns)] == 0).all()
-        if pairs is not None:
-            assert not used[a:b][:, np.setdiff1d(np.arange(used.shape[1]), pairs)].any()
+    v, k = np.nonzero(columns)
+    body = np.r_[np.arange(n_body), extra[:, 0]][k]
+    cls = np.r_[rig.body_class, extra[:, 1]][k]
+    assert (cls == target[v]).all()
+    assert np.array_equal(columns[v, k], weights[v, body])
+    assert len(v) == np.count_nonzero(weights)  # every weight in exactly one column
+    assert (columns[mixed, n_body:] != 0).any() and (columns[~mixed, n_body:] != 0).any()
+
+
+def test_the_skin_is_the_swings_applied_to_the_blended_twist(model: BodyModel, dq: BodyDecoder) -> None:
+    """Every vertex moves by sum_j w_j S_j DLB_v(W) v, computed here per vertex from the classes' dual
+    quaternions: the skin's columns, blocks and the blended vertices written into the rest change the cost
+    only. A vertex put in the wrong column, block or place fails here."""
+    B, V = 3, model.n_vertices
+    q = torch.as_tensor(random_pose(model.skeleton, B, seed=11))
+    shape = torch.as_tensor(np.random.default_rng(11).normal(size=(B, model.n_shape)))
+    scales, coeffs = dq._shape_terms(shape)
+    M = dq._transforms(dq.fk.frames_cm(q, None, scales), dq._bind_shift(coeffs))  # (3, 4, n_body, B)
+    twists = dq.class_twists(q, coeffs)  # (8, n_class, B)
+    S = swing_transforms(M, rigid_of_dual_quaternion(twists)[:, :, dq.body_class])
+    blend = torch.einsum("vc,kcb->kvb", torch.as_tensor(dq._twist), twists)
+    X = rigid_of_dual_quaternion(blend / blend[:4].norm(dim=0, keepdim=True))  # (3, 4, V, B)
+    basis = torch.as_tensor(np.asarray(dq._basis, np.float64).reshape(len(dq._basis), -1))
+    rest = (coeffs @ basis).reshape(B, 3, V).permute(1, 2, 0)  # (3, V, B)
+    x = (X[:, :3] * rest.unsqueeze(0)).sum(1) + X[:, 3]
+    Sv = torch.einsum("vj,ikjb->ikvb", torch.as_tensor(dq._weights), S)
+    expected = ((Sv[:, :3] * x.unsqueeze(0)).sum(1) + Sv[:, 3]).permute(2, 1, 0)
+    got = dq(shape, q, torch.zeros(B, 3, dtype=F64))[0]
+    assert float((got - expected).abs().max()) < 1e-10
+    assert sum(dq.skin.sizes) == V and len(dq.skin.mixed) > 0.1 * V
 
 
 def test_small_twist_weights_are_folded_into_the_main_class() -> None:

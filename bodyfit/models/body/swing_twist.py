@@ -40,14 +40,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from bodyfit.models.body.lbs import (
-    best_partition,
-    blend_block,
-    blend_linear,
-    blend_rows,
-    range_counts,
-    range_cuts,
-)
+from bodyfit.models.body.lbs import blend_blocks, blend_linear, blend_rows
 from bodyfit.models.rotations import cm_matmul, cm_matvec
 from bodyfit.models.skeleton.model import Skeleton
 
@@ -433,145 +426,74 @@ def pair_rows(q: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:
     return torch.as_tensor(PAIR_TABLE, dtype=q.dtype) @ outer.flatten(1, 2)
 
 
-def plain_columns(
+def skin_columns(
     weights: np.ndarray, twist: np.ndarray, body_class: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The columns of the plain blocks and every vertex's weights on them.
+    """The columns of the skin's linear blend and every vertex's weights on them.
 
-    A vertex whose twist weights lie on one class c moves by ``sum_j w_j S_j W_c``: by its bodies'
-    transforms ``M_j = S_j W_{c(j)}`` where a body is in c, by ``S_j W_c`` where a body is in another class
-    (its twist pruned away, :func:`prune_twist_weights`). The columns are the n_body transforms M_j, then
-    every such pair (body j, class c) some vertex needs.
+    The skin is LBS over transforms ``S_j W_c`` (a body's swing times a class's twist) applied to each
+    vertex's rest position. A vertex whose twist weights lie on one class c is plain LBS by ``S_j W_c``:
+    its bodies' transforms ``M_j = S_j W_{c(j)}`` where a body is in c, ``S_j W_c`` where it is in another
+    (its twist pruned away, :func:`prune_twist_weights`). A vertex that blends classes is first moved by
+    its blend (:func:`blended_rest`), then by its bodies' swings ``S_j = S_j W_0`` (class 0 is untwisted,
+    so a body of class 0 gives its own ``M_j``). The columns are the n_body transforms M_j, then every
+    such (body j, class c) some vertex needs.
 
     Args:
         weights: (V, n_body) skinning weights; twist: (V, n_class); body_class: (n_body,).
     Returns:
-        extra (E, 2) the (body, class) of the columns after the bodies'; plain (V, n_body + E) each
-        vertex's weights on the columns (a vertex that blends classes keeps its weights on its bodies).
+        extra (E, 2) the (body, class) of the columns after the bodies'; columns (V, n_body + E) each
+        vertex's weights on the columns.
     """
     V, n_body = weights.shape
-    main = np.argmax(twist, axis=1)
     single = (twist != 0).sum(axis=1) == 1
+    target = np.where(single, np.argmax(twist, axis=1), 0)
     v, j = np.nonzero(weights)
-    other = single[v] & (body_class[j] != main[v])
-    extra = np.unique(np.c_[j[other], main[v[other]]], axis=0).reshape(-1, 2)
+    other = body_class[j] != target[v]
+    extra = np.unique(np.c_[j[other], target[v[other]]], axis=0).reshape(-1, 2)
     column = np.full((n_body, twist.shape[1]), -1, np.int64)
     column[extra[:, 0], extra[:, 1]] = n_body + np.arange(len(extra))
-    plain = np.zeros((V, n_body + len(extra)))
-    plain[v[~other], j[~other]] = weights[v[~other], j[~other]]
-    plain[v[other], column[j[other], main[v[other]]]] = weights[v[other], j[other]]
-    return extra, plain
+    columns = np.zeros((V, n_body + len(extra)))
+    columns[v[~other], j[~other]] = weights[v[~other], j[~other]]
+    columns[v[other], column[j[other], target[v[other]]]] = weights[v[other], j[other]]
+    return extra, columns
 
 
-# Per-vertex cost of a block beyond its GEMMs' columns, in columns, for :func:`twist_blocks`: applying the
-# blended LBS matrices, and the twist's blend, normalisation and rigid map on top.
-_APPLY_COST = 8.0
-_TWIST_COST = 10.0
-
-
-def twist_blocks(
-    weights: np.ndarray, plain: np.ndarray, twist: np.ndarray, n_blocks: int, step: int = 64
-) -> list[tuple[int, int, np.ndarray, np.ndarray | None]]:
-    """Split the vertices into ``n_blocks`` contiguous ranges for :class:`TwistSkin`.
-
-    A range whose vertices each have their twist weights on one class is skinned by plain LBS over the
-    columns of :func:`plain_columns` (exactly); a range with a vertex that blends classes needs the twist
-    first, then LBS by the bodies' swings. Its cost is (vertices) x (columns + apply), with the bodies and
-    class pairs as the columns of a twisted range plus the twist's own; the ranges (cut at multiples of
-    ``step``) minimise the sum by dynamic programming (:func:`~bodyfit.models.body.lbs.best_partition`).
+def blended_rest(rest: torch.Tensor, rows: torch.Tensor, weights_t: torch.Tensor) -> torch.Tensor:
+    """Rest vertices moved by the normalised dual-quaternion blend of their twist classes (KCvO08,
+    algorithm 1): ``(R v + T) / n`` with R, T and the norm n sums over class pairs of the pairs' rows
+    weighted by :func:`pair_weights`, applied as LBS applies its matrices.
 
     Args:
-        weights: (V, n_body) skinning weights; plain: (V, n_column) from :func:`plain_columns`; twist:
-            (V, n_class) twist weights.
+        rest: (B, 1, 4, N) homogeneous rest vertices [x, y, z, 1]; rows: (B, 13, P) the class pairs' rows
+            (:func:`pair_rows`); weights_t: (P, N) the vertices' pair weights, transposed.
     Returns:
-        [(start, stop, columns, pairs)] covering 0..V in order; columns: indices of the plain columns with
-        weight in ``start:stop``, or of the bodies for a twisted range (at least one); pairs: indices into
-        :func:`pair_weights`'s pairs used in a twisted range, or None for a plain range.
+        (B, 3, N).
     """
-    cuts = range_cuts(weights.shape[0], step)
-    pair_used = pair_weights(twist)[1] != 0
-    columns, bodies = range_counts(plain != 0, cuts), range_counts(weights != 0, cuts)
-    pairs = range_counts(pair_used, cuts)
-    mixed = range_counts(((twist != 0).sum(axis=1) > 1)[:, None], cuts)[:, 0]
-    m = len(cuts)
-    cost = np.full((m, m), np.inf)
-    for i in range(m - 1):
-
-        def count(prefix: np.ndarray, i: int = i) -> np.ndarray:
-            return np.maximum(((prefix[i + 1 :] - prefix[i]) > 0).sum(axis=1), 1)
-
-        twisted = count(bodies) + count(pairs) + _TWIST_COST
-        cost[i, i + 1 :] = (cuts[i + 1 :] - cuts[i]) * (
-            _APPLY_COST + np.where(mixed[i + 1 :] > mixed[i], twisted, count(columns))
-        )
-    blocks = []
-    for i, j in best_partition(cost, n_blocks):
-        a, b = int(cuts[i]), int(cuts[j])
-        twisted_range = mixed[j] > mixed[i]
-        used = np.flatnonzero(((weights if twisted_range else plain)[a:b] != 0).any(axis=0))
-        twisted_pairs = np.flatnonzero(pair_used[a:b].any(axis=0)) if twisted_range else None
-        blocks.append((a, b, used if len(used) else np.zeros(1, np.int64), twisted_pairs))
-    return blocks
+    B, N = rest.shape[0], rest.shape[-1]
+    numerator = (rows[:, :12] @ weights_t).reshape(B, 3, 4, N)
+    return (numerator * rest).sum(2) / (rows[:, 12] @ weights_t).unsqueeze(1)
 
 
-class TwistBlock(nn.Module):
-    """One block of vertices of a :class:`TwistSkin`: their template basis, the columns that carry them
-    (plain columns, or the bodies of a twisted block), their weights on those columns and, for a twisted
-    block, the class pairs of their blends and their weights on those pairs."""
+class RestBlock(nn.Module):
+    """One contiguous range of the skin's vertices: the columns that carry them and their weights on
+    those columns (:func:`skin_columns`)."""
 
-    basis: torch.Tensor
     columns: torch.Tensor
     weights_t: torch.Tensor
-    pairs: torch.Tensor
-    pair_weights_t: torch.Tensor
 
-    def __init__(
-        self,
-        basis: np.ndarray,
-        columns: np.ndarray,
-        weights_t: np.ndarray,
-        twist: tuple[np.ndarray, np.ndarray] | None,
-        dtype: torch.dtype,
-    ) -> None:
-        """basis (1 + K, 3, V_k); columns (m,); weights_t (m, V_k); twist: None for a plain block, else the
-        pairs (P_k,) (indices into the skin's pairs) and their weights (P_k, V_k)."""
+    def __init__(self, columns: np.ndarray, weights_t: np.ndarray, dtype: torch.dtype) -> None:
+        """columns (m,); weights_t (m, V_k)."""
         super().__init__()
-        self.twisted = twist is not None
-        if twist is not None:
-            self.register_buffer("pairs", torch.as_tensor(twist[0], dtype=torch.long))
-            self.register_buffer("pair_weights_t", torch.as_tensor(np.ascontiguousarray(twist[1])).to(dtype))
-        self.register_buffer("basis", torch.as_tensor(basis.reshape(len(basis), -1)).to(dtype))
         self.register_buffer("columns", torch.as_tensor(columns, dtype=torch.long))
         self.register_buffer("weights_t", torch.as_tensor(np.ascontiguousarray(weights_t)).to(dtype))
 
-    def forward(
-        self,
-        coeffs: torch.Tensor,
-        plain: tuple[torch.Tensor, torch.Tensor],
-        swings: tuple[torch.Tensor, torch.Tensor],
-        blends: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
-    ) -> torch.Tensor:
-        """coeffs (B, 1 + K); plain: the plain columns' rows from :func:`~bodyfit.models.body.lbs.blend_rows`;
-        swings: every body's swing rows, rotations (3 3 B, n_body) ordered (row, column, batch) and
-        translations (3 B, n_body); blends: every class pair's numerator rows as
-        :func:`~bodyfit.models.body.lbs.blend_rows` lays them out and norms (B, P) (:func:`pair_rows`)
-        -> (B, V_k, 3)."""
-        B, V = coeffs.shape[0], self.weights_t.shape[1]
-        rest = (coeffs @ self.basis).reshape(B, 3, V)
-        if not self.twisted:
-            return blend_block(
-                rest,
-                self.weights_t,
-                plain[0].index_select(1, self.columns),
-                plain[1].index_select(1, self.columns),
-            )
-        pick = [rows.index_select(1, self.pairs) for rows in blends]
-        numerator = blend_linear(rest, self.pair_weights_t, pick[0], pick[1])  # (3, B, V)
-        twisted = numerator / (pick[2] @ self.pair_weights_t)  # (KCvO08, algorithm 1)
-        # The swings applied to the twisted rest vertices in the layout they come in, coordinates first.
-        linear = (swings[0].index_select(1, self.columns) @ self.weights_t).reshape(3, 3, B, V)
-        shift = (swings[1].index_select(1, self.columns) @ self.weights_t).reshape(3, B, V)
-        return ((linear * twisted).sum(1) + shift).permute(1, 2, 0)
+    def forward(self, rest: torch.Tensor, rows: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+        """rest (B, 3, V_k); rows: every column's rows from :func:`~bodyfit.models.body.lbs.blend_rows`
+        -> (3, B, V_k), coordinates first."""
+        return blend_linear(
+            rest, self.weights_t, rows[0].index_select(1, self.columns), rows[1].index_select(1, self.columns)
+        )
 
 
 def _compose(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -581,18 +503,24 @@ def _compose(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 class TwistSkin(nn.Module):
-    """The skin under swing-twist skinning, in the blocks of :func:`twist_blocks`.
+    """The skin under swing-twist skinning: one linear blend over every vertex, in the template's order,
+    of rest positions in which the vertices that blend twist classes are first moved by their blend.
 
-    A twisted block moves its template, rest (B, 3, V_k) = [1, c] @ basis, by the normalised dual-quaternion
-    blend of each vertex's twist classes, ``(R v + T) / n`` with the numerator and norm products of its
-    class pairs' rows (:func:`pair_rows`, :func:`pair_weights`) applied as
-    :func:`~bodyfit.models.body.lbs.blend_linear` applies LBS matrices, then blends the bodies' swings
-    linearly; a plain block is linear blend skinning over the columns of :func:`plain_columns`.
+    The rest vertices (B, 3, V) = [1, c] @ basis; the vertices that blend classes (a sixth of the template,
+    scattered over most of its order) get theirs from :func:`blended_rest` over the class pairs they use,
+    written over the template's by one ScatterElements; every vertex is then skinned by LBS over the
+    columns of :func:`skin_columns`, in contiguous blocks that each need few columns
+    (:func:`~bodyfit.models.body.lbs.blend_blocks`). The twist costs one blend of those vertices, not a
+    second LBS of the blocks that hold them.
     """
 
     pairs: torch.Tensor
+    pair_weights_t: torch.Tensor
     body_class: torch.Tensor
     extra: torch.Tensor
+    mixed: torch.Tensor
+    basis: torch.Tensor
+    mixed_basis: torch.Tensor
 
     def __init__(
         self,
@@ -606,34 +534,39 @@ class TwistSkin(nn.Module):
         """basis (1 + K, 3, V); weights (V, n_body); twist (V, n_class) twist weights; body_class (n_body,)
         each body's class."""
         super().__init__()
-        pairs, pair_w = pair_weights(twist)
-        extra, plain = plain_columns(weights, twist, body_class)
-        self.register_buffer("pairs", torch.as_tensor(pairs))
+        mixed = np.flatnonzero((twist != 0).sum(axis=1) > 1)
+        pairs, pair_w = pair_weights(twist[mixed])
+        used = np.flatnonzero((pair_w != 0).any(axis=0))
+        extra, columns = skin_columns(weights, twist, body_class)
+        homogeneous = np.zeros((len(basis), 4, len(mixed)))
+        homogeneous[:, :3] = basis[:, :, mixed]
+        homogeneous[0, 3] = 1.0  # [1, c] @ basis: the constant coefficient gives the homogeneous 1
+        self.register_buffer("pairs", torch.as_tensor(pairs[used]))
+        self.register_buffer(
+            "pair_weights_t", torch.as_tensor(np.ascontiguousarray(pair_w[:, used].T)).to(dtype)
+        )
         self.register_buffer("body_class", torch.as_tensor(body_class, dtype=torch.long))
         self.register_buffer("extra", torch.as_tensor(extra, dtype=torch.long))
-        self.blocks = nn.ModuleList(
-            TwistBlock(
-                basis[:, :, a:b],
-                columns,
-                (weights if used is not None else plain)[a:b, columns].T,
-                None if used is None else (used, pair_w[a:b, used].T),
-                dtype,
-            )
-            for a, b, columns, used in twist_blocks(weights, plain, twist, n_blocks)
-        )
+        self.register_buffer("mixed", torch.as_tensor(mixed, dtype=torch.long))
+        self.register_buffer("basis", torch.as_tensor(basis.reshape(len(basis), -1)).to(dtype))
+        self.register_buffer("mixed_basis", torch.as_tensor(homogeneous.reshape(len(basis), -1)).to(dtype))
+        ranges = blend_blocks(columns, n_blocks)
+        self.sizes = [b - a for a, b, _ in ranges]
+        self.blocks = nn.ModuleList(RestBlock(cols, columns[a:b, cols].T, dtype) for a, b, cols in ranges)
 
     def forward(self, coeffs: torch.Tensor, transforms: torch.Tensor, twists: torch.Tensor) -> torch.Tensor:
         """coeffs (B, 1 + K); transforms (3, 4, n_body, B): every body's skinning transform M_j,
         component-major; twists (B, 8, n_class): every class's twist dual quaternion -> (B, V, 3)."""
-        B, n = twists.shape[0], transforms.shape[2]
+        B, n = coeffs.shape[0], len(self.mixed)
         rigid = class_rigid(twists).reshape(B, 3, 4, -1).permute(1, 2, 3, 0)  # (3, 4, n_class, B)
         swings = swing_transforms(transforms, rigid.index_select(2, self.body_class))
         extra = _compose(swings.index_select(2, self.extra[:, 0]), rigid.index_select(2, self.extra[:, 1]))
-        rows = pair_rows(twists, self.pairs)  # (B, 13, P)
-        blends = (*blend_rows(rows[:, :12].reshape(B, 3, 4, -1).permute(1, 2, 3, 0)), rows[:, 12])
-        swing_rows = (
-            swings[:, :3].permute(0, 1, 3, 2).reshape(-1, n),
-            swings[:, 3].permute(0, 2, 1).reshape(-1, n),
-        )
-        plain = blend_rows(torch.cat([transforms, extra], dim=2))
-        return torch.cat([block(coeffs, plain, swing_rows, blends) for block in self.blocks], dim=1)
+        rows = blend_rows(torch.cat([transforms, extra], dim=2))
+        rest = (coeffs @ self.basis).reshape(B, 3, -1)
+        if n:
+            home = (coeffs @ self.mixed_basis).reshape(B, 1, 4, n)
+            moved = blended_rest(home, pair_rows(twists, self.pairs), self.pair_weights_t)
+            rest = rest.scatter(2, self.mixed.expand(B, 3, n), moved)
+        parts = rest.split(self.sizes, dim=2)
+        out = torch.cat([block(part, rows) for block, part in zip(self.blocks, parts, strict=True)], dim=2)
+        return out.permute(1, 2, 0)
