@@ -25,10 +25,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from bodyfit.models.body.model import BodyModel
+from bodyfit.models.body.model import BodyDecoder, BodyModel
 from bodyfit.models.errors import BodyfitError, ShapeError
 from bodyfit.models.fitting.registered.fitter import BodyFit, RegisteredFitter
-from bodyfit.models.fitting.registered.stages import DEFAULT_STAGES, RegisteredFitConfig
+from bodyfit.models.fitting.registered.stages import DEFAULT_STAGES, RegisteredFitConfig, ShapeSet
 from bodyfit.models.fitting.sequence.offsets import OffsetConfig, offsets_of_fit
 from bodyfit.models.rig.fit import with_decoder
 from bodyfit.models.rig.icp import ClosestConfig, closest_targets, fit_to_points
@@ -193,7 +193,9 @@ def _alternate(
     with them. With raw ``points`` (one (N_k, 3) array or None per scan), the shape prior is
     ``cfg.closest.shape_prior``, the shape and poses are fitted to the raw scans' points together first
     (:func:`.icp.fit_to_points`, the registered scans sitting at their own fit), and ``cfg.closest.rounds``
-    rounds follow, each scan's targets re-paired with its points first (:func:`.icp.closest_targets`)."""
+    rounds follow, each scan's targets re-paired with its points first (:func:`.icp.closest_targets`), and
+    after the rounds ``cfg.closest.repose_after`` the raw scans' poses alone fitted to their points again
+    through the person's rig."""
     raw = points is not None and any(p is not None for p in points)
     if raw:
         fitter = RegisteredFitter(model, replace(fitter.config, shape_prior=cfg.closest.shape_prior))
@@ -202,32 +204,44 @@ def _alternate(
     if raw and points is not None and cfg.closest.chamfer_iterations > 0:
         fit = _fit_raw(fitter, fit, points, cfg.closest)
     parts = PersonalParts.generic(model)
-    for _ in range(cfg.closest.rounds if raw else cfg.rounds):
+    for round_ in range(cfg.closest.rounds if raw else cfg.rounds):
         targets, confidence = x, w
         if raw and points is not None:
             targets, confidence = _closest(model, fit, x, w, points, cfg.closest)
         parts, fit = solver.solve(parts, fit, targets, confidence)
         personal = with_decoder(solver.refitter, parts.decoder(model, solver.refitter.config.dtype))
         fit = personal.fit(targets, confidence, init=fit, shared_shape=True)
+        if raw and points is not None and round_ in cfg.closest.repose_after:
+            close, decoder = cfg.closest, parts.decoder(model, torch.float64)
+            fit = _fit_raw(personal, fit, points, close, "none", close.repose_iterations, decoder)
     return fit, parts
 
 
 def _fit_raw(
-    fitter: RegisteredFitter, fit: BodyFit, points: Sequence[np.ndarray | None], config: ClosestConfig
+    fitter: RegisteredFitter,
+    fit: BodyFit,
+    points: Sequence[np.ndarray | None],
+    config: ClosestConfig,
+    shape: ShapeSet = "all",
+    iterations: int | None = None,
+    decoder: BodyDecoder | None = None,
 ) -> BodyFit:
-    """``fit`` (shared shape) with its shape and the raw scans' poses fitted to their points together
-    (:func:`.icp.fit_to_points`); the scans given in our topology keep their poses (they carry their own
-    correspondence, which the refits that follow use)."""
+    """``fit`` (shared shape) with the raw scans' poses, and its shape unless ``shape`` is ``"none"``,
+    fitted to their points together (:func:`.icp.fit_to_points`, ``iterations`` L-BFGS iterations, None:
+    ``config.chamfer_iterations``) through ``fitter``'s decoder; the scans given in our topology keep their
+    poses (they carry their own correspondence, which the refits that follow use). ``decoder``: the same
+    body in float64 for the answer's vertices and joints (None: the body model's)."""
     scans = [(k, p) for k, p in enumerate(points) if p is not None]
     raw = [k for k, _ in scans]
     start = BodyFit(fit.shape[raw], fit.coordinates[raw], fit.root[raw], fit.vertices[raw], fit.joints[raw])
-    moved = fit_to_points(fitter, [p for _, p in scans], start, config)
+    moved = fit_to_points(fitter, [p for _, p in scans], start, config, shape, iterations)
     q, r = fit.coordinates.copy(), fit.root.copy()
     q[raw], r[raw] = moved.coordinates, moved.root
-    shape = np.tile(moved.shape[0], (len(q), 1))
+    c = np.tile(moved.shape[0], (len(q), 1))
+    decode = decoder or fitter.model.decoder(torch.float64)
     with torch.no_grad():
-        v, joints, _, _ = fitter.model.decoder(torch.float64)(*(torch.as_tensor(a) for a in (shape, q, r)))
-    return replace(fit, shape=shape, coordinates=q, root=r, vertices=v.numpy(), joints=joints.numpy())
+        v, joints, _, _ = decode(*(torch.as_tensor(a) for a in (c, q, r)))
+    return replace(fit, shape=c, coordinates=q, root=r, vertices=v.numpy(), joints=joints.numpy())
 
 
 def _closest(
