@@ -26,7 +26,11 @@ them, calibration places them from the data. The gait2392 protocol's head and ar
 too: the head marker sits on a cap or headband rather than the vertex, and labs put the elbow and wrist
 markers where their own model places them (the Hamner pipeline's marker placement moves them up to 11 cm
 from its generic model, and puts ``Wrist.Med`` on the radial side of its forearm), so their default
-places carry no anatomical meaning. ``weight`` is the inverse-kinematics weight (the values of
+places carry no anatomical meaning. The gait2392 ``Acromium`` sits on our template's acromion landmark,
+lateral of the shoulder joint centre over the humeral head where the marker is stuck, not at Rajagopal's
+``RACR`` (4 cm medial of that centre): calibrating from ``RACR`` widens the thorax by 50-60% to reach a
+subject's acromion markers, which carries the shoulder joints outwards and the arm coordinates with them.
+``weight`` is the inverse-kinematics weight (the values of
 the OpenSim example setups). ``locked`` DOFs are held at a value because the protocol cannot see them
 (subtalar and mtp as in OpenSim's setups, wrists without hand markers); ``soft`` DOFs (our added spine
 and scapula joints) are pulled gently towards neutral so the Rajagopal DOFs explain what they can.
@@ -219,7 +223,7 @@ GAIT2392 = MarkerSetDef(
                 ("{S}.Toe.Lat", "calcn_{s}", ("lm:fifth_metatarsal_head_{s}",), False, 1.0),
                 ("{S}.Toe.Med", "calcn_{s}", ("lm:first_metatarsal_head_{s}",), False, 1.0),
                 ("{S}.Toe.Tip", "toes_{s}", ("lm:toe_tip_{s}",), True, 10.0),
-                ("{S}.Acromium", "scapula_{s}", ("raj:{S}ACR",), True, 0.5),
+                ("{S}.Acromium", "scapula_{s}", ("lm:acromion_{s}",), True, 0.5),
                 ("{S}.Bicep", "humerus_{s}", ("raj:{S}UA3",), False, 1.0),
                 ("{S}.Elbow", "humerus_{s}", ("raj:{S}LEL",), False, 1.0),
                 ("{S}.Wrist.Med", "radius_{s}", ("raj:{S}FAulna",), False, 1.0),
