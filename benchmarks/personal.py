@@ -26,7 +26,9 @@ What is measured
   over every case; the per-case table in ``skinning_table``.
 * Speed: each skinning's decoder exported to ONNX (float32), run in ONNX Runtime on the CPU with one thread
   and every graph optimisation, the two sessions alternating on the same random inputs, median over
-  ``ONNX_REPEATS`` calls: ``lbs_onnx_ms_b1``, ``dq_onnx_ms_b1``, ``lbs_onnx_ms_b64``, ``dq_onnx_ms_b64`` and
+  ``ONNX_REPEATS`` calls of the calling thread's CPU time (ONNX Runtime runs in it with one thread; other
+  processes on a shared machine stretch wall time by however long they hold the core, not CPU time):
+  ``lbs_onnx_ms_b1``, ``dq_onnx_ms_b1``, ``lbs_onnx_ms_b64``, ``dq_onnx_ms_b64`` and
   ``dq_onnx_slowdown_b1``, ``dq_onnx_slowdown_b64`` (dq over lbs; the target is <= 1.10).
   ``dq_onnx_parity_max_m``: the largest vertex distance between the lbs_dq ONNX model and the float64 torch
   decoder on the timed inputs (target <= 1e-5 m).
@@ -220,9 +222,9 @@ def onnx_keys(model: BodyModel, quick: bool) -> dict[str, Any]:
             s.run(None, feed)
         for _ in range(repeats):
             for key, s in sessions.items():
-                start = time.perf_counter()
+                start = time.thread_time()
                 s.run(None, feed)
-                times[key].append(time.perf_counter() - start)
+                times[key].append(time.thread_time() - start)
         for key in sessions:
             out[f"{key}_onnx_ms_b{batch}"] = 1e3 * float(np.median(times[key]))
         out[f"dq_onnx_slowdown_b{batch}"] = out[f"dq_onnx_ms_b{batch}"] / out[f"lbs_onnx_ms_b{batch}"]

@@ -11,6 +11,7 @@ import torch
 from benchmarks.personal import SEGMENTS, capped_volume, region
 from bodyfit.models.body.model import BodyDecoder, BodyModel
 from bodyfit.models.body.swing_twist import (
+    TwistSkin,
     class_dual_quaternions,
     class_rigid,
     class_twists,
@@ -165,7 +166,8 @@ def test_the_skin_is_the_swings_applied_to_the_blended_twist(model: BodyModel, d
     expected = ((Sv[:, :3] * x.unsqueeze(0)).sum(1) + Sv[:, 3]).permute(2, 1, 0)
     got = dq(shape, q, torch.zeros(B, 3, dtype=F64))[0]
     assert float((got - expected).abs().max()) < 1e-10
-    assert sum(dq.skin.sizes) == V and len(dq.skin.mixed) > 0.1 * V
+    skin = dq.skin
+    assert isinstance(skin, TwistSkin) and sum(skin.sizes) == V and len(skin.mixed) > 0.1 * V
 
 
 def test_small_twist_weights_are_folded_into_the_main_class() -> None:
