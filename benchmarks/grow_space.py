@@ -140,39 +140,60 @@ def _surface_points(v: np.ndarray, faces: np.ndarray, rng: np.random.Generator, 
     return np.asarray(t[:, 0] + a * (t[:, 1] - t[:, 0]) + b * (t[:, 2] - t[:, 0]))
 
 
-def run(quick: bool, work: Path | None = None) -> dict[str, Any]:
-    """Build the population, fit it through the batch engine, grow the space and measure it."""
+def outside_population(model: Any, n_train: int, n_held: int) -> tuple[tuple[np.ndarray, ...], ...]:
+    """anny children (ages 5-18) and adults at the corners of anny's phenotype sliders, half each, as bodies
+    of our model: shapes (n, n_shape) whose bone part is the fitted skeleton's and identity part zero, and
+    rest-pose offsets (n, V, 3) that carry the rest of each body (its identity offsets from the bone-corrected
+    mean, :mod:`bodyfit.models.decoders.population`). Returns (shape, offsets) of ``n_train`` training
+    bodies and (shape, offsets, bind meshes) of ``n_held`` held-out ones, each half children."""
+    from bodyfit.models.decoders.pipeline import default_work_dir, identity_sets
+    from bodyfit.models.spaces.population import rest_meshes
+
+    sets = identity_sets(model, default_work_dir())
+    half_train, half_held = n_train // 2, n_held // 2
+    parts: list[list[np.ndarray]] = [[], [], [], []]
+    for name in ("children", "extreme"):
+        s = sets[name]
+        for k, rows in enumerate((slice(0, half_train), slice(half_train, half_train + half_held))):
+            c = np.zeros((len(s.c_bone[rows]), model.n_shape))
+            c[:, : model.n_bone] = s.c_bone[rows]
+            parts[2 * k].append(c)
+            parts[2 * k + 1].append(np.asarray(s.offsets[rows], np.float64))
+    shape, offsets, held_shape, held_offsets = (np.concatenate(p) for p in parts)
+    return (shape, offsets), (held_shape, held_offsets, rest_meshes(model.data, held_shape) + held_offsets)
+
+
+def grow_and_measure(
+    model: Any,
+    train: tuple[np.ndarray, ...],
+    held: tuple[np.ndarray, ...],
+    work: Path,
+    raw: bool,
+    rounds: int,
+) -> dict[str, Any]:
+    """Scans of the ``train`` bodies (shapes, rest-pose offsets) written under ``work``, fitted through the
+    batch engine, the space grown from them and the ``held`` bodies (shapes, offsets, bind meshes) measured
+    in it after every round: the keys of :func:`run` without the population's."""
     from bodyfit.cli.backends import fitter
     from bodyfit.clients.batch_fit import batch_fit
     from bodyfit.models.assets import assets_dir
-    from bodyfit.models.body.model import BodyModel
-    from bodyfit.models.fitting.common.surface import vertex_normals
     from bodyfit.models.spaces.grow import GrowConfig, grow_space
-    from bodyfit.models.spaces.population import parametric_errors, rest_meshes, sample_population
+    from bodyfit.models.spaces.population import parametric_errors
     from bodyfit.models.spaces.register import read_fit
     from bodyfit.models.spaces.writer import write_space
 
-    torch.set_num_threads(1)
     t0 = time.perf_counter()
-    model = BodyModel.load()
-    mean = rest_meshes(model.data, np.zeros((1, model.n_shape)))[0]
-    fields = offset_fields(mean, vertex_normals(mean, model.faces), N_FIELDS, np.random.default_rng(1))
-    n_scans, n_held = (16, 12) if quick else (32, 16)
-    shape, offsets, _ = population(model, fields, n_scans, seed=2)
-    held_shape, held_offsets, held = population(model, fields, n_held, seed=3)
-    held_posed = posed_meshes(model, held_shape, held_offsets)
-    covered = sample_population(model, 24, seed=5).meshes
-    work = work or ROOT / "build" / "grow" / ("quick" if quick else "full")
-    write_scans(model, shape, offsets, work / "scans", raw=not quick)
+    held_posed = posed_meshes(model, held[0], held[1])
+    write_scans(model, train[0], train[1], work / "scans", raw=raw)
     batch = batch_fit(work / "scans", work / "fits", backend=fitter("local"), progress=False)
     names = sorted(Path(p).stem for p in batch.done + batch.skipped)
     scans = [read_fit(work / "scans" / f"{p}.ply", work / "fits" / f"{p}.npz") for p in names]
     fit_s = time.perf_counter() - t0
 
     def evaluate(data: dict[str, np.ndarray]) -> dict[str, float]:
-        return {**parametric_errors(data, held, model.faces), **fitted_errors(model, data, held_posed)}
+        return {**parametric_errors(data, held[2], model.faces), **fitted_errors(model, data, held_posed)}
 
-    result = grow_space(model, scans, GrowConfig(rounds=4 if quick else 6), evaluate=evaluate, log=_err)
+    result = grow_space(model, scans, GrowConfig(rounds=rounds), evaluate=evaluate, log=_err)
     grown = work / "grown"
     shutil.rmtree(grown, ignore_errors=True)
     write_space(assets_dir(), grown, model, result.data, result.report())
@@ -187,7 +208,6 @@ def run(quick: bool, work: Path | None = None) -> dict[str, Any]:
         "v2v_mm",
         "v2p_mm",
     )
-    curve = [{k: r[k] for k in keys if k in r} for r in result.rounds]
     return {
         "grow_ratio": round(last["fit_v2v_mm"] / first["fit_v2v_mm"], 3),
         "grow_v2v_mm_original": first["fit_v2v_mm"],
@@ -200,12 +220,40 @@ def run(quick: bool, work: Path | None = None) -> dict[str, Any]:
         "grow_scans": len(scans),
         "grow_span_v2v_mm_original": first["v2v_mm"],
         "grow_span_v2v_mm_grown": last["v2v_mm"],
-        "grow_v2v_mm_population": parametric_errors(result.data, covered, model.faces)["v2v_mm"],
-        "grow_coefficients": model.n_shape,
         "grow_fit_s": round(fit_s, 1),
-        "grow_s": round(time.perf_counter() - t0, 1),
-        "grow_curve": curve,
+        "grow_curve": [{k: r[k] for k in keys if k in r} for r in result.rounds],
+        "_data": result.data,
     }
+
+
+def run(quick: bool, work: Path | None = None) -> dict[str, Any]:
+    """Build the offset population, fit it through the batch engine, grow the space and measure it; on the
+    quick run also grow a space from anny children and extreme adults (keys ``grow_anny_*``)."""
+    from bodyfit.models.body.model import BodyModel
+    from bodyfit.models.fitting.common.surface import vertex_normals
+    from bodyfit.models.spaces.population import parametric_errors, rest_meshes, sample_population
+
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
+    model = BodyModel.load()
+    mean = rest_meshes(model.data, np.zeros((1, model.n_shape)))[0]
+    fields = offset_fields(mean, vertex_normals(mean, model.faces), N_FIELDS, np.random.default_rng(1))
+    n_scans, n_held = (16, 12) if quick else (32, 16)
+    shape, offsets, _ = population(model, fields, n_scans, seed=2)
+    held = population(model, fields, n_held, seed=3)
+    work = work or ROOT / "build" / "grow" / ("quick" if quick else "full")
+    out = grow_and_measure(model, (shape, offsets), held, work, not quick, 4 if quick else 6)
+    covered = sample_population(model, 24, seed=5).meshes
+    data = out.pop("_data")
+    out["grow_v2v_mm_population"] = parametric_errors(data, covered, model.faces)["v2v_mm"]
+    out["grow_coefficients"] = model.n_shape
+    if quick:
+        train, held_anny = outside_population(model, 16, 12)
+        anny = grow_and_measure(model, train, held_anny, work.parent / f"{work.name}_anny", False, 4)
+        anny.pop("_data")
+        out.update({k.replace("grow_", "grow_anny_", 1): v for k, v in anny.items()})
+    out["grow_s"] = round(time.perf_counter() - t0, 1)
+    return out
 
 
 def render_components(folder: Path, out: Path, k: int = 4) -> None:

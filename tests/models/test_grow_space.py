@@ -12,7 +12,10 @@ import torch
 import typer
 from typer.testing import CliRunner
 
+from benchmarks.grow_space import outside_population
 from bodyfit.models.body.model import BODY_ASSET, BodyModel
+from bodyfit.models.decoders import pipeline
+from bodyfit.models.decoders.population import IdentitySet
 from bodyfit.models.errors import AssetError
 from bodyfit.models.fitting.common.nonrigid import NonRigidConfig, NonRigidStage
 from bodyfit.models.fitting.common.surface import vertex_normals
@@ -286,3 +289,32 @@ def test_first_round_projects_every_scan_from_its_first_fit(
     for (_, start), s in zip(starts, scans, strict=True):
         assert np.array_equal(start, s.shape)
     assert all(r.chamfer_mm < 2.0 for r in result.accepted.values()) and result.accepted
+
+
+def test_outside_population_builds_children_and_extreme_adults_as_our_bodies(
+    model: BodyModel, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The benchmark's second population: half children, half extreme adults in both the training and the
+    held-out part, disjoint; each body's bone part is its skeleton's, its identity part zero and the rest
+    of it its rest-pose offsets, so its bind mesh is the bone-corrected template plus the offsets."""
+    rng = np.random.default_rng(0)
+    V = model.n_vertices
+    sets = {
+        name: IdentitySet(
+            rng.normal(scale=0.01, size=(10, V, 3)),
+            np.arange(10 * model.n_bone, dtype=np.float64).reshape(10, -1) * 0.01 + 0.5 * k,
+            np.ones(10, bool),
+        )
+        for k, name in enumerate(("children", "extreme"))
+    }
+    monkeypatch.setattr(pipeline, "identity_sets", lambda *_: sets)
+    (shape, offsets), (held_shape, held_offsets, held_bind) = outside_population(model, 6, 4)
+    assert shape.shape == (6, model.n_shape) and held_shape.shape == (4, model.n_shape)
+    assert np.array_equal(shape[:3, : model.n_bone], sets["children"].c_bone[:3])
+    assert np.array_equal(shape[3:, : model.n_bone], sets["extreme"].c_bone[:3])
+    assert np.array_equal(held_shape[:2, : model.n_bone], sets["children"].c_bone[3:5])
+    assert np.array_equal(held_offsets[2:], sets["extreme"].offsets[3:5])
+    assert np.array_equal(offsets[:3], sets["children"].offsets[:3])
+    assert not np.any(shape[:, model.n_bone :]) and not np.any(held_shape[:, model.n_bone :])
+    expected = rest_meshes(model.data, held_shape) + held_offsets
+    assert np.allclose(held_bind, expected)
