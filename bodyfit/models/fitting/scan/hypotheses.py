@@ -40,11 +40,13 @@ EXPLAINED_M = 0.02  # a scan point this close to the rest of the body is not a d
 UNSUPPORTED = 0.8  # a distal chain whose best candidate's cost is this share of the truncation's has no data
 STRAIGHTENED = 1  # of the hypotheses (best first), those that get a straight-spine twin
 # The arms' start poses a whole body's every orientation candidate is fitted from (coordinates in degrees over
-# the start pose, both sides): as given, and raised overhead (the shoulder girdle raised with them). The
-# orientation phase fits the trunk and legs only: from arms hanging down, a scan with the arms raised bends
-# the spine 20-25 degrees sideways to bring a shoulder under them, and the limbs searched from that trunk no
-# longer reach the arms. The orientation phase keeps the better start of each orientation
-# (:attr:`.config.ScanPhase.one_per_frame`).
+# the start pose, both sides): as given, raised overhead and held forward at shoulder height (the shoulder
+# girdle raised with them). The orientation phase fits the trunk and legs only: from arms hanging down, a
+# scan with the arms raised bends the spine 20-25 degrees sideways to bring a shoulder under them, and one
+# with the arms held forward twists it 25-35 degrees to bring an arm raised sideways under one of them; the
+# limbs searched from such a trunk no longer reach the arms (the true arm pose, on that trunk, lies farther
+# from the scan than an arm folded onto the body). The orientation phase keeps the better start of each
+# orientation (:attr:`.config.ScanPhase.one_per_frame`).
 ARM_STARTS: tuple[dict[str, float], ...] = (
     {},
     {
@@ -53,6 +55,13 @@ ARM_STARTS: tuple[dict[str, float], ...] = (
         "elbow_flex": 10.0,
         "scapula_upward_rot": 50.0,
         "scapula_elevation": 20.0,
+    },
+    {
+        "arm_flex": 90.0,
+        "arm_add": 0.0,
+        "elbow_flex": 10.0,
+        "scapula_upward_rot": 30.0,
+        "scapula_elevation": 10.0,
     },
 )
 # The orientation phase keeps 3 hypotheses and the best gets a twin: the pose phase runs 4, in halves of 2.
