@@ -56,6 +56,17 @@ def test_auto_compares_both_calibrations_and_reports_the_choice(body, walk, stat
     assert "asked for" in asked.report.extra["calibration_choice"]["reason"]
 
 
+def test_a_static_pose_at_a_joint_limit_is_reported(body, walk, static) -> None:
+    """The gait2392 subject's anatomical knee markers sit 1-2 cm behind where our knee at full extension
+    puts them: the static pose holds both knees at their limit, and the report says so."""
+    fit = fit_markers(walk, static, model=body, calibration="static", calibration_frames=8)
+    assert fit.static_coordinates is not None
+    for side in ("r", "l"):
+        assert fit.static_coordinates[body.skeleton.dof_index(f"knee_angle_{side}")] == pytest.approx(0.0)
+    (note,) = [n for n in fit.report.extra["notes"] if "static pose:" in n and "joint limit" in n]
+    assert "knee_angle_r" in note and "knee_angle_l" in note and "hip_flexion" not in note
+
+
 def test_a_disagreeing_static_trial_falls_back_with_the_reason() -> None:
     chosen, reason = choose_calibration("auto", {"static": 23.5, "motion": 9.6})
     assert chosen == "motion" and "disagrees" in reason and "23.5" in reason and "9.6" in reason

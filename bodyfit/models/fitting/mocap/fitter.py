@@ -362,6 +362,15 @@ def _subject_from_static(setup: _Setup, vm: VirtualMarkers, in_trial: set[str]) 
     ]
     if missing:
         notes.append(f"not in the static trial, left at their default locations: {', '.join(missing)}")
+    pinned = at_limits(setup.skel, standing[None], setup.standing_plan, hidden)
+    if pinned:
+        # The markers placed in this pose carry what the limit kept from the pose: the motion's readings of
+        # these coordinates start from the limit, not from where the subject stood.
+        notes.append(
+            f"at a joint limit in the static pose: {', '.join(pinned)}; its anatomical markers pull them "
+            "beyond their range (a subject standing beyond it, or markers placed otherwise than the set "
+            "defines them)"
+        )
     refined, described = _refine_on_motion(setup, cal, markers, vm)
     return _Subject(refined, refined.markers, standing, described, notes)
 
