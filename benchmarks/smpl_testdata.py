@@ -6,8 +6,9 @@
   fitted (non-negative) to SMPL-like joint locations taken from our anatomical joints; skinning weights are
   ours, carried over and summed per SMPL joint; pose correctives are zero. It exercises path (a) end to end.
 * :func:`smpl_poses_from_ours`: SMPL axis-angle poses and translations reproducing our posed bodies (each
-  SMPL joint follows the rotation of one of our bodies from the T-pose), so CMU motion retargeted onto our
-  skeleton becomes an AMASS-style sequence (:func:`cmu_smpl_sequence`).
+  SMPL joint follows the rotation of one of our bodies from the T-pose; the elbows also carry the forearm's
+  twist, :func:`forearm_twist`), so CMU motion retargeted onto our skeleton becomes an AMASS-style sequence
+  (:func:`cmu_smpl_sequence`).
 """
 
 from __future__ import annotations
@@ -136,7 +137,8 @@ def smpl_poses_from_ours(
     model: BodyModel, smpl: SmplModel, fitted: dict[str, np.ndarray], q: np.ndarray, root: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """SMPL poses (T, 24, 3) axis-angle and trans (T, 3) such that every SMPL joint turns as the body of
-    ours it follows (:data:`FOLLOWS`) turns from its pose in the template, and the pelvis joint sits on ours.
+    ours it follows (:data:`FOLLOWS`) turns from its pose in the template, the elbows with the forearm's twist
+    added (:func:`forearm_twist`), and the pelvis joint sits on ours.
 
     Args:
         fitted: our model on the template body (:func:`build_smpl_like_model`): shape, coordinates.
@@ -147,11 +149,17 @@ def smpl_poses_from_ours(
     T = len(q)
     with torch.no_grad():
         f64 = torch.float64
-        rest_frames = model.forward(shape[None], fitted["coordinates"][None], dtype=f64).frames
+        rest = model.forward(shape[None], fitted["coordinates"][None], dtype=f64)
         posed = model.forward(np.repeat(shape[None], T, 0), q, root, dtype=f64)
-    body = [model.skeleton.body_names.index(n) for n in FOLLOWS]
-    R_rest = rest_frames.numpy()[0, body, :3, :3]  # (24, 3, 3)
-    R_t = posed.frames.numpy()[:, body, :3, :3]  # (T, 24, 3, 3)
+    names = model.skeleton.body_names
+    F_rest, F_t = rest.frames.numpy()[0, :, :3, :3], posed.frames.numpy()[..., :3, :3]
+    body = [names.index(n) for n in FOLLOWS]
+    R_rest, R_t = F_rest[body], F_t[:, body].copy()  # (24, 3, 3), (T, 24, 3, 3)
+    joints = smpl_joint_locations(model, rest.joints.numpy())[0]
+    for side, full in (("l", "left"), ("r", "right")):
+        j, k = SMPL_JOINTS.index(f"{full}_elbow"), names.index(f"radius_{side}")
+        axis = R_rest[j].T @ (joints[SMPL_JOINTS.index(f"{full}_wrist")] - joints[j])  # the ulna's frame
+        R_t[:, j] = R_t[:, j] @ forearm_twist(R_rest[j], F_rest[k], R_t[:, j], F_t[:, k], axis)
     delta = S.T @ (R_t @ np.swapaxes(R_rest, -1, -2)) @ S  # global rotations in SMPL's frame
     local = delta.copy()
     for j, parent in enumerate(SMPL_PARENTS):
@@ -161,6 +169,30 @@ def smpl_poses_from_ours(
     pelvis = smpl_joint_locations(model, posed.joints.numpy())[:, 0] @ S
     J0 = smpl.J_regressor[0] @ smpl.v_template
     return poses, pelvis - J0
+
+
+def forearm_twist(
+    ulna_rest: np.ndarray, radius_rest: np.ndarray, ulna: np.ndarray, radius: np.ndarray, axis: np.ndarray
+) -> np.ndarray:
+    """(T, 3, 3) the forearm's twist in the ulna's frame: the radius's turn against the ulna since the rest
+    pose (pronation, about the radius's oblique axis) reduced to its twist about the forearm's long ``axis``
+    (3,) (elbow to wrist, in the ulna's frame; the swing-twist split of the turn's quaternion).
+
+    SMPL has one forearm segment: its elbow joint turns the whole forearm's skin, the twist included, while
+    our ulna never twists and our radius pronates about an axis oblique to the forearm. An SMPL elbow that
+    follows the ulna leaves the forearm's skin untwisted and every degree of pronation to the hand; one that
+    follows the radius swings the wrist off the forearm's line. The ulna's turn with the radius's twist about
+    the forearm's own axis keeps the forearm's line and twists its skin.
+
+    Args:
+        ulna_rest, radius_rest: (3, 3) world orientations at rest; ulna, radius: (T, 3, 3) posed.
+    """
+    a = axis / np.linalg.norm(axis)
+    turn = np.swapaxes(ulna, -1, -2) @ radius @ (radius_rest.T @ ulna_rest)  # in the ulna's frame
+    q = Rotation.from_matrix(turn).as_quat()  # (T, 4) x, y, z, w
+    along = (q[:, :3] @ a)[:, None] * a
+    twist = np.concatenate([along, q[:, 3:]], axis=1)
+    return Rotation.from_quat(twist / np.linalg.norm(twist, axis=1, keepdims=True)).as_matrix()
 
 
 def cmu_smpl_sequence(

@@ -52,7 +52,7 @@ What is measured
   segments' angle by a constant (about 10 degrees at the elbow, 5 at the knee on the test clip, r = 1.0),
   so the angle is compared with the angle. ``elbow_floor_rmse_deg`` and ``knee_floor_rmse_deg``: the same
   measure for our skeleton posed at the source's own coordinates with path (a)'s shape, what the two
-  skeletons' joint placements alone give (2.2 degrees at the elbow and 0.8 at the knee on the test clip).
+  skeletons' joint placements alone give (1.5 degrees at the elbow and 0.8 at the knee on the test clip).
 * Layouts: ``dims_max_diff_deg``, the largest difference of any coordinate between the path (a) upgrades
   of the same motion stored as SMPL (72 values, its hand joints 22-23 curling the fingers by up to 40
   degrees), SMPL-H (156: the body and zeros there) and SMPL-X (165).

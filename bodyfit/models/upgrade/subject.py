@@ -3,7 +3,7 @@ the surface itself gives.
 
 A subject outside the shape space (an SMPL-family body: other hands, feet, limb proportions) cannot be
 matched by a plausible shape alone. Fitted together under the population prior, the keyframes' poses then
-make up for the limbs the space cannot shape (on the test clip the elbows read 2-5 degrees less bent than the
+make up for the limbs the space cannot shape (on the test clip the elbows read 2-4 degrees less bent than the
 source and the right ankle 5 degrees further up), and rest-pose offsets fitted at those poses carry the error
 into every frame: they make the compensated pose exact, and a pose fit with them stays there.
 
@@ -12,10 +12,10 @@ population prior, from the sequence fitter's own full fit; the poses from a fit 
 (:data:`POSE_SHAPE_PRIOR`), whose shape may follow the body far enough to leave the bones where the surface
 puts them. The offsets (:mod:`bodyfit.models.fitting.sequence.offsets`) are fitted to the plausible shape at
 those poses, and every frame is then posed with that body held fixed (:meth:`SequenceFitter.for_body`); the
-weakly held shape only reads the poses. On the test clip / CMU 131 trial 1, path (a)'s geometric elbow angle
-then follows the source's within 3.9 / 5.0 degrees RMS (7.5 / 5.0 with the poses read under the prior), the
-flexion coordinates' mean error falls from 4.4 / 3.7 to 3.9 / 3.7 degrees and the surface distance is
-unchanged (2.9 / 4.1 mm).
+weakly held shape only reads the poses. On the test clip the elbows then read 0.1-0.4 degrees from the
+source, the right ankle 2.2; path (a)'s geometric elbow angle follows the source's within 1.9 degrees RMS
+(5.4 with the poses read under the prior), the flexion coordinates' mean error falls from 4.1 to 3.6
+degrees, and the surface distance is unchanged (2.9 mm).
 """
 
 from __future__ import annotations
@@ -32,9 +32,9 @@ from bodyfit.models.fitting.sequence.offsets import offsets_of_fit
 
 POSE_SHAPE_PRIOR = 1.0
 """Shape prior (per SD^2, against mm^2) of the fit that reads the keyframes' poses (:func:`subject_body`). On
-the test clip: 20 leaves the right elbow's hinge 6.6 degrees RMS from the source's, 5 gives 5.0, 1 gives 3.9
-with the knees at 3.6; at the registered fitter's 0.01 the shape trades the thigh's form for the knee's bend
-(the right knee's hinge 5.1 degrees from the source's)."""
+the test clip, path (a)'s worst elbow / knee hinge RMS against the source's: 5.4 / 2.8 degrees with the poses
+read under the upgrade's prior (60), 4.4 / 2.9 at 20, 3.4 / 3.1 at 5, 1.9 / 3.4 at 1; at the registered
+fitter's 0.01 the shape trades the thigh's form for the knee's bend (1.7 / 4.7)."""
 
 
 def keyframes(n_frames: int, count: int) -> np.ndarray:
