@@ -25,6 +25,10 @@ What is measured
   space: what growing costs the bodies the space already covered (0 for the shipped space).
 * ``grow_rounds``, ``grow_accepted``: rounds run and registrations accepted; ``grow_curve``: per round,
   accepted (new, total), Chamfer distances and the held-out v2v / v2p (mm and BLiSS's cm).
+* ``grow_anny_*`` (quick run): the same keys for a second space grown from anny bodies outside the adult
+  population the shipped space was learned from: children (ages 5-18) and adults at the corners of anny's
+  phenotype sliders (extreme BMI, height and proportions), half each, as registration-quality scans (16 to
+  grow from, 12 held out; :func:`outside_population`).
 
 Usage::
 
