@@ -171,7 +171,8 @@ def upgrade_with_model(
     sequence, hand_notes = flat_hands(sequence)
     sequence, axis = orient(sequence, smpl, up)
     # SMPL vertices -> points at ours, applied inside the forward pass
-    fit, good = _fit_posed(sequence, smpl, fitter, tmap.matrix(SMPL_VERTICES), tmap.weight, progress)
+    transfer = tmap.matrix(SMPL_VERTICES)
+    fit, good = _fit_posed(sequence, smpl, fitter, transfer, tmap.weight, progress, subject=True)
     notes = [
         f"path (a): posed with the SMPL-family model {Path(smpl.source).name or '(given)'}",
         *axis.notes(),
@@ -260,11 +261,14 @@ def _fit_posed(
     transfer: sparse.csr_matrix | None,
     weight: np.ndarray,
     progress: Callable[[int, int], None] | None,
+    subject: bool = False,
 ) -> tuple[SequenceFit, np.ndarray]:
     """Fit the sequence's good frames as posed by ``smpl``, a chunk at a time; ``transfer`` (V, N) carries
     its vertices to our topology inside the forward pass (None: already ours); ``weight`` (V,) per vertex.
-    With rest-pose offsets, the subject (shape and offsets) comes from :func:`.subject.subject_body` and
-    every frame is posed with it held fixed. Returns the fit and the good frames' indices."""
+    ``subject``: the body posed is a person's, perhaps outside our shape space (path a's; path b's proxy
+    is a body of the population the space was learned from): with rest-pose offsets, the shape and offsets
+    come from :func:`.subject.subject_body` and every frame is posed with them held fixed. Returns the fit
+    and the good frames' indices."""
     good = np.flatnonzero(~sequence.bad_frames)
 
     def source(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -274,7 +278,7 @@ def _fit_posed(
         targets = mapped.astype(np.float64) @ SMPL_TO_BODY.T
         return targets, np.repeat(weight[None], len(targets), axis=0)
 
-    if fitter.config.offsets is None or fitter.fitter.body is not None:
+    if not subject or fitter.config.offsets is None or fitter.fitter.body is not None:
         return fitter.fit_frames(source, len(good), progress=progress), good
     body, offsets = subject_body(fitter, source, len(good))  # shape, and offsets at unbent poses
     fit = fitter.for_body(body).fit_frames(source, len(good), progress=progress)
