@@ -25,7 +25,6 @@ import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -401,10 +400,9 @@ def _at_limits(
     ], held
 
 
-@lru_cache(maxsize=4)
 def _proportion_range(model: BodyModel) -> ProportionRange:
     """The population's bone proportions of ``model`` (computed once per model: about a second)."""
-    return ProportionRange.of(model)
+    return model.derived("upgrade.proportion_range", lambda: ProportionRange.of(model))
 
 
 def _scales(model: BodyModel, shape: np.ndarray, body: FixedBody | None) -> np.ndarray:
