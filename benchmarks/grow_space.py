@@ -126,13 +126,13 @@ def write_scans(model: Any, shape: np.ndarray, offsets: np.ndarray, out: Path, r
     rng = np.random.default_rng(4)
     for i, v in enumerate(posed_meshes(model, shape, offsets)):
         if raw:
-            points, _ = remove_patches(add_noise(_surface_points(v, model.faces, rng), 0.002, rng), 0.08, rng)
+            points, _ = remove_patches(add_noise(surface_points(v, model.faces, rng), 0.002, rng), 0.08, rng)
             (out / f"body_{i:03d}.ply").write_bytes(ply_bytes(points, np.zeros((0, 3), np.int64)))
         else:
             (out / f"body_{i:03d}.ply").write_bytes(ply_bytes(v, model.faces))
 
 
-def _surface_points(v: np.ndarray, faces: np.ndarray, rng: np.random.Generator, n: int = 40000) -> np.ndarray:
+def surface_points(v: np.ndarray, faces: np.ndarray, rng: np.random.Generator, n: int = 40000) -> np.ndarray:
     """``n`` points (n, 3) uniform on the mesh (V, 3), (F, 3) by area."""
     tri = v[faces]
     area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)

@@ -12,7 +12,7 @@ import torch
 import typer
 from typer.testing import CliRunner
 
-from benchmarks.grow_space import outside_population
+from benchmarks.grow_space import outside_population, surface_points
 from bodyfit.models.body.model import BODY_ASSET, BodyModel
 from bodyfit.models.decoders import pipeline
 from bodyfit.models.decoders.population import IdentitySet
@@ -218,14 +218,7 @@ def test_seed_registrations_unpose_to_their_bind_meshes_and_need_our_topology(mo
 def raw_points(v: np.ndarray, faces: np.ndarray, rng: np.random.Generator, n: int = 20000) -> np.ndarray:
     """A raw scan of the mesh (V, 3), (F, 3): ``n`` points uniform on its area with 2 mm noise, less those
     within 6 cm of ten random vertices (holes); (M, 3)."""
-    tri = v[faces]
-    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    pick = rng.choice(len(faces), n, p=area / area.sum())
-    a, b = rng.random((2, n, 1))
-    flip = (a + b) > 1
-    a, b = np.where(flip, 1 - a, a), np.where(flip, 1 - b, b)
-    t = tri[pick]
-    points = t[:, 0] + a * (t[:, 1] - t[:, 0]) + b * (t[:, 2] - t[:, 0]) + rng.normal(0, 0.002, (n, 3))
+    points = surface_points(v, faces, rng, n) + rng.normal(0, 0.002, (n, 3))
     centres = v[rng.choice(len(v), 10, replace=False)]
     far = np.min(np.linalg.norm(points[:, None] - centres[None], axis=-1), axis=1) > 0.06
     return np.asarray(points[far])
