@@ -15,7 +15,7 @@ from bodyfit.models.fitting.sequence.fitter import SequenceFitter
 from bodyfit.models.upgrade.axes import posed_joints
 from bodyfit.models.upgrade.smpl_joints import SMPL_JOINTS
 from bodyfit.models.upgrade.smpl_model import load_smpl_model
-from bodyfit.models.upgrade.subject import keyframes, subject_body
+from bodyfit.models.upgrade.subject import subject_body
 from bodyfit.models.upgrade.upgrade import UPGRADE_SEQUENCE, upgrade_fitter, upgrade_with_model
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "smpl_format"
@@ -65,7 +65,7 @@ def test_the_subject_keeps_the_sequence_fitters_shape(model: BodyModel) -> None:
 
     fitter = upgrade_fitter(model)
     body, offsets = subject_body(fitter, source, seq.n_frames)
-    keys = keyframes(seq.n_frames, fitter.config.keyframes)
+    keys = fitter.shape_keyframes(seq.n_frames)
     assert len(keys) == fitter.config.keyframes and keys[0] == 0 and keys[-1] == seq.n_frames - 1
     x, w = source(keys)
     fitted = fitter.fitter.fit(x, w, shared_shape=True)  # the shape fit the sequence fitter makes

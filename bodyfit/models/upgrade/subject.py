@@ -27,7 +27,6 @@ import torch
 
 from bodyfit.models.fitting.registered.fitter import BodyFit, FixedBody, RegisteredFitter
 from bodyfit.models.fitting.sequence.fitter import FrameSource, SequenceFitter
-from bodyfit.models.fitting.sequence.frames import turn, yaw
 from bodyfit.models.fitting.sequence.offsets import offsets_of_fit
 
 POSE_SHAPE_PRIOR = 1.0
@@ -35,12 +34,6 @@ POSE_SHAPE_PRIOR = 1.0
 the test clip, path (a)'s worst elbow / knee hinge RMS against the source's: 5.4 / 2.8 degrees with the poses
 read under the upgrade's prior (60), 4.4 / 2.9 at 20, 3.4 / 3.1 at 5, 1.9 / 3.4 at 1; at the registered
 fitter's 0.01 the shape trades the thigh's form for the knee's bend (1.7 / 4.7)."""
-
-
-def keyframes(n_frames: int, count: int) -> np.ndarray:
-    """(K,) ``count`` frame indices spread evenly over ``n_frames`` frames (fewer when there are fewer
-    frames), as :class:`SequenceFitter` picks its shape keyframes."""
-    return np.unique(np.linspace(0, n_frames - 1, min(count, n_frames)).round().astype(np.int64))
 
 
 def subject_body(fitter: SequenceFitter, source: FrameSource, n_frames: int) -> tuple[FixedBody, np.ndarray]:
@@ -55,10 +48,7 @@ def subject_body(fitter: SequenceFitter, source: FrameSource, n_frames: int) -> 
     if cfg.offsets is None or fitter.fitter.body is not None:
         raise ValueError("subject_body needs a sequence fitter that fits rest-pose offsets and no known body")
     model = fitter.model
-    x, w = source(keyframes(n_frames, cfg.keyframes))
-    x, w = fitter.fitter.validate(x, w, np.float32)
-    heading, origin = fitter.headings(x, w)
-    x_c = turn(x, yaw(-heading), origin)  # the keyframes facing +X at the origin, as the sequence fit's
+    x_c, w = fitter.facing_frames(source, fitter.shape_keyframes(n_frames))
     shape = fitter.fitter.fit(x_c, w, shared_shape=True).shape[0]
     free = RegisteredFitter(model, replace(fitter.fitter.config, shape_prior=POSE_SHAPE_PRIOR))
     poses = free.fit(x_c, w, shared_shape=True)

@@ -223,7 +223,7 @@ class SequenceFitter:
         if T < 1:
             raise ShapeError(f"a sequence needs at least one frame; got {T}")
         # Shape on keyframes spread over the sequence, then frozen.
-        shape_keys = np.unique(np.linspace(0, T - 1, min(self.config.keyframes, T)).round().astype(np.int64))
+        shape_keys = self.shape_keyframes(T)
         c, offsets, pose_fitter = self._fit_shape(source, shape_keys)
         # Pose keyframes with the frozen shape, then every frame from their interpolation.
         q_init, r_init = self._key_poses(source, T, c, pose_fitter)
@@ -271,6 +271,18 @@ class SequenceFitter:
             q_range,
         )
 
+    def shape_keyframes(self, n_frames: int) -> np.ndarray:
+        """(K,) the frames the shape is fitted on: ``config.keyframes`` spread evenly over ``n_frames``
+        (fewer when there are fewer frames)."""
+        count = min(self.config.keyframes, n_frames)
+        return np.unique(np.linspace(0, n_frames - 1, count).round().astype(np.int64))
+
+    def facing_frames(self, source: FrameSource, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Frames idx (k,) from the source, checked and turned to face +X at the origin, as the fits see
+        them: targets (k, V, 3) and weights (k, V)."""
+        x, w, G, o = self._frames(source, idx)
+        return turn(x, G, o), w
+
     def _fit_shape(
         self, source: FrameSource, shape_keys: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray | None, RegisteredFitter]:
@@ -279,8 +291,7 @@ class SequenceFitter:
         person's shape (:meth:`for_body`) as it is."""
         if self.fitter.body is not None:
             return np.asarray(self.fitter.body.shape, np.float64)[None], None, self.pose_fitter
-        x_s, w_s, G_s, o_s = self._frames(source, shape_keys)
-        x_c = turn(x_s, G_s, o_s)
+        x_c, w_s = self.facing_frames(source, shape_keys)
         shaped = self.fitter.fit(x_c, w_s, shared_shape=True)
         c = shaped.shape[:1]
         offsets, pose_fitter = None, self.pose_fitter
