@@ -181,17 +181,25 @@ def _voxels(points: np.ndarray, size: float) -> np.ndarray:
 
 
 def corrupted_points(
-    vertices: np.ndarray, faces: np.ndarray, corruption: str, seed: int, points: int = POINTS
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    corruption: str,
+    seed: int,
+    points: int = POINTS,
+    facing: np.ndarray | None = None,
 ) -> np.ndarray:
     """(N, 3) scan points of one body (V, 3; +X forward, +Y up), metres, under ``corruption`` of
-    :data:`CORRUPTIONS`, before the rigid motion (:func:`motion`) and the change of units."""
+    :data:`CORRUPTIONS`, before the rigid motion (:func:`motion`) and the change of units. ``facing`` (3,)
+    is the unit direction the body's front faces (+X when None): ``front_half`` keeps the surface on its
+    side of the body's centre, ``back_half`` the other, so a lying body's halves are its front and back
+    (what a sensor above or below it sees), not its head and feet ends."""
     rng = np.random.default_rng(seed)
     if corruption in ("depth", "holes", "clothing"):
         p = fit_scans.make_scan(vertices, faces, corruption, seed)
         return p if corruption == "depth" else p[rng.permutation(len(p))[: round(points * len(p) / 1e5)]]
     dense = 2 * points if corruption in ("front_half", "back_half", "voxels_2cm") else points
     p, _ = sample_surface(vertices, faces, dense, seed)
-    forward = p[:, 0] - vertices[:, 0].mean()
+    forward = (p - vertices.mean(axis=0)) @ (np.array([1.0, 0.0, 0.0]) if facing is None else facing)
     if corruption == "front_half":
         return p[forward > 0.0]
     if corruption == "back_half":
@@ -222,7 +230,9 @@ def fit_case(fitter: ScanFitter, model: BodyModel, bodies: Bodies, case: Case, p
     largest (mm), gross or not, and the fit's report (``to_dict``), shape and coordinates; a scan the
     fitter refuses is a gross failure whose row holds the message (``error``) instead."""
     truth, joints = bodies.vertices[case.body], bodies.joints[case.body]
-    raw = corrupted_points(truth, model.faces, case.corruption, case.seed, points)
+    raw = corrupted_points(
+        truth, model.faces, case.corruption, case.seed, points, bodies.pelvis[case.body][:, 0]
+    )
     T = motion(case.corruption, np.random.default_rng(case.seed + 1))
     moved = raw @ T[:3, :3].T + T[:3, 3]
     scale = 1000.0 if case.corruption == "millimetres" else 1.0
