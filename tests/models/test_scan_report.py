@@ -20,7 +20,9 @@ from bodyfit.models.fitting.scan.report import (
     MAX_UNEXPLAINED,
     BothWays,
     both_ways,
+    gap_parts,
     judge,
+    part_name,
     seen_part,
 )
 
@@ -48,7 +50,8 @@ def _measure(model: BodyModel, points: np.ndarray, registration: np.ndarray) -> 
     cleaned = clean_points(points, cfg.voxel, cfg.neighbours, cfg.outlier_cutoff)
     distances = point_to_surface(points, registration, faces)
     part, over = seen_part(registration, faces, None, None)
-    return both_ways(points, distances, cleaned, registration, faces, part, over)
+    bodies = np.asarray(model.skeleton.body_names)[model.vertex_bodies]
+    return both_ways(points, distances, cleaned, registration, faces, part, over, bodies)
 
 
 def test_weighted_statistics_count_each_entry_by_its_weight() -> None:
@@ -93,7 +96,22 @@ def test_a_limb_fitted_where_the_scan_has_nothing_is_not_confident(model: BodyMo
     both = _measure(model, points, fitted)
     assert both.unexplained == 0.0 and both.scan_to_model.max < 15.0  # every scan point is explained
     assert both.largest_gap > MAX_GAP and both.unsupported > MAX_GAP
-    assert any("fitted where the scan has nothing" in r for r in both.reasons())
+    # the report names the parts of the body the scan has nothing of: the right arm's, away from the trunk
+    assert both.gap_parts and set(both.gap_parts) <= {"right upper arm", "right forearm", "right hand"}
+    assert both.extra()["largest_gap_parts"] == list(both.gap_parts)
+    named = f"mostly the {both.gap_parts[0]}"
+    assert any(named in r and "its pose is a guess" in r for r in both.reasons())
+
+
+def test_a_region_is_named_by_the_parts_holding_a_fifth_of_its_area() -> None:
+    assert [part_name(b) for b in ("humerus_l", "radius_r", "torso", "toes_r")] == [
+        "left upper arm", "right forearm", "trunk", "right toes",
+    ]  # fmt: skip
+    bodies = np.array(["ulna_r", "radius_r", "hand_r", "humerus_r", "torso"])
+    area = np.array([1.0, 2.0, 4.0, 0.5, 9.0])
+    region = np.array([True, True, True, True, False])  # the trunk is outside the region
+    # forearm (ulna and radius) 3/7.5, hand 4/7.5, upper arm 0.5/7.5 < 0.2: not named
+    assert gap_parts(region, area, bodies) == ("right hand", "right forearm")
 
 
 def test_a_good_fit_of_a_scan_with_holes_raises_no_reason(model: BodyModel) -> None:

@@ -40,6 +40,13 @@ UNSUPPORTED_MM = 30.0  # reported: the share of the body's surface this far from
 # scan benchmark leave regions of at most 1.3% (regions, not the total: holes are many small ones).
 GAP_MM = 80.0
 MAX_GAP = 0.03
+# The skeleton's bodies as a report names them: the parts of the largest such region (:func:`gap_parts`).
+BODY_NAMES = {
+    "pelvis": "pelvis", "torso": "trunk", "thorax": "trunk", "head": "head", "scapula": "shoulder",
+    "femur": "thigh", "patella": "knee", "tibia": "lower leg", "talus": "foot", "calcn": "foot",
+    "toes": "toes", "humerus": "upper arm", "ulna": "forearm", "radius": "forearm", "hand": "hand",
+}  # fmt: skip
+MIN_PART_SHARE = 0.2  # of the region's area: a part holding less is not named
 # A vertex of a single view's fit counts as seen when its normal turns this far towards the sensor: the
 # grazing band at the silhouette, where a depth camera returns few points, is left out.
 FACING_COS = 0.2
@@ -115,7 +122,8 @@ class BothWays:
     the farthest of those (0 when none); model_to_scan: each registration vertex to its nearest scan point,
     weighted by area, over the part ``over`` names; unsupported: the share of that part's area farther than
     :data:`UNSUPPORTED_MM`; largest_gap: the share of the largest connected region farther than
-    :data:`GAP_MM`.
+    :data:`GAP_MM`, and gap_parts the parts of the body it lies on (:func:`gap_parts`; empty when the
+    vertices' bodies were not given).
     """
 
     scan_to_model: DistanceStats
@@ -125,6 +133,7 @@ class BothWays:
     unsupported: float
     largest_gap: float
     over: str
+    gap_parts: tuple[str, ...] = ()
 
     def extra(self) -> dict[str, object]:
         """The report's ``extra`` entries."""
@@ -135,6 +144,7 @@ class BothWays:
             "unsupported_threshold_mm": UNSUPPORTED_MM,
             "largest_gap_fraction": round(self.largest_gap, 4),
             "gap_threshold_mm": GAP_MM,
+            "largest_gap_parts": list(self.gap_parts),
             "model_to_scan_over": self.over,
         }
 
@@ -150,11 +160,37 @@ class BothWays:
                 "the person was kept)"
             )
         if self.largest_gap > MAX_GAP:
+            where = f", mostly the {_listed(self.gap_parts)}," if self.gap_parts else ""
             out.append(
-                f"a connected {self.largest_gap:.1%} of the fitted body's surface ({self.over}) lies more "
-                f"than {GAP_MM:.0f} mm from every scan point: a limb is fitted where the scan has nothing"
+                f"a connected {self.largest_gap:.1%} of the fitted body's surface ({self.over}){where} lies "
+                f"more than {GAP_MM:.0f} mm from every scan point: a limb is fitted where the scan has "
+                "nothing, and its pose is a guess"
             )
         return out
+
+
+def _listed(names: tuple[str, ...]) -> str:
+    """'a', 'a and b', 'a, b and c'."""
+    return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"
+
+
+def part_name(body: str) -> str:
+    """A skeleton body's name as a report gives it: "humerus_l" -> "left upper arm"."""
+    base, _, side = body.rpartition("_")
+    if side in ("r", "l") and base:
+        return f"{'right' if side == 'r' else 'left'} {BODY_NAMES.get(base, base)}"
+    return BODY_NAMES.get(body, body)
+
+
+def gap_parts(region: np.ndarray, area: np.ndarray, bodies: np.ndarray) -> tuple[str, ...]:
+    """The parts of the body (:func:`part_name`) that hold at least :data:`MIN_PART_SHARE` of the area of a
+    ``region`` (V,) bool of the surface, largest first: ``area`` (V,) each vertex's, ``bodies`` (V,) the
+    skeleton body each vertex belongs to."""
+    names = np.array([part_name(str(b)) for b in bodies])[region]
+    parts, index = np.unique(names, return_inverse=True)
+    share = np.bincount(index, area[region]) / max(float(area[region].sum()), 1e-12)
+    order = np.argsort(-share)
+    return tuple(str(parts[k]) for k in order if share[k] >= MIN_PART_SHARE)
 
 
 def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -164,17 +200,18 @@ def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.bincount(faces.ravel(), np.repeat(area / 3.0, 3), minlength=len(vertices))
 
 
-def largest_region(mask: np.ndarray, weights: np.ndarray, faces: np.ndarray) -> float:
-    """The weight (summed ``weights`` (V,)) of the largest region of vertices ``mask`` (V,) connected by the
-    edges of ``faces`` (F, 3) among themselves."""
+def largest_region(mask: np.ndarray, weights: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(V,) bool: the heaviest (summed ``weights`` (V,)) region of vertices ``mask`` (V,) connected by the
+    edges of ``faces`` (F, 3) among themselves; all False when ``mask`` is."""
     if not mask.any():
-        return 0.0
+        return mask.copy()
     edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     edges = edges[mask[edges].all(axis=1)]
     n = len(mask)
     graph = sparse.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
     _, label = connected_components(graph, directed=False)
-    return float(np.bincount(label[mask], weights[mask]).max())
+    heaviest = int(np.argmax(np.bincount(label[mask], weights[mask])))
+    return mask & (label == heaviest)
 
 
 def seen_part(
@@ -203,11 +240,13 @@ def both_ways(
     faces: np.ndarray,
     part: np.ndarray,
     over: str,
+    bodies: np.ndarray | None = None,
 ) -> BothWays:
     """A fit's distances both ways: scan points (N, 3) with their ``distances`` (N,) to the registration's
     surface (V, 3), (F, 3); the cleaned scan (M, 3) (isolated points dropped: stray points do not count as
     unexplained, an unexplained limb does); the registration's vertices ``part`` (V,) bool the scan can show
-    (:func:`seen_part`), named ``over``. Model to scan is point to point: each vertex's nearest scan point.
+    (:func:`seen_part`), named ``over``; ``bodies`` (V,): each vertex's skeleton body, to name the parts of
+    the largest unsupported region. Model to scan is point to point: each vertex's nearest scan point.
 
     The two-way Chamfer distance (H. G. Barrow, J. M. Tenenbaum, R. C. Bolles and H. C. Wolf, "Parametric
     correspondence and chamfer matching: Two new techniques for image matching", International Joint
@@ -228,8 +267,9 @@ def both_ways(
         unexplained_mm=float(cleaned_d[far].max() * 1000.0) if far.any() else 0.0,
         model_to_scan=DistanceStats.weighted(to_scan, area),
         unsupported=float(area[to_scan * 1000.0 > UNSUPPORTED_MM].sum() / total),
-        largest_gap=gap / total,
+        largest_gap=float(area[gap].sum()) / total,
         over=over,
+        gap_parts=() if bodies is None or not gap.any() else gap_parts(gap, area, bodies),
     )
 
 
@@ -409,7 +449,8 @@ def placed_fit(
     coverage = float(np.mean(run.tree.query(registration, COVERED_MM / 1000)[0] < np.inf))
     fitted = None if partial_extent is None else steps.fitter.index["upper"]
     part, over = seen_part(registration, faces, hyp.view, fitted)
-    both = both_ways(points, distances, run.cleaned, registration, faces, part, over)
+    bodies = np.asarray(model.skeleton.body_names)[model.vertex_bodies]
+    both = both_ways(points, distances, run.cleaned, registration, faces, part, over, bodies)
     seconds = time.perf_counter() - start
     ranges = model.skeleton.ranges
     prior = prior_distance(q, c, model.bind_coordinates, ranges)
