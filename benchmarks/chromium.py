@@ -224,12 +224,19 @@ def browser(width: int = 1280, height: int = 800, install: bool = False) -> Iter
     """
     exe = find_chromium(install)
     # ignore_cleanup_errors: a helper process of the browser may still write to the profile as it ends
-    with tempfile.TemporaryDirectory(prefix="bodyfit-chromium-", ignore_cleanup_errors=True) as profile, open(
-        Path(profile) / "chromium.log", "w+"
-    ) as log:
+    with (
+        tempfile.TemporaryDirectory(prefix="bodyfit-chromium-", ignore_cleanup_errors=True) as profile,
+        open(Path(profile) / "chromium.log", "w+") as log,
+    ):
         proc = subprocess.Popen(
-            [exe, *FLAGS, f"--window-size={width},{height}", f"--user-data-dir={profile}",
-             "--remote-debugging-port=0", "about:blank"],
+            [
+                exe,
+                *FLAGS,
+                f"--window-size={width},{height}",
+                f"--user-data-dir={profile}",
+                "--remote-debugging-port=0",
+                "about:blank",
+            ],
             stdout=subprocess.DEVNULL,
             stderr=log,  # a file, never a pipe: a chatty browser would block on a full one
             start_new_session=True,  # its own process group: its helper processes end with it
@@ -242,8 +249,13 @@ def browser(width: int = 1280, height: int = 800, install: bool = False) -> Iter
                 page = Page(ws)
                 for domain in ("Page", "Runtime", "Log", "DOM"):
                     page.call(f"{domain}.enable")
-                page.call("Emulation.setDeviceMetricsOverride", width=width, height=height,
-                          deviceScaleFactor=1, mobile=False)
+                page.call(
+                    "Emulation.setDeviceMetricsOverride",
+                    width=width,
+                    height=height,
+                    deviceScaleFactor=1,
+                    mobile=False,
+                )
                 yield page
         finally:
             _stop(proc)

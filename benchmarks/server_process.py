@@ -107,6 +107,7 @@ def start_server(env: dict[str, str] | None = None, timeout_s: float = 180.0) ->
 
 def _keep_log(server: ServerProcess) -> None:
     """Read the server's output in the background into ``server.lines`` (so that it never fills the pipe)."""
+
     def run() -> None:
         assert server.proc.stdout is not None
         for line in server.proc.stdout:

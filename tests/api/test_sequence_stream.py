@@ -139,4 +139,3 @@ def test_rest_stream_sends_chunks_between_progress_events(small_blocks: BodyServ
     # the one-document answer still holds every chunk, in order, before the summary's fields
     assert [(c["start"], c["stop"]) for c in doc["chunks"]] == [(0, 4), (4, 6)]
     assert doc["limit_violations"] == 0
-

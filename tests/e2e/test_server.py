@@ -67,9 +67,7 @@ def test_grpc_operations_through_the_sdk(server: ServerProcess) -> None:
     assert 'operation="Synthesize",outcome="OK",transport="grpc"' in metrics
 
 
-def test_batch_upgrade_against_the_server(
-    server: ServerProcess, tmp_path: Path
-) -> None:
+def test_batch_upgrade_against_the_server(server: ServerProcess, tmp_path: Path) -> None:
     url = server.url
     (tmp_path / "data" / "s1").mkdir(parents=True)
     shutil.copy(

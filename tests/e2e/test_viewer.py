@@ -237,6 +237,7 @@ def test_viewer_files_are_ours_and_small() -> None:
         for name in ("three.module.min.js", "three.core.min.js"):
             assert (static / "vendor" / name).read_bytes() == (installed / "build" / name).read_bytes()
 
+
 def test_missing_viewer_files_leave_the_api_serving(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     """An installation without the viewer's files answers / with a problem+json 404 that says so."""
     monkeypatch.setattr(routes_viewer, "STATIC", tmp_path)

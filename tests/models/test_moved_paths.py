@@ -69,8 +69,6 @@ def test_the_moved_readers_import_no_torch_web_or_grpc() -> None:
         "for m in sys.argv[1:]: importlib.import_module(m)\n"
         "print(sorted({'torch', 'fastapi', 'grpc'} & set(sys.modules)))\n"
     )
-    done = subprocess.run(
-        [sys.executable, "-c", code, *readers], capture_output=True, text=True, timeout=120
-    )
+    done = subprocess.run([sys.executable, "-c", code, *readers], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip() == "[]"

@@ -42,7 +42,6 @@ def _cm(constant: torch.Tensor) -> torch.Tensor:
     return constant.permute(*range(1, constant.dim()), 0).unsqueeze(-1)
 
 
-
 def pointer_jumps(parents: list[int]) -> list[np.ndarray]:
     """The rounds of pointer jumping that compose a tree's transforms: bodies compose by replacing each
     body's transform (into its current ancestor's frame) by the ancestor's transform composed with it, and
