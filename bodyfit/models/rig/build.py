@@ -31,7 +31,7 @@ from bodyfit.models.fitting.registered.fitter import BodyFit, RegisteredFitter
 from bodyfit.models.fitting.registered.stages import DEFAULT_STAGES, RegisteredFitConfig, ShapeSet
 from bodyfit.models.fitting.sequence.offsets import OffsetConfig, offsets_of_fit
 from bodyfit.models.rig.fit import with_decoder
-from bodyfit.models.rig.icp import ClosestConfig, closest_targets, fit_to_points
+from bodyfit.models.rig.icp import ClosestConfig, closest_targets, fit_to_points, normal_part
 from bodyfit.models.rig.joints import JointConfig, solve_joints
 from bodyfit.models.rig.subject import PersonalParts, Subject, model_fingerprint
 from bodyfit.models.rig.weights import (
@@ -200,7 +200,10 @@ def _alternate(
     if raw:
         fitter = RegisteredFitter(model, replace(fitter.config, shape_prior=cfg.closest.shape_prior))
     fit = fitter.fit(x, w, init=alone, shared_shape=True)
-    solver = _PartSolver(model, cfg, cfg.closest.shape_prior if raw else None)
+    if raw:
+        solver = _PartSolver(model, cfg, cfg.closest.shape_prior, cfg.closest.offset_tangential)
+    else:
+        solver = _PartSolver(model, cfg)
     if raw and points is not None and cfg.closest.chamfer_iterations > 0:
         fit = _fit_raw(fitter, fit, points, cfg.closest)
     parts = PersonalParts.generic(model)
@@ -266,10 +269,14 @@ def _closest(
 class _PartSolver:
     """One round's solves of the person's parts with the poses fixed: template offsets against the
     residuals, then the skinning weights, then the joints (each with the others fixed); ``refitter`` the
-    shape and pose refits' fitter (its shape prior ``shape_prior``, None: the registered fitter's)."""
+    shape and pose refits' fitter (its shape prior ``shape_prior``, None: the registered fitter's);
+    ``tangential``: the share of each offset step kept along the template's surface (:func:`.icp.normal_part`;
+    1 for registered scans, whose correspondence places every vertex along the surface too)."""
 
-    def __init__(self, model: BodyModel, cfg: RigConfig, shape_prior: float | None = None) -> None:
-        self.model, self.cfg = model, cfg
+    def __init__(
+        self, model: BodyModel, cfg: RigConfig, shape_prior: float | None = None, tangential: float = 1.0
+    ) -> None:
+        self.model, self.cfg, self.tangential = model, cfg, tangential
         fits = RegisteredFitConfig(stages=REFIT_STAGES)
         self.refitter = RegisteredFitter(
             model, fits if shape_prior is None else replace(fits, shape_prior=shape_prior)
@@ -292,7 +299,10 @@ class _PartSolver:
         """The parts after one round against targets x (K, V, 3) with confidences w (K, V), at ``fit``, and
         the fit with the poses the joints were solved with."""
         model, cfg = self.model, self.cfg
-        step = offsets_of_fit(parts.decoder(model), fit, x, w, model.faces, cfg.offsets)
+        decoder = parts.decoder(model)
+        step = offsets_of_fit(decoder, fit, x, w, model.faces, cfg.offsets)
+        if self.tangential != 1.0:
+            step = normal_part(step, _rest(model, decoder, fit.shape[0]), model.faces, self.tangential)
         parts = replace(parts, offsets=parts.offsets + step)
         if cfg.weights is not None and self.candidates is not None:
             columns, _ = skinning_columns(
@@ -309,6 +319,15 @@ class _PartSolver:
             parts = replace(parts, scale_offsets=scales)
             fit = replace(fit, coordinates=q, root=r)
         return parts, fit
+
+
+def _rest(model: BodyModel, decoder: BodyDecoder, shape: np.ndarray) -> np.ndarray:
+    """The template (V, 3) metres of ``decoder`` for coefficients ``shape`` (n_shape,), in the bind pose."""
+    dtype = decoder.bind_rot_t.dtype
+    with torch.no_grad():
+        c = torch.as_tensor(shape[None], dtype=dtype)
+        q = torch.as_tensor(model.bind_coordinates[None], dtype=dtype)
+        return decoder(c, q, torch.zeros(1, 3, dtype=dtype))[0][0].double().numpy()
 
 
 def _mean_mm(fit: BodyFit) -> np.ndarray:
