@@ -311,3 +311,42 @@ def test_outside_population_builds_children_and_extreme_adults_as_our_bodies(
     assert not np.any(shape[:, model.n_bone :]) and not np.any(held_shape[:, model.n_bone :])
     expected = rest_meshes(model.data, held_shape) + held_offsets
     assert np.allclose(held_bind, expected)
+
+
+def test_meshes_in_our_topology_are_unposed_as_they_are_not_projected(
+    model: BodyModel, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from bodyfit.models.spaces.register import in_topology
+
+    shape, offsets, bind = outside_bodies(model, 3, seed=8)
+    plain = posed_scans(model, shape, offsets)
+    # the first two carry the template's faces (meshes in our topology), the third is a point cloud of the
+    # same vertices; a fit's shape is the true one, so unposing gives back the true bind-pose mesh
+    scans = [
+        PosedScan(s.name, s.points, s.coordinates, s.root, shape[i], model.faces if i < 2 else None)
+        for i, s in enumerate(plain)
+    ]
+    assert [in_topology(model, s) for s in scans] == [True, True, False]
+    other_faces = PosedScan(
+        "f", scans[0].points, scans[0].coordinates, scans[0].root, shape[0], model.faces[::-1]
+    )
+    assert not in_topology(model, other_faces)
+    projected: list[str] = []
+    real = grow.register
+
+    def spy(current: BodyModel, scan: PosedScan, start: np.ndarray, nonrigid: NonRigidConfig) -> Registration:
+        projected.append(scan.name)
+        return real(current, scan, start, nonrigid)
+
+    monkeypatch.setattr(grow, "register", spy)
+    lines: list[str] = []
+    result = grow_space(model, scans, GrowConfig(rounds=1, n_population=30, nonrigid=FAST), log=lines.append)
+    assert projected == ["s2"]
+    unposed = result.rounds[1]
+    assert unposed["unposed"] == 2 and unposed["accepted_scans"] == ["s0", "s1"]
+    assert "unposed as they are" in lines[1]
+    for i in (0, 1):
+        # exact correspondence: the accepted bind-pose mesh is the body itself, offsets along the surface
+        # included, which a projection keeps only along the normals
+        assert np.abs(result.accepted[f"s{i}"].bind - bind[i]).max() < 1e-6
+    assert result.rounds[2]["round"] == 2 and result.rounds[2]["candidates"] == 1

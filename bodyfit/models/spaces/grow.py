@@ -9,6 +9,13 @@ bind-pose meshes to the population and recomputes the space from it
 (:func:`~bodyfit.models.spaces.population.recompute_space`). It stops when a round accepts nothing, every
 scan is accepted, or after ``rounds`` rounds.
 
+Scans that are already meshes in the model's topology (its vertex count and faces) need no registration:
+their correspondence to the template is exact, and projecting them into the space would replace the body
+they carry by its nearest body of the space plus what the refinement recovers along the normals. They are
+unposed as they are with their first fit's pose, as seed registrations are
+(:func:`~bodyfit.models.spaces.register.seed_registrations`), and enter the population in one round of their
+own (reported with ``"unposed"``) before the projection rounds of the other scans.
+
 BLiSS: S. Muralikrishnan, C.-H. P. Huang, D. Ceylan and N. J. Mitra, "BLiSS: Bootstrapped Linear Shape
 Space", International Conference on 3D Vision (3DV), 2024.
 """
@@ -25,7 +32,14 @@ import numpy as np
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting.common.nonrigid import NonRigidConfig, NonRigidStage
 from bodyfit.models.spaces.population import Population, recompute_space, rest_meshes, sample_population
-from bodyfit.models.spaces.register import PosedScan, Registration, initial_shape, register
+from bodyfit.models.spaces.register import (
+    PosedScan,
+    Registration,
+    in_topology,
+    initial_shape,
+    register,
+    seed_registrations,
+)
 
 Evaluate = Callable[[dict[str, np.ndarray]], dict[str, float]]
 """A space's arrays (``body.npz``) -> its errors on held-out bodies (``v2v_mm``, ``v2p_mm``, ``v2v_cm``)."""
@@ -137,7 +151,13 @@ def grow_space(
     # template of the scan's own fit
     last = {s.name: rest_meshes(original.data, s.shape[None])[0] for s in scans}
     current = model
-    for index in range(1, cfg.rounds + 1):
+    meshes = [s for s in scans if in_topology(original, s)]
+    if meshes:
+        population = _unpose_round(original, meshes, population, result, evaluate)
+        log(_round_line(result.rounds[-1]))
+        current = BodyModel(model.skeleton, result.data, "lbs")
+    first = len(result.rounds)
+    for index in range(first, first + cfg.rounds):
         t0 = time.perf_counter()
         pending = [s for s in scans if s.name not in result.accepted]
         if not pending:
@@ -173,12 +193,45 @@ def grow_space(
     return result
 
 
+def _unpose_round(
+    model: BodyModel,
+    meshes: Sequence[PosedScan],
+    population: Population,
+    result: GrowResult,
+    evaluate: Evaluate | None,
+) -> Population:
+    """Meshes in ``model``'s topology unposed as they are and accepted in a round of their own: their
+    registrations (Chamfer 0 to themselves) join ``result.accepted``, the space is recomputed from the
+    ``population`` with them (``result.data``) and the round's entry lists them under ``"unposed"``. Returns
+    the grown population."""
+    t0 = time.perf_counter()
+    bind, scales = seed_registrations(model, list(meshes))
+    for m, b, s in zip(meshes, bind, scales, strict=True):
+        result.accepted[m.name] = Registration(m.name, b, s, m.points, 0.0)
+    population = population + Population(bind, scales)
+    result.data = recompute_space(model, population)
+    entry: dict[str, Any] = {
+        "round": len(result.rounds),
+        "candidates": len(meshes),
+        "accepted": len(meshes),
+        "accepted_total": len(result.accepted),
+        "accepted_scans": [m.name for m in meshes],
+        "unposed": len(meshes),
+        "seconds": round(time.perf_counter() - t0, 1),
+    }
+    entry.update(_score(evaluate, result.data))
+    result.rounds.append(entry)
+    return population
+
+
 def _score(evaluate: Evaluate | None, data: dict[str, np.ndarray]) -> dict[str, float]:
     return {} if evaluate is None else dict(evaluate(data))
 
 
 def _round_line(entry: dict[str, Any]) -> str:
     line = f"round {entry['round']}: {entry['accepted']} of {entry.get('candidates', 0)} accepted"
+    if "unposed" in entry:
+        line += " (meshes in the model's topology, unposed as they are)"
     line += f" ({entry['accepted_total']} in all)"
     if "chamfer_mm" in entry:
         line += f", Chamfer {entry['chamfer_mm']['min']:.2f}-{entry['chamfer_mm']['max']:.2f} mm"

@@ -32,13 +32,15 @@ from bodyfit.models.spaces.population import rest_meshes, segment_scales, space_
 @dataclass(frozen=True)
 class PosedScan:
     """A scan and its first fit: ``points`` (N, 3) in the model's frame (metres), the fit's ``coordinates``
-    (n_dof,), ``root`` (3,) and ``shape`` (n_shape,) in the space it was fitted in."""
+    (n_dof,), ``root`` (3,) and ``shape`` (n_shape,) in the space it was fitted in; ``faces`` (F, 3) the
+    scan's triangles when it is a mesh (None for a point cloud)."""
 
     name: str
     points: np.ndarray
     coordinates: np.ndarray
     root: np.ndarray
     shape: np.ndarray
+    faces: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -68,7 +70,8 @@ def read_fit(scan: Path, fit: Path, units: str = "auto") -> PosedScan:
         if missing:
             raise BodyfitError(f"{fit} is not a bodyfit batch-fit result (no {', '.join(missing)})")
         arrays = {k: np.asarray(npz[k], np.float64) for k in ("shape", "coordinates", "root", "to_model")}
-    points = np.asarray(load_scan(scan, units=units, drop_nonfinite=True).points, np.float64)
+    loaded = load_scan(scan, units=units, drop_nonfinite=True)
+    points = np.asarray(loaded.points, np.float64)
     R, t = arrays["to_model"][:3, :3], arrays["to_model"][:3, 3]
     return PosedScan(
         scan.stem,
@@ -76,6 +79,18 @@ def read_fit(scan: Path, fit: Path, units: str = "auto") -> PosedScan:
         arrays["coordinates"].reshape(-1),
         arrays["root"].reshape(-1),
         arrays["shape"].reshape(-1),
+        None if loaded.faces is None else np.asarray(loaded.faces, np.int64),
+    )
+
+
+def in_topology(model: BodyModel, scan: PosedScan) -> bool:
+    """Whether the scan is a mesh in the model's topology: its vertices (V, 3) and its faces those of the
+    model's template. Such a mesh's correspondence to the template is exact, so it is unposed as it is
+    (:func:`seed_registrations`) instead of being projected and refined through a fit."""
+    return (
+        scan.faces is not None
+        and scan.points.shape == (model.n_vertices, 3)
+        and np.array_equal(scan.faces, np.asarray(model.faces))
     )
 
 
