@@ -9,10 +9,11 @@ What is measured
   field of its own. Training scans and held-out bodies are drawn apart (seeds 2 and 3).
 * Scans: each body posed in the zero pose (standing, arms down) with its offsets skinned along. Quick: the
   posed meshes themselves in our topology (registration-quality inputs, which the batch fit fits as
-  registrations: seconds each); full: raw scans made from them as in ``benchmarks/fit_scans.py`` (surface
-  points with 2 mm noise, 8 % holes, 40,000 points; ``bodyfit batch-fit`` fits them as raw scans: one to
-  three minutes each on 2 shared cores, and each round's registration about a minute more; the full run takes
-  hours there: run it in the background, or with ``--backend``-style parallel fits on a larger machine).
+  registrations: seconds each, and which the rounds unpose as they are instead of projecting them); full:
+  raw scans made from them as in ``benchmarks/fit_scans.py`` (surface points with 2 mm noise, 8 % holes,
+  40,000 points; ``bodyfit batch-fit`` fits them as raw scans: one to three minutes each on 2 shared cores,
+  and each round's registration about a minute more; the full run takes hours there: run it in the
+  background, or with ``--backend``-style parallel fits on a larger machine).
   Quick: 16 scans, 12 held-out bodies, 4 rounds; full: 32 scans, 16 held-out bodies, 6 rounds.
 * First round: ``bodyfit batch-fit`` (the SDK's batch engine, local back-end) fits every scan in the
   shipped space; ``bodyfit grow-space``'s rounds then reuse each scan's pose and re-project its shape,
@@ -27,8 +28,8 @@ What is measured
   accepted (new, total), Chamfer distances and the held-out v2v / v2p (mm and BLiSS's cm).
 * ``grow_anny_*`` (quick run): the same keys for a second space grown from anny bodies outside the adult
   population the shipped space was learned from: children (ages 5-18) and adults at the corners of anny's
-  phenotype sliders (extreme BMI, height and proportions), half each, as registration-quality scans (16 to
-  grow from, 12 held out; :func:`outside_population`).
+  phenotype sliders (extreme BMI, height and proportions), half each, as meshes in our topology (16 to
+  grow from, 12 held out; :func:`outside_population`), unposed as they are.
 
 Usage::
 
