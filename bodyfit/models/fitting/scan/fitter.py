@@ -366,15 +366,14 @@ class ScanFitter:
         if not looks_clothed(field, cfg.threshold_mm / 1000.0, cfg.min_fraction):
             return 0, {}, None
         run.total += len(cfg.phases)
-        before = [t.detach().clone() for t in hyp.state]
+        before = hyp.copy()  # whole: the clothing phases may keep fewer hypotheses than they were given
         n_iter, losses = self._run_phases(hyp, cfg.phases, branch, run, "under the clothing: ", run.pool.map)
         under = self._clothing_field(hyp, run.cleaned)
         if under.bare_offset(self._bare) > cfg.bare_mm / 1000.0:
             # Cloth leaves the head and hands bare: a body pulled in under them as well is a bare body the
             # shape space cannot match (a real person's belly, say), not one under clothing.
-            with torch.no_grad():
-                for tensor, kept in zip(hyp.state, before, strict=True):
-                    tensor.copy_(kept)
+            hyp.rotation, hyp.points, hyp.visible = before.rotation, before.points, before.visible
+            hyp.state = before.state
             return n_iter, {}, None
         return n_iter, losses, under
 
