@@ -372,8 +372,7 @@ class ScanFitter:
         if under.bare_offset(self._bare) > cfg.bare_mm / 1000.0:
             # Cloth leaves the head and hands bare: a body pulled in under them as well is a bare body the
             # shape space cannot match (a real person's belly, say), not one under clothing.
-            hyp.rotation, hyp.points, hyp.visible = before.rotation, before.points, before.visible
-            hyp.state = before.state
+            hyp.join([before])
             return n_iter, {}, None
         return n_iter, losses, under
 

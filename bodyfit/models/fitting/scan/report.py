@@ -186,7 +186,7 @@ def gap_parts(region: np.ndarray, area: np.ndarray, bodies: np.ndarray) -> tuple
     """The parts of the body (:func:`part_name`) that hold at least :data:`MIN_PART_SHARE` of the area of a
     ``region`` (V,) bool of the surface, largest first: ``area`` (V,) each vertex's, ``bodies`` (V,) the
     skeleton body each vertex belongs to."""
-    names = np.array([part_name(str(b)) for b in bodies])[region]
+    names = np.array([part_name(str(b)) for b in bodies[region]])
     parts, index = np.unique(names, return_inverse=True)
     share = np.bincount(index, area[region]) / max(float(area[region].sum()), 1e-12)
     order = np.argsort(-share)
