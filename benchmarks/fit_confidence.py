@@ -42,7 +42,7 @@ import scan_matrix  # benchmarks/ is on sys.path when this runs as a script
 
 from bodyfit.models.body.model import BodyModel
 from bodyfit.models.fitting.common import quality
-from bodyfit.models.fitting.scan.report import MIN_INLIER_FRACTION
+from bodyfit.models.fitting.scan.report import MAX_UNEXPLAINED, MIN_INLIER_FRACTION
 
 TEST_SEED = 5301  # calibration draws with calibrate_quality.CALIBRATION_SEEDS
 GOOD_MM = 10.0
@@ -76,6 +76,7 @@ def judged(row: dict[str, Any], model: BodyModel) -> tuple[float, bool]:
     hard = (
         report["limit_violations"] > 0
         or extra["inlier_fraction"] < MIN_INLIER_FRACTION
+        or extra.get("unexplained_fraction", 0.0) > MAX_UNEXPLAINED
         or extra["fitted_part"] != "whole body"
     )
     return prediction.error_mm, prediction.confident and not hard

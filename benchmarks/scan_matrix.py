@@ -190,16 +190,18 @@ def corrupted_points(
 ) -> np.ndarray:
     """(N, 3) scan points of one body (V, 3; +X forward, +Y up), metres, under ``corruption`` of
     :data:`CORRUPTIONS`, before the rigid motion (:func:`motion`) and the change of units. ``facing`` (3,)
-    is the unit direction the body's front faces (+X when None): ``front_half`` keeps the surface on its
-    side of the body's centre, ``back_half`` the other, so a lying body's halves are its front and back
-    (what a sensor above or below it sees), not its head and feet ends."""
+    is the unit direction the body's front faces (+X when None): ``front_half`` keeps the surface that
+    faces that way (outward normal within 90 degrees of it), ``back_half`` the surface that faces away, as
+    a scanner sweeping half a turn around the body sees it: every limb keeps its visible side, and a lying
+    body's halves are its front and back, not its head and feet ends. (A plane through the body's centre
+    would take whole limbs away, which no sensor does and no fit can place.)"""
     rng = np.random.default_rng(seed)
     if corruption in ("depth", "holes", "clothing"):
         p = fit_scans.make_scan(vertices, faces, corruption, seed)
         return p if corruption == "depth" else p[rng.permutation(len(p))[: round(points * len(p) / 1e5)]]
     dense = 2 * points if corruption in ("front_half", "back_half", "voxels_2cm") else points
-    p, _ = sample_surface(vertices, faces, dense, seed)
-    forward = (p - vertices.mean(axis=0)) @ (np.array([1.0, 0.0, 0.0]) if facing is None else facing)
+    p, normals = sample_surface(vertices, faces, dense, seed)
+    forward = normals @ (np.array([1.0, 0.0, 0.0]) if facing is None else facing)
     if corruption == "front_half":
         return p[forward > 0.0]
     if corruption == "back_half":
