@@ -77,6 +77,7 @@ def judged(row: dict[str, Any], model: BodyModel) -> tuple[float, bool]:
         report["limit_violations"] > 0
         or extra["inlier_fraction"] < MIN_INLIER_FRACTION
         or extra.get("unexplained_fraction", 0.0) > MAX_UNEXPLAINED
+        or extra.get("single_view") is not None
         or extra["fitted_part"] != "whole body"
     )
     return prediction.error_mm, prediction.confident and not hard

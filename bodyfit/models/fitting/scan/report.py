@@ -280,15 +280,23 @@ def both_ways(
     )
 
 
-def _hard_reasons(fraction: float, partial_extent: float | None) -> list[str]:
+def _hard_reasons(fraction: float, partial_extent: float | None, view: np.ndarray | None) -> list[str]:
     """Causes that make a fit not confident whatever its predicted error: too few inliers (the scan may hold
-    more than one body, or none), or a head and shoulders fitted in place of a body (and, from the
-    distances both ways, :meth:`BothWays.hard_reasons`)."""
+    more than one body, or none), a head and shoulders fitted in place of a body, or one sensor's view (and,
+    from the distances both ways, :meth:`BothWays.hard_reasons`). A single view leaves the far side of the
+    body and any limb behind it unseen: on the quick confidence matrix a walking body's left foot was
+    fitted 24 cm from its place (26.5 mm mean over the body) while every distance to the view looked good,
+    so no prediction from those distances can vouch for it."""
     reasons = []
     if fraction < MIN_INLIER_FRACTION:
         reasons.append(
             f"only {fraction:.0%} of the scan's points lie within {INLIER_MM:.0f} mm of the fitted body: "
             "crop the background or other objects, or the scan may not be a human body"
+        )
+    if view is not None:
+        reasons.append(
+            "the scan is one sensor's view: the side of the body it did not see, and any limb hidden behind "
+            "the body, are the model's guess"
         )
     if partial_extent is not None:
         reasons.append(
@@ -298,9 +306,7 @@ def _hard_reasons(fraction: float, partial_extent: float | None) -> list[str]:
     return reasons
 
 
-def _observations(
-    mean_mm: float, coverage: float, view: np.ndarray | None, searched: bool, both: BothWays | None
-) -> list[str]:
+def _observations(mean_mm: float, coverage: float, searched: bool, both: BothWays | None) -> list[str]:
     """What in a fit's distances and circumstances can make its predicted error large: the report's
     ``extra["observations"]``, and its reasons when the prediction is not confident."""
     out = []
@@ -310,8 +316,6 @@ def _observations(
         out.append(
             f"the scan covers {coverage:.0%} of the body surface: the shape and pose of the rest are guesses"
         )
-    if view is not None:
-        out.append("the scan is one sensor's view: the side of the body it did not see is the model's guess")
     if both is not None:
         out += both.reasons()
     if searched:
@@ -389,7 +393,7 @@ def judge(
     inlier = distances * 1000.0 <= INLIER_MM
     stats = DistanceStats.of(distances[inlier])
     fraction = float(inlier.mean())
-    hard = _hard_reasons(fraction, partial_extent) + ([] if both is None else both.hard_reasons())
+    hard = _hard_reasons(fraction, partial_extent, view) + ([] if both is None else both.hard_reasons())
     extra = {
         "inlier_fraction": round(fraction, 4),
         "inlier_threshold_mm": INLIER_MM,
@@ -401,7 +405,7 @@ def judge(
         "orientation_searched": searched,
         **({} if both is None else both.extra()),
         **({} if prior is None else {"prior_distance": prior}),
-        "observations": _observations(stats.mean, coverage, view, searched, both),
+        "observations": _observations(stats.mean, coverage, searched, both),
     }
     if both is None:
         report = FitReport.judged(stats, q, ranges, iterations, seconds, hard, extra)
