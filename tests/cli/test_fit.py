@@ -417,3 +417,25 @@ def test_fit_help_lists_the_kinds(tmp_path: Path) -> None:
             assert f"\n  {kind} " in result.output, kind
     missing = runner.invoke(app, ["fit", str(tmp_path / "none.ply")])
     assert missing.exit_code == 2 and "does not exist" in missing.output
+
+
+def test_fit_a_marker_trial_writes_the_skin(tmp_path: Path) -> None:
+    """`bodyfit fit` on a real walking trial writes the skin estimated from the markers: the mesh sequence
+    (every frame, the model's faces) and a glTF binary of one frame; ``skin=False``
+    writes neither."""
+    from bodyfit.cli.fit.markers import MarkerOptions, fit_marker_trials
+
+    trial = DATA / "opensim_gait" / "gait2392_subject01_walk1.trc"
+    result = runner.invoke(app, ["fit", str(trial), "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    assert "estimating the skin from the markers" in result.output
+    (record,) = json.loads((tmp_path / "fit.json").read_text())
+    with np.load(record["files"]["skin"]) as npz:
+        vertices, faces = npz["vertices"], npz["faces"]
+    model = BodyModel.load()
+    assert vertices.shape == (record["frames"], model.n_vertices, 3) and np.isfinite(vertices).all()
+    np.testing.assert_array_equal(faces, model.faces)
+    assert Path(record["files"]["skin_glb"]).read_bytes()[:4] == b"glTF"
+    off = tmp_path / "off"
+    (bare,) = fit_marker_trials([trial], off, MarkerOptions(skin=False), lambda _: None)
+    assert set(bare["files"]) == {"osim", "mot"} and not list(off.glob("*_skin*"))

@@ -11,7 +11,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
 if TYPE_CHECKING:
-    from bodyfit.models.fitting.mocap.fitter import CalibrationMode
+    from bodyfit.io.mocap import MarkerTrial
+    from bodyfit.models.body.model import BodyModel
+    from bodyfit.models.fitting.mocap.fitter import CalibrationMode, MarkerFit
     from bodyfit.models.fitting.mocap.marker_sets import MarkerSetName
 
 MARKER_SUFFIXES = (".trc", ".c3d")
@@ -21,7 +23,8 @@ MARKER_SUFFIXES = (".trc", ".c3d")
 class MarkerOptions:
     """What the command line says about the trials: static: a standing trial of the same subject;
     static_pose: ``NAME=DEGREES`` items (coordinates held in the static trial's pose); calibration and
-    marker_set: as :func:`fit_markers` takes them; up, forward: the lab's axes (``y``, ``-z``, ...)."""
+    marker_set: as :func:`fit_markers` takes them; up, forward: the lab's axes (``y``, ``-z``, ...); skin:
+    also estimate the subject's skin (:mod:`bodyfit.models.fitting.mocap.skin`) and write it."""
 
     static: Path | None = None
     static_pose: Sequence[str] = ()
@@ -29,6 +32,7 @@ class MarkerOptions:
     marker_set: str = "auto"
     up: str = "y"
     forward: str = "x"
+    skin: bool = True
 
 
 def is_marker_file(path: Path) -> bool:
@@ -61,8 +65,10 @@ def fit_marker_trials(
     trials: Sequence[Path], out: Path, options: MarkerOptions, echo: Callable[[str], None]
 ) -> list[dict[str, Any]]:
     """Fit each trial, write ``<stem>.mot`` and ``<stem>.osim`` (the scaled subject with its calibrated
-    markers) to ``out`` and ``fit.json`` (one record per trial); returns the records. ``echo`` gets one line
-    per trial.
+    markers) to ``out`` and ``fit.json`` (one record per trial); with ``options.skin`` also the subject's
+    skin through the motion, ``<stem>_skin.npz`` (vertices (T, V, 3) float32 m, faces (F, 3), times (T,))
+    and ``<stem>_skin.glb`` (the middle frame); returns the records. ``echo`` gets one line per trial and
+    step.
 
     Raises:
         BodyfitError (unreadable files, marker sets, coordinates), ValueError (bad options), OSError.
@@ -89,6 +95,9 @@ def fit_marker_trials(
             calibration=cast("CalibrationMode", options.calibration),
         )
         files = fit.write(out, model.skeleton.spec, path.stem)
+        if options.skin:
+            echo(f"{path.name}: estimating the skin from the markers ({len(fit.times)} frames)")
+            files.update(write_skin(model, motion, fit, out, path.stem))
         report = fit.report
         records.append(
             {
@@ -109,6 +118,29 @@ def fit_marker_trials(
             echo(f"  {line}")
     (out / "fit.json").write_text(json.dumps(records, indent=1) + "\n")
     return records
+
+
+def write_skin(
+    model: BodyModel, motion: MarkerTrial, fit: MarkerFit, out: Path, stem: str
+) -> dict[str, Path]:
+    """The subject's skin from the markers (:func:`~bodyfit.models.fitting.mocap.skin.fit_skin`) posed
+    through the motion: ``<stem>_skin.npz`` and ``<stem>_skin.glb`` (the middle frame) in ``out``."""
+    import numpy as np
+
+    from bodyfit.models.fitting.mocap.fitter import observed_positions
+    from bodyfit.models.fitting.mocap.skin import fit_skin
+    from bodyfit.service.formats import Bodies, encode_bodies
+
+    observed = observed_positions(motion, list(fit.markers.names))
+    skin = fit_skin(model, fit.scales, fit.coordinates, fit.root, observed)
+    vertices = skin.vertices(model, fit.coordinates, fit.root)
+    faces = model.faces.astype(np.int32)
+    npz = out / f"{stem}_skin.npz"
+    np.savez(npz, vertices=vertices, faces=faces, times=fit.times, shape=skin.shape)
+    middle = vertices[len(vertices) // 2][None]
+    glb = out / f"{stem}_skin.glb"
+    glb.write_bytes(encode_bodies(Bodies(middle, faces, np.zeros((1, 0, 3), np.float32), ()), "glb"))
+    return {"skin": npz, "skin_glb": glb}
 
 
 def _calibration_lines(extra: dict[str, Any]) -> list[str]:
