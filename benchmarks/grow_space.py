@@ -11,9 +11,9 @@ What is measured
   posed meshes themselves in our topology (registration-quality inputs, which the batch fit fits as
   registrations: seconds each, and which the rounds unpose as they are instead of projecting them); full:
   raw scans made from them as in ``benchmarks/fit_scans.py`` (surface points with 2 mm noise, 8 % holes,
-  40,000 points; ``bodyfit batch-fit`` fits them as raw scans: one to three minutes each on 2 shared cores,
-  and each round's registration about a minute more; the full run takes hours there: run it in the
-  background, or with ``--backend``-style parallel fits on a larger machine).
+  40,000 points; ``bodyfit batch-fit`` fits them as raw scans: 4-62 s each on 2 shared cores, and each
+  round registers the pending scans in seconds each; the full run takes about 6 minutes there unloaded,
+  more when the cores are shared: run it in the background).
   Quick: 16 scans, 12 held-out bodies, 4 rounds; full: 32 scans, 16 held-out bodies, 6 rounds.
 * First round: ``bodyfit batch-fit`` (the SDK's batch engine, local back-end) fits every scan in the
   shipped space; ``bodyfit grow-space``'s rounds then reuse each scan's pose and re-project its shape,
