@@ -127,3 +127,26 @@ def test_bad_input(model: BodyModel) -> None:
         fit_skin(model, scales, q, root, markers + 1.0)
     with pytest.raises(MarkerSkinError, match=r"\(T, M, 3\)"):
         fit_skin(model, scales, q, root, markers[..., :2])
+
+
+def test_the_spiral_decoder_code_is_recovered(model: BodyModel) -> None:
+    """The second identity option: a body of the spiral decoder (code 1.5 SD per component) recovered from
+    its markers well below the mean code's error."""
+    from bodyfit.models.decoders.asset import SpiralBodyModel, load_asset
+
+    spiral = SpiralBodyModel(model, load_asset())
+    rng = np.random.default_rng(8)
+    shape = np.concatenate([rng.normal(0.0, 1.0, model.n_bone), rng.normal(0.0, 1.5, spiral.d)])
+    q, root = _walk(model)
+    out = spiral.forward(np.repeat(shape[None], T, 0), q, root)
+    truth = out.vertices.double().numpy()
+    idx = rng.choice(model.n_vertices, 60, replace=False)
+    markers = truth[:, idx] + MARKER_OFFSET * vertex_normals(truth, model.faces)[:, idx]
+    skin = fit_skin(model, out.scales[0].numpy(), q, root, markers, spiral=spiral.asset)
+    assert skin.code is not None and skin.rest_offsets is not None
+    np.testing.assert_array_equal(skin.shape[model.n_bone :], 0.0)
+    mean = shape.copy()
+    mean[model.n_bone :] = 0.0
+    baseline = spiral.forward(np.repeat(mean[None], T, 0), q, root).vertices.numpy()
+    fitted = np.linalg.norm(skin.vertices(model, q, root) - truth, axis=-1).mean()
+    assert fitted < 0.6 * np.linalg.norm(baseline - truth, axis=-1).mean()

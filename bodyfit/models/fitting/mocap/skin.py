@@ -17,11 +17,17 @@ At a fixed pose the skinned vertices are linear in c_s (linear blend skinning of
 solve is one regularised linear least-squares problem: point-to-plane residuals ``n . (p - v(c)) - d`` over
 the markers and frames, and the shape prior ``|c_s|^2`` (the coefficients are in population standard
 deviations, so this is the 1/SD^2 prior that keeps unobserved regions at the mean).
+
+The identity can instead be the code of the spiral identity decoder (:mod:`bodyfit.models.decoders`): its
+rest offsets are carried into the pose by each vertex's blended skinning rotation, and the decoder is
+linearised about the current code (Gauss-Newton with the same residuals and the prior |code|^2).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -30,6 +36,9 @@ from scipy.spatial import cKDTree
 from bodyfit.models.body.model import BodyDecoder, BodyModel
 from bodyfit.models.errors import ShapeError
 from bodyfit.models.fitting.common.surface import vertex_normals
+
+if TYPE_CHECKING:
+    from bodyfit.models.decoders.asset import SpiralAsset
 
 # m: a 14 mm marker (the common gait-lab size) has its centre 7 mm off its base, and the base with its
 # double-sided tape adds about 2.5 mm: the marker centre sits 9.5 mm outside the skin along the normal.
@@ -48,17 +57,21 @@ class MarkerSkinError(ShapeError):
 class MarkerSkin:
     """The subject's body: shape (n_shape,) = [c_b, c_s]; scale_offsets (n_seg, 3) that make the decoder's
     scales the calibrated ones; frames (K,) the frames used; used (K, M) bool: the markers taken as on the
-    skin; residual_mm: their mean distance from ``MARKER_OFFSET`` off the skin after the fit."""
+    skin; residual_mm: their mean distance from ``MARKER_OFFSET`` off the skin after the fit. With the
+    spiral decoder: code (d,) its identity code and rest_offsets (V, 3) its identity offsets (m), c_s = 0."""
 
     shape: np.ndarray
     scale_offsets: np.ndarray
     frames: np.ndarray
     used: np.ndarray
     residual_mm: float
+    code: np.ndarray | None = None
+    rest_offsets: np.ndarray | None = None
 
     def decoder(self, model: BodyModel) -> BodyDecoder:
-        """The float32 decoder whose skeleton is the calibrated one."""
-        return model.scaled_decoder(self.scale_offsets)
+        """The float32 decoder whose skeleton is the calibrated one (carrying the spiral offsets if any)."""
+        decoder = model.scaled_decoder(self.scale_offsets)
+        return decoder if self.rest_offsets is None else decoder.with_offsets(self.rest_offsets)
 
     def vertices(
         self, model: BodyModel, coordinates: np.ndarray, root: np.ndarray, chunk: int = 64
@@ -143,6 +156,11 @@ def _assemble(
     return J, b, used
 
 
+Linearisation = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+"""Identity coefficients c (n,) -> the posed skin about them as base (K, V, 3) and basis (n, K, V, 3):
+verts(c') ~ base + c' . basis."""
+
+
 def fit_skin(
     model: BodyModel,
     scales: np.ndarray,
@@ -150,17 +168,21 @@ def fit_skin(
     root: np.ndarray,
     observed: np.ndarray,
     *,
+    spiral: SpiralAsset | None = None,
     frames: int = SKIN_FRAMES,
     offset: float = MARKER_OFFSET,
     sigma: float = RESIDUAL_SIGMA,
 ) -> MarkerSkin:
-    """The identity coefficients that put the observed markers ``offset`` outside the posed skin.
+    """The identity that puts the observed markers ``offset`` outside the posed skin.
 
     Args:
         model: the body model. scales: (n_seg, 3) calibrated segment scales (kept exactly).
         coordinates: (T, n_dof), root: (T, 3): the poses of the trial's frames (from the marker IK).
         observed: (T, M, 3) marker positions (m; NaN where missing), any marker set: markers that are not
             within :data:`MAX_GAP` of the skin (on wands, or mislabelled) are left out on each frame.
+        spiral: None: the identity is the linear identity PCA's coefficients; a spiral decoder asset
+            (:func:`~bodyfit.models.decoders.asset.load_asset`): its code (``MarkerSkin.code``), the skin then
+            carrying the decoder's offsets (``MarkerSkin.rest_offsets``) on the bone-only template.
         frames: how many frames spread over the motion are used. offset: marker centre to skin (m).
         sigma: marker scatter about the skin (m) per frame: weight of the markers against the shape prior.
     Returns:
@@ -168,6 +190,33 @@ def fit_skin(
     Raises:
         MarkerSkinError: shapes that disagree, non-finite poses, or fewer than 3 markers on the skin.
     """
+    q, r, obs = _checked(model, coordinates, root, observed)
+    c_b, offsets = bone_coefficients(model, scales)
+    pick = spread_frames(obs, frames)
+    decoder = model.scaled_decoder(offsets, torch.float64)
+    base, basis = _linear_skin(decoder, c_b, model.n_identity, q[pick], r[pick])
+    if spiral is None:
+        c, used, residual = _solve(
+            lambda _: (base, basis), model.n_identity, model.faces, obs[pick], offset, sigma
+        )
+        return MarkerSkin(np.concatenate([c_b, c]), offsets, pick, used, residual)
+    with torch.no_grad():
+        shape = torch.as_tensor(np.concatenate([c_b, np.zeros(model.n_identity)])[None].repeat(len(pick), 0))
+        frames_k = decoder(shape, torch.as_tensor(q[pick]), torch.as_tensor(r[pick]))[2]
+    turn = decoder.blended_rotations(frames_k, torch.as_tensor(q[pick]))  # (K, V, 3, 3)
+    code, used, residual = _solve(
+        _spiral_linearisation(spiral, base, turn), spiral.decoder.d, model.faces, obs[pick], offset, sigma
+    )
+    rest = spiral_offsets(spiral, code[None])[0]
+    return MarkerSkin(
+        np.concatenate([c_b, np.zeros(model.n_identity)]), offsets, pick, used, residual, code, rest
+    )
+
+
+def _checked(
+    model: BodyModel, coordinates: np.ndarray, root: np.ndarray, observed: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The poses and markers of :func:`fit_skin` as float64 arrays, checked."""
     q, r, obs = (np.asarray(a, np.float64) for a in (coordinates, root, observed))
     T = len(q)
     if q.ndim != 2 or q.shape[1] != model.skeleton.n_dof or r.shape != (T, 3) or obs.shape[:1] != (T,):
@@ -179,20 +228,49 @@ def fit_skin(
         raise MarkerSkinError(f"observed markers must have shape (T, M, 3) with T > 0; got {obs.shape}")
     if not (np.isfinite(q).all() and np.isfinite(r).all()):
         raise MarkerSkinError("coordinates and root must be finite")
-    c_b, offsets = bone_coefficients(model, scales)
-    pick = spread_frames(obs, frames)
-    decoder = model.scaled_decoder(offsets, torch.float64)
-    base, basis = _linear_skin(decoder, c_b, model.n_identity, q[pick], r[pick])
-    c_s = np.zeros(model.n_identity)
-    weight = 1.0 / (sigma**2 * len(pick))  # the frames see the same markers: together they count as one
+    return q, r, obs
+
+
+def spiral_offsets(spiral: SpiralAsset, code: np.ndarray) -> np.ndarray:
+    """The spiral decoder's rest-pose identity offsets (B, V, 3) float64 of codes (B, d) in standard
+    deviations of the training codes."""
+    z = torch.as_tensor(spiral.latent_mean + np.asarray(code) * spiral.latent_std, dtype=torch.float32)
+    with torch.no_grad():
+        return spiral.decoder(z).double().numpy()
+
+
+def _spiral_linearisation(spiral: SpiralAsset, bone_only: np.ndarray, turn: np.ndarray) -> Linearisation:
+    """The posed skin about a spiral code: ``bone_only`` (K, V, 3) is the posed template without identity,
+    ``turn`` (K, V, 3, 3) each vertex's blended skinning rotation, which carries a rest offset into the pose.
+    The decoder's derivative is a central difference (step 0.05 SD): d forward passes instead of V."""
+    d = spiral.decoder.d
+
+    def linearise(code: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        step = 0.05 * np.eye(d)
+        D = spiral_offsets(spiral, np.concatenate([code[None], code + step, code - step]))
+        slope = (D[1 : 1 + d] - D[1 + d :]) / 0.1  # (d, V, 3)
+        basis = np.einsum("kvij,nvj->nkvi", turn, slope)
+        base = bone_only + np.einsum("kvij,vj->kvi", turn, D[0]) - np.einsum("n,nkvi->kvi", code, basis)
+        return base, basis
+
+    return linearise
+
+
+def _solve(
+    linearise: Linearisation, n: int, faces: np.ndarray, observed: np.ndarray, offset: float, sigma: float
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Gauss-Newton on the identity (n,) from 0: point-to-plane marker residuals (:func:`_assemble`) against
+    the prior |c|^2. Returns the identity, the markers used (K, M) and their mean residual (mm)."""
+    c = np.zeros(n)
+    weight = 1.0 / (sigma**2 * len(observed))  # the frames see the same markers: together they count as one
     for _ in range(ITERATIONS):
-        verts = base + np.einsum("i,ikvc->kvc", c_s, basis)
-        J, b, used = _assemble(verts, basis, model.faces, obs[pick], offset)
+        base, basis = linearise(c)
+        verts = base + np.einsum("i,ikvc->kvc", c, basis)
+        J, b, used = _assemble(verts, basis, faces, observed, offset)
         if used.any(axis=0).sum() < 3:
             raise MarkerSkinError("fewer than 3 markers lie on the skin: the markers do not match the poses")
-        # residual b - J dc about c_s: minimise w |b - J dc|^2 + |c_s + dc|^2
-        dc = np.linalg.solve(weight * J.T @ J + np.eye(len(c_s)), weight * J.T @ b - c_s)
-        c_s = c_s + dc
-    verts = base + np.einsum("i,ikvc->kvc", c_s, basis)
-    _, b, used = _assemble(verts, basis, model.faces, obs[pick], offset)
-    return MarkerSkin(np.concatenate([c_b, c_s]), offsets, pick, used, float(np.abs(b).mean() * 1000))
+        # residual b - J dc about c: minimise w |b - J dc|^2 + |c + dc|^2
+        c = c + np.linalg.solve(weight * J.T @ J + np.eye(n), weight * J.T @ b - c)
+    base, basis = linearise(c)
+    _, b, used = _assemble(base + np.einsum("i,ikvc->kvc", c, basis), basis, faces, observed, offset)
+    return c, used, float(np.abs(b).mean() * 1000)
