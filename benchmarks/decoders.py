@@ -200,12 +200,16 @@ def _skin_markers(model: Any, set_name: str, out: Any, rng: np.random.Generator)
     skel = model.skeleton
     bodies = vm.body_indices(skel)
     segments = torch.as_tensor([skel.spec.body_segment_index[b] for b in bodies])
-    first = body_points(out.frames[:1].double(), out.scales[:1].double(), torch.as_tensor(bodies), segments,
-                        torch.as_tensor(vm.local))[0].numpy()  # fmt: skip
+    everywhere = body_points(out.frames.double(), out.scales.double(), torch.as_tensor(bodies), segments,
+                             torch.as_tensor(vm.local)).numpy()  # fmt: skip
     verts = out.vertices.double().numpy()
-    nearest = np.linalg.norm(verts[0][None] - first[:, None], axis=-1).argmin(1)
+    nearest = np.linalg.norm(verts[0][None] - everywhere[0][:, None], axis=-1).argmin(1)
     normals = vertex_normals(verts, model.faces)[:, nearest]
-    pos = verts[:, nearest] + MARKER_OFFSET * normals + rng.normal(0.0, MARKER_NOISE, normals.shape)
+    pos = verts[:, nearest] + MARKER_OFFSET * normals
+    # joint-centre "markers" (RHJC, R_KJC, ...) are computed by the lab inside the body: they stay there
+    centres = np.array(["JC" in name for name in vm.names])
+    pos[:, centres] = everywhere[:, centres]
+    pos += rng.normal(0.0, MARKER_NOISE, pos.shape)
     pos[rng.random(pos.shape[:2]) < MARKER_DROPOUT] = np.nan
     times = np.arange(len(pos)) / MARKER_RATE
     return MarkerTrial(tuple(vm.names), pos, MARKER_RATE, times, f"synthetic {set_name}")
