@@ -407,6 +407,12 @@ def test_no_kind_refuses_an_option_of_another_kind(tmp_path: Path) -> None:
     assert result.exit_code == 2
     assert "--fps is an option of `bodyfit fit sequence`" in result.output
     assert "is a motion-capture marker trial" in result.output and "leave --fps out" in result.output
+    import trimesh
+
+    path = tmp_path / "sphere.ply"
+    trimesh.creation.icosphere(subdivisions=2).export(path)
+    scan = runner.invoke(app, ["fit", str(path), "--no-skin", "--out", str(tmp_path / "s")])
+    assert scan.exit_code == 2 and "--skin is an option of `bodyfit fit markers`" in scan.output
 
 
 def test_fit_help_lists_the_kinds(tmp_path: Path) -> None:
@@ -439,3 +445,8 @@ def test_fit_a_marker_trial_writes_the_skin(tmp_path: Path) -> None:
     off = tmp_path / "off"
     (bare,) = fit_marker_trials([trial], off, MarkerOptions(skin=False), lambda _: None)
     assert set(bare["files"]) == {"osim", "mot"} and not list(off.glob("*_skin*"))
+    for command in (["fit"], ["fit", "markers"]):  # the command line's --no-skin
+        cli_off = tmp_path / f"cli_off_{len(command)}"
+        result = runner.invoke(app, [*command, str(trial), "--no-skin", "--out", str(cli_off)])
+        assert result.exit_code == 0, result.output
+        assert "estimating the skin" not in result.output and not list(cli_off.glob("*_skin*"))

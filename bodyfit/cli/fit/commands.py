@@ -80,6 +80,7 @@ CALIBRATION_HELP = (
 MARKER_SET_HELP = "Marker protocol: auto (from the marker names), gait2392 or rajagopal."
 MARKER_UP_HELP = "The lab's up axis: x, y or z with an optional sign (e.g. z, -y)."
 FORWARD_HELP = "The lab's forward (walking) axis: x, y or z with an optional sign."
+SKIN_HELP = "Also estimate the subject's skin from the markers: <trial>_skin.npz and <trial>_skin.glb."
 FPS_HELP = "Frames per second (Hz) of the sequence, for the times in the .mot."
 Calibration = Literal["auto", "static", "motion"]
 OPTION_KINDS: dict[str, tuple[Kind, ...]] = {
@@ -95,6 +96,7 @@ OPTION_KINDS: dict[str, tuple[Kind, ...]] = {
     "--marker-set": ("markers",),
     "--up": ("scan", "markers"),
     "--forward": ("markers",),
+    "--skin": ("markers",),
     "--fps": ("sequence",),
     "--subject": ("scan", "sequence"),
 }
@@ -211,16 +213,18 @@ def markers(
     marker_set: Annotated[str, typer.Option(help=MARKER_SET_HELP)] = "auto",
     up: Annotated[str, typer.Option(help=MARKER_UP_HELP)] = "y",
     forward: Annotated[str, typer.Option(help=FORWARD_HELP)] = "x",
+    skin: Annotated[bool, typer.Option("--skin/--no-skin", help=SKIN_HELP)] = True,
 ) -> None:
     """Fit motion-capture marker trials: the skeleton's coordinates per frame.
 
     OpenSim gait2392 or Rajagopal marker names. The subject is calibrated from the static trial (--static)
     or from the motion, then every frame is solved. Writes <trial>.mot (degrees, as OpenSim reads it),
-    <trial>.osim (the scaled subject with its markers, for OpenSim) and fit.json (one error report per
-    trial: marker distances in mm, joint-limit violations, confidence).
+    <trial>.osim (the scaled subject with its markers, for OpenSim), fit.json (one error report per
+    trial: marker distances in mm, joint-limit violations, confidence) and, unless --no-skin,
+    <trial>_skin.npz (the skin per frame) and <trial>_skin.glb (one frame).
     """
     _only(files, "markers")
-    options = MarkerOptions(static, tuple(static_pose or ()), calibration, marker_set, up, forward)
+    options = MarkerOptions(static, tuple(static_pose or ()), calibration, marker_set, up, forward, skin)
     run_markers(files, out, options)
 
 
@@ -274,6 +278,9 @@ def auto(
         typer.Option(help=f"Markers: {MARKER_UP_HELP} Default: y. Scans: {SCAN_UP_HELP}"),
     ] = None,
     forward: Annotated[str | None, typer.Option(help=f"Markers: {FORWARD_HELP} Default: x.")] = None,
+    skin: Annotated[
+        bool | None, typer.Option("--skin/--no-skin", help=f"Markers: {SKIN_HELP} Default: --skin.")
+    ] = None,
     fps: Annotated[float | None, typer.Option(min=0.001, help=f"Sequences: {FPS_HELP} Default: 30.")] = None,
     facing: Annotated[str | None, typer.Option(help=f"Scans: {SCAN_FACING_HELP}")] = None,
     pose: Annotated[PoseClass | None, typer.Option(help=f"Scans: {SCAN_POSE_HELP}")] = None,
@@ -297,6 +304,7 @@ def auto(
         "--marker-set": marker_set,
         "--up": up,
         "--forward": forward,
+        "--skin": skin,
         "--fps": fps,
         "--facing": facing,
         "--pose": pose,
@@ -318,6 +326,7 @@ def auto(
             marker_set or "auto",
             up or "y",
             forward or "x",
+            skin is not False,
         )
         run_markers(files, out, options)
     elif kind == "sequence":
