@@ -3,8 +3,9 @@
 * :func:`build_smpl_like_model`: an SMPL-format model file (SMPL's 24-joint tree and key names) whose
   template is the CC BY 4.0 body ``data/smpl_ccby/human_man.obj`` (SMPL topology); shape directions are a
   PCA of our model's population (learned from anny's) carried onto that topology; the joint regressor is
-  fitted (non-negative) to SMPL-like joint locations taken from our anatomical joints; skinning weights are
-  ours, carried over and summed per SMPL joint; pose correctives are zero. It exercises path (a) end to end.
+  fitted (non-negative, each joint's weights summing to one) to SMPL-like joint locations taken from our
+  anatomical joints; skinning weights are ours, carried over and summed per SMPL joint; pose correctives
+  are zero. It exercises path (a) end to end.
 * :func:`smpl_poses_from_ours`: SMPL axis-angle poses and translations reproducing our posed bodies (each
   SMPL joint follows the rotation of one of our bodies from the T-pose; the elbows also carry the forearm's
   twist, :func:`forearm_twist`), so CMU motion retargeted onto our skeleton becomes an AMASS-style sequence
@@ -44,7 +45,14 @@ FOLLOWS = (
 )  # fmt: skip
 SKIN = {"patella_l": 4, "patella_r": 5, "calcn_l": 7, "calcn_r": 8, "radius_l": 18, "radius_r": 19,
         "scapulothoracic_link_l": 13, "scapulothoracic_link_r": 14}  # fmt: skip
-REGRESSOR_NEIGHBOURS = 40
+REGRESSOR_NEIGHBOURS = 200
+"""Vertices nearest each joint that its regressor mixes. A joint deep inside the body (the lumbar and
+thoracic joints, the hips) lies inside the convex hull of the skin around it only when the neighbourhood
+reaches the opposite side of the trunk or limb: with 40 the regressed spine joints sat 6-10 cm off ours, so
+the LBS mesh turned its trunk about the wrong points and read as a tilted pelvis."""
+REGRESSOR_SUM_WEIGHT = 1e3
+"""Weight of the row that holds each joint's regressor weights at a sum of one (a convex combination, as
+SMPL's regressor is), inside the non-negative least squares rather than by rescaling after it."""
 
 
 def _carry(
@@ -104,7 +112,8 @@ def build_smpl_like_model(
         _, near = tree.query(joints[0, j], REGRESSOR_NEIGHBOURS)
         A = np.concatenate([pop[:, near, k] for k in range(3)])  # (3P, n)
         rhs = np.concatenate([joints[:, j, k] for k in range(3)])
-        w, _ = nnls(A, rhs)
+        A = np.vstack([A, np.full(len(near), REGRESSOR_SUM_WEIGHT)])
+        w, _ = nnls(A, np.append(rhs, REGRESSOR_SUM_WEIGHT))
         J_reg[j, near] = w / max(w.sum(), 1e-9)
 
     ours = model.data["weights"]  # (V, n_body) in body order
