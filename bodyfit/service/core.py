@@ -666,19 +666,40 @@ def _personal_refinement(
     body: FixedBody,
     progress: Callable[[int, int, str], None],
 ) -> ScanFit:
-    """A raw scan of a known person: the population's fit ``start`` (orientation searched, limbs placed)
-    refined by ``scanner`` (:meth:`ScanFitter.for_body`: its point-to-plane phases and the non-rigid
-    refinement, on the scan's points that the scene separation keeps, as the population's fit did) with the
-    person's shape and template held fixed, then answered in the scan's frame. A pose-only fit of the person
-    from the rigid start can settle with the legs swapped on a surface it matches within a millimetre; the
-    population's fit places the limbs first. A head and shoulders is fitted by ``scanner`` alone (its own
-    upper-body phases).
+    """A raw scan of a known person: of two fits of the person's body (:meth:`ScanFitter.for_body`, shape
+    and template held fixed) the one whose surface lies closer to the scan's points. One is ``scanner``'s
+    own search (orientation and limbs searched with the person's body); the other refines the population's
+    fit ``start`` (its point-to-plane phases and the non-rigid refinement, from ``start``'s pose). The
+    population's pose is fitted with a free shape, so it carries that shape's errors into a limb's angle;
+    the person's own search can settle with the legs swapped on a surface it matches within a millimetre,
+    where the population's fit places the limbs first. Both hold the same body, so their distances to the
+    scan compare. A head and shoulders is fitted by ``scanner`` alone (its own upper-body phases).
 
     In the frame ``start``'s parameters pose the body in (``x_body = R x_scan + t`` from its
     ``scan_to_body``) the refinement's parameters hold the placement themselves, so its map is ``start``'s.
     """
+    own = scanner.fit(scan, progress=progress)
     if start.report.extra.get("fitted_part") == "head and shoulders":
-        return scanner.fit(scan, progress=progress)
+        return own
+    placed = _placed_refinement(scanner, scan, start, body, progress)
+    return own if _scan_residual(own) < _scan_residual(placed) else placed
+
+
+def _scan_residual(fit: ScanFit) -> float:
+    """How far ``fit``'s surface lies from the scan: the mean distance (m) of its kept points to the
+    registration, each capped at 2 cm so that a stray point does not decide between two fits of one body."""
+    return float(np.minimum(fit.point_distances, 0.02).mean())
+
+
+def _placed_refinement(
+    scanner: ScanFitter,
+    scan: Scan | PreparedScan,
+    start: ScanFit,
+    body: FixedBody,
+    progress: Callable[[int, int, str], None],
+) -> ScanFit:
+    """The population's fit ``start`` refined by ``scanner`` with the person's shape held (see
+    :func:`_personal_refinement`), answered in the scan's frame."""
     turn = start.scan_to_body
     R, t = turn[:3, :3], turn[:3, 3]
     person = prepare_scan(scan, scanner.config).points
