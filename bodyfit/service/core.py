@@ -673,11 +673,7 @@ def _personal_refinement(
     population's pose is fitted with a free shape, so it carries that shape's errors into a limb's angle;
     the person's own search can settle with the legs swapped on a surface it matches within a millimetre,
     where the population's fit places the limbs first. Both hold the same body, so their distances to the
-    scan compare. A head and shoulders is fitted by ``scanner`` alone (its own upper-body phases).
-
-    In the frame ``start``'s parameters pose the body in (``x_body = R x_scan + t`` from its
-    ``scan_to_body``) the refinement's parameters hold the placement themselves, so its map is ``start``'s.
-    """
+    scan compare. A head and shoulders is fitted by ``scanner`` alone (its own upper-body phases)."""
     own = scanner.fit(scan, progress=progress)
     if start.report.extra.get("fitted_part") == "head and shoulders":
         return own
@@ -699,7 +695,11 @@ def _placed_refinement(
     progress: Callable[[int, int, str], None],
 ) -> ScanFit:
     """The population's fit ``start`` refined by ``scanner`` with the person's shape held (see
-    :func:`_personal_refinement`), answered in the scan's frame."""
+    :func:`_personal_refinement`), answered in the scan's frame.
+
+    In the frame ``start``'s parameters pose the body in (``x_body = R x_scan + t`` from its
+    ``scan_to_body``) the refinement's parameters hold the placement themselves, so its map is ``start``'s.
+    """
     turn = start.scan_to_body
     R, t = turn[:3, :3], turn[:3, 3]
     person = prepare_scan(scan, scanner.config).points
